@@ -1,0 +1,22 @@
+"""NNCG: compiles a trained CNN given as ONNX into one plain C file and header.
+
+Pipeline: ONNX -> graph IR (nncg.frontend) -> graph passes -> loop-nest IR (nncg.lowering) ->
+loop passes (nncg.passes) -> C (nncg.backends)."""
+
+__version__ = "0.1.0"
+
+from .compiler import CompiledModel, compile, emit  # noqa: E402
+from .errors import NncgError  # noqa: E402
+from .frontend import import_onnx, load_model  # noqa: E402
+from .passes import PassManager, default_pipeline  # noqa: E402
+
+__all__ = [
+    "CompiledModel",
+    "NncgError",
+    "PassManager",
+    "compile",
+    "default_pipeline",
+    "emit",
+    "import_onnx",
+    "load_model",
+]

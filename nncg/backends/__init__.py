@@ -1,0 +1,16 @@
+"""Backends print the loop-nest IR as C for one target; each is a class registered by name."""
+
+from __future__ import annotations
+
+from ..errors import NncgError
+from .c import AnsiC
+from .ssse3 import Ssse3
+
+BACKENDS: dict[str, type[AnsiC]] = {cls.name: cls for cls in (AnsiC, Ssse3)}
+
+
+def get_backend(name: str) -> AnsiC:
+    try:
+        return BACKENDS[name]()
+    except KeyError:
+        raise NncgError(f"unknown target '{name}'; targets: {', '.join(BACKENDS)}") from None

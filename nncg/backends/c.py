@@ -1,0 +1,262 @@
+"""Backend: prints the loop-nest IR as C. `AnsiC` is the strict C89 printer; SIMD backends subclass it
+and override only the vector hooks (type, load, store, broadcast, arithmetic, select)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import NncgError
+from ..ir.loops import (
+    Affine,
+    Assign,
+    Binary,
+    Bound,
+    Broadcast,
+    Call,
+    Const,
+    Expr,
+    If,
+    Let,
+    Load,
+    LocalRef,
+    Loop,
+    Program,
+    Stmt,
+    Store,
+    stmt_exprs,
+    walk_exprs,
+    walk_stmts,
+)
+
+INDENT = "    "
+VALUES_PER_LINE = 8
+
+
+def c_float(value: float) -> str:
+    """The shortest float32 literal that reads back to the same float32 (C89: no INFINITY macro)."""
+    v = np.float32(value)
+    if np.isnan(v):
+        raise NncgError("the model contains a NaN constant; NNCG cannot print it as a C literal")
+    if np.isinf(v):
+        return "(-(float)HUGE_VAL)" if v < 0 else "((float)HUGE_VAL)"
+    text = np.format_float_positional(v, unique=True, trim="0")
+    if len(text) > 12:
+        text = np.format_float_scientific(v, unique=True, trim="0")
+    return text + "f"
+
+
+def c_affine(index: Affine) -> str:
+    parts = [var if c == 1 else f"{c} * {var}" for var, c in index.terms]
+    if index.const or not parts:
+        parts.append(str(index.const))
+    return " + ".join(parts).replace("+ -", "- ")
+
+
+def unparen(text: str) -> str:
+    """Drops one pair of parentheses that encloses the whole expression."""
+    if not (text.startswith("(") and text.endswith(")")):
+        return text
+    depth = 0
+    for i, ch in enumerate(text):
+        depth += {"(": 1, ")": -1}.get(ch, 0)
+        if depth == 0 and i < len(text) - 1:
+            return text
+    return text[1:-1]
+
+
+class AnsiC:
+    """Strict C89 plus math.h: scalar code, conditional moves for max/min/select."""
+
+    name = "ansi-c"
+    lanes = 1
+    cflags: tuple[str, ...] = ()
+    strict_cflags: tuple[str, ...] = ("-std=c89", "-pedantic", "-Wall", "-Wextra", "-Werror")
+    includes: tuple[str, ...] = ("<math.h>",)
+    scalar_type = "float"
+
+    # ------------------------------------------------------------------ the file
+
+    def source(self, program: Program, first_line: str, header_name: str) -> str:
+        lines = [first_line, f'#include "{header_name}"']
+        lines += [f"#include {inc}" for inc in self.includes]
+        lines.append("")
+        lines += self._constants(program)
+        lines += self._internal_buffers(program)
+        calls = []
+        for kernel in program.kernels:
+            params = self._kernel_params(program, kernel)
+            lines += self._kernel(program.name, kernel, params)
+            calls.append(f"{INDENT}{program.name}_{kernel.name}({', '.join(b.name for b in params)});")
+        lines += [self.signature(program), "{", *calls, "}"]
+        return "\n".join(lines) + "\n"
+
+    def header(self, program: Program, first_line: str) -> str:
+        guard = f"{program.name.upper()}_H"
+        lines = [
+            first_line,
+            f"#ifndef {guard}",
+            f"#define {guard}",
+            "",
+            "#ifdef __cplusplus",
+            'extern "C" {',
+            "#endif",
+            "",
+        ]
+        for buf in (*program.role("input"), *program.role("output")):
+            shape = ",".join(map(str, buf.shape))
+            lines.append(f"/* {buf.role} '{buf.onnx_name}': float32[{shape}], row-major as in ONNX */")
+            lines.append(f"#define {program.name.upper()}_{buf.name.upper()}_SIZE {buf.size}")
+        lines += [
+            "",
+            "/* Runs one inference: inputs, then outputs. Activations live in static buffers,",
+            "   so calls must not overlap (not reentrant). */",
+            self.signature(program) + ";",
+            "",
+            "#ifdef __cplusplus",
+            "}",
+            "#endif",
+            "",
+            f"#endif /* {guard} */",
+        ]
+        return "\n".join(lines) + "\n"
+
+    def signature(self, program: Program) -> str:
+        params = [f"const float *{b.name}" for b in program.role("input")]
+        params += [f"float *{b.name}" for b in program.role("output")]
+        return f"void {program.name}({', '.join(params)})"
+
+    def _constants(self, program: Program) -> list[str]:
+        lines = []
+        for buf in program.role("constant"):
+            values = [c_float(v) for v in program.constants[buf.name].ravel()]
+            lines.append(f"static const float {buf.name}[{buf.size}] = {{")
+            for i in range(0, len(values), VALUES_PER_LINE):
+                lines.append(INDENT + ", ".join(values[i : i + VALUES_PER_LINE]) + ",")
+            lines.append("};")
+        return lines + ([""] if lines else [])
+
+    def _internal_buffers(self, program: Program) -> list[str]:
+        lines = [
+            f"static float {b.name}[{b.size}]; /* {'x'.join(map(str, b.shape))} {b.layout} */"
+            for b in program.role("internal")
+        ]
+        return lines + ([""] if lines else [])
+
+    @staticmethod
+    def _kernel_params(program: Program, kernel) -> list:
+        """The function parameters (inputs, outputs) a kernel touches, in signature order."""
+        used = {s.buffer for s in walk_stmts(kernel.body) if isinstance(s, Store)}
+        used |= {
+            e.buffer
+            for s in walk_stmts(kernel.body)
+            for top in stmt_exprs(s)
+            for e in walk_exprs(top)
+            if isinstance(e, Load)
+        }
+        return [b for b in (*program.role("input"), *program.role("output")) if b.name in used]
+
+    def _kernel(self, prefix: str, kernel, params) -> list[str]:
+        """One static function per layer: compilers optimise several medium functions much faster
+        than one huge one, and it inlines them back into the single entry point anyway."""
+        args = ", ".join(f"{'const ' if b.role == 'input' else ''}float *{b.name}" for b in params) or "void"
+        loop_vars = sorted({s.var for s in walk_stmts(kernel.body) if isinstance(s, Loop)})
+        lines = [f"/* {kernel.name}: {kernel.op} */", f"static void {prefix}_{kernel.name}({args})", "{"]
+        if loop_vars:
+            lines.append(f"{INDENT}int {', '.join(loop_vars)};")
+        lines += self._stmts(kernel.body, 1)
+        return lines + ["}", ""]
+
+    # ------------------------------------------------------------------ statements
+
+    def _stmts(self, body: tuple[Stmt, ...], depth: int) -> list[str]:
+        out: list[str] = []
+        for stmt in body:
+            out += getattr(self, f"_stmt_{type(stmt).__name__}")(stmt, depth)
+        return out
+
+    def _stmt_Loop(self, loop: Loop, depth: int) -> list[str]:
+        if loop.kind != "serial":
+            raise NncgError(f"loop '{loop.var}' is still marked {loop.kind}: run the pass that materialises it")
+        pad = INDENT * depth
+        head = f"{pad}for ({loop.var} = 0; {loop.var} < {loop.extent}; ++{loop.var}) {{"
+        return [head, *self._stmts(loop.body, depth + 1), pad + "}"]
+
+    def _stmt_Let(self, let: Let, depth: int) -> list[str]:
+        pad = INDENT * depth
+        decl = f"{pad}{INDENT}{self.type_of(let.init.lanes)} {let.name} = {self.expr(let.init)};"
+        return [pad + "{", decl, *self._stmts(let.body, depth + 1), pad + "}"]
+
+    def _stmt_If(self, stmt: If, depth: int) -> list[str]:
+        pad = INDENT * depth
+        cond = " && ".join(self._bound(b) for b in stmt.bounds)
+        return [f"{pad}if ({cond}) {{", *self._stmts(stmt.body, depth + 1), pad + "}"]
+
+    def _bound(self, bound: Bound) -> str:
+        e = c_affine(bound.expr)
+        sides = ([f"{e} >= {bound.lo}"] if bound.lo is not None else []) + (
+            [f"{e} < {bound.hi}"] if bound.hi is not None else []
+        )
+        return " && ".join(sides)
+
+    def _stmt_Store(self, store: Store, depth: int) -> list[str]:
+        return [INDENT * depth + self.store(store.buffer, store.index, store.value) + ";"]
+
+    def _stmt_Assign(self, assign: Assign, depth: int) -> list[str]:
+        return [INDENT * depth + self.assign(assign.name, assign.value) + ";"]
+
+    # ------------------------------------------------------------------ scalar and vector hooks
+
+    def type_of(self, lanes: int) -> str:
+        self._scalar_only(lanes)
+        return self.scalar_type
+
+    def store(self, buffer: str, index: Affine, value: Expr) -> str:
+        self._scalar_only(value.lanes)
+        return f"{buffer}[{c_affine(index)}] = {unparen(self.expr(value))}"
+
+    def assign(self, name: str, value: Expr) -> str:
+        # acc = acc + e reads better as acc += e
+        if isinstance(value, Binary) and value.op in "+-*/" and value.a == LocalRef(name, value.lanes):
+            if value.lanes == 1:
+                return f"{name} {value.op}= {unparen(self.expr(value.b))}"
+        return f"{name} = {unparen(self.expr(value))}"
+
+    def expr(self, e: Expr) -> str:
+        return getattr(self, f"_expr_{type(e).__name__}")(e)
+
+    def _expr_Const(self, e: Const) -> str:
+        self._scalar_only(e.lanes)
+        return c_float(e.values[0])
+
+    def _expr_Load(self, e: Load) -> str:
+        self._scalar_only(e.lanes)
+        return f"{e.buffer}[{c_affine(e.index)}]"
+
+    def _expr_LocalRef(self, e: LocalRef) -> str:
+        return e.name
+
+    def _expr_Broadcast(self, e: Broadcast) -> str:
+        self._scalar_only(e.lanes)
+        return self.expr(e.value)
+
+    def _expr_Binary(self, e: Binary) -> str:
+        self._scalar_only(e.lanes)
+        a, b = self.expr(e.a), self.expr(e.b)
+        if e.op == "max":  # the paper's conditional move
+            return f"({a} > {b} ? {a} : {b})"
+        if e.op == "min":
+            return f"({a} < {b} ? {a} : {b})"
+        return f"({a} {e.op} {b})"
+
+    def _expr_Select(self, e) -> str:
+        self._scalar_only(e.lanes)
+        lhs, rhs, then, other = (self.expr(x) for x in (e.lhs, e.rhs, e.then, e.otherwise))
+        return f"({lhs} {e.cmp} {rhs} ? {then} : {other})"
+
+    def _expr_Call(self, e: Call) -> str:
+        self._scalar_only(e.lanes)
+        return f"(float){e.fn}({self.expr(e.arg)})"  # C89 has only the double versions
+
+    def _scalar_only(self, lanes: int) -> None:
+        if lanes != 1:
+            raise NncgError(f"target {self.name} prints scalar code only; run vectorize with lanes=1 (or not at all)")

@@ -1,0 +1,118 @@
+"""`nncg-onnx`: the command line. Bad input is one line on stderr and exit status 2."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+
+from . import __version__
+from .backends import BACKENDS
+from .errors import NncgError
+
+
+def parse_input_shape(text: str) -> tuple[str, tuple[int, ...]]:
+    name, sep, dims = text.rpartition("=")
+    if not sep or not name or not re.fullmatch(r"\d+(x\d+)*", dims):
+        raise argparse.ArgumentTypeError(f"'{text}' is not NAME=DIMxDIMx... (e.g. input=1x3x60x80)")
+    shape = tuple(int(d) for d in dims.split("x"))
+    if 0 in shape:
+        raise argparse.ArgumentTypeError(f"'{text}': dimensions must be at least 1")
+    return name, shape
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="nncg-onnx",
+        description="Compile an ONNX CNN into one plain C file and header (NAME.c, NAME.h).",
+    )
+    p.add_argument("model", nargs="?", help="the .onnx file")
+    p.add_argument("--target", default="ansi-c", choices=sorted(BACKENDS), help="code to print (default: ansi-c)")
+    p.add_argument("-o", "--output-dir", default=".", help="where NAME.c and NAME.h go (default: .)")
+    p.add_argument("--name", help="C function and file name (default: the model file's stem)")
+    p.add_argument(
+        "--unroll",
+        default="2",
+        metavar="LEVEL|none",
+        help="unroll level: keep the LEVEL outermost loops of each layer, unroll the rest; "
+        "0 unrolls everything, none nothing (default: 2)",
+    )
+    p.add_argument(
+        "--input-shape",
+        action="append",
+        type=parse_input_shape,
+        default=[],
+        metavar="NAME=DIMS",
+        help="fix a dynamic input shape, e.g. image=1x3x60x80 (repeatable)",
+    )
+    p.add_argument("--pipeline", help="run this pass pipeline instead of the default (see --list-passes)")
+    p.add_argument("--print-ir-after-all", action="store_true", help="print the IR after every pass to stderr")
+    p.add_argument(
+        "--verify",
+        action="store_true",
+        help="compile the C with the host compiler, run it and onnxruntime on the same random "
+        "inputs, print the errors; exit 1 above tolerance",
+    )
+    p.add_argument("--tolerance", type=float, default=1e-4, help="max relative error for --verify (default 1e-4)")
+    p.add_argument("--cc", help="C compiler for --verify (default: cc, gcc or clang on PATH)")
+    p.add_argument("--list-passes", action="store_true", help="list the passes and the default pipeline, then exit")
+    p.add_argument("--debug", action="store_true", help="show the traceback of an internal error")
+    p.add_argument("--version", action="version", version=f"nncg {__version__}")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return run(args)
+    except NncgError as exc:
+        print(f"nncg-onnx: error: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:
+        if args.debug:
+            raise
+        print(
+            f"nncg-onnx: internal error: {type(exc).__name__}: {exc} (a bug in NNCG: please report it "
+            "with the model; --debug shows the traceback)",
+            file=sys.stderr,
+        )
+        return 3
+
+
+def run(args: argparse.Namespace) -> int:
+    from .compiler import compile
+    from .passes import REGISTRY, default_pipeline
+
+    if args.list_passes:
+        for info in REGISTRY.values():
+            params = f"{{{','.join(f'{k}=...' for k in info.params)}}}" if info.params else ""
+            print(f"{info.name + params:28} {info.stage:6} {info.doc}")
+        print(f"\ndefault pipeline (ssse3, unroll 2): {default_pipeline(4, '2')}")
+        return 0
+    if not args.model:
+        raise NncgError("no model given: nncg-onnx MODEL.onnx --target ssse3 -o build/")
+    compiled = compile(
+        args.model,
+        target=args.target,
+        unroll=args.unroll,
+        name=args.name,
+        input_shapes=dict(args.input_shape) or None,
+        pipeline=args.pipeline,
+        print_ir_after_all=sys.stderr if args.print_ir_after_all else None,
+    )
+    c_path, h_path = compiled.write(args.output_dir)
+    print(f"wrote {c_path} ({len(compiled.source.encode())} bytes) and {h_path}")
+    if not args.verify:
+        return 0
+    from .frontend import load_model
+    from .verify import verify
+
+    report = verify(
+        load_model(args.model, dict(args.input_shape) or None), compiled, tolerance=args.tolerance, cc=args.cc
+    )
+    print(report.format())
+    return 0 if report.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""ONNX front end (ONNX -> graph IR): the driver. Loads and validates the model, folds constants,
+converts every remaining node and assembles the graph IR with static shapes and float32 constants.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import onnx
+
+from nncg.errors import NncgError, UnsupportedOpsError
+from nncg.frontend.context import Context, OnnxOp
+from nncg.frontend.folding import Folded, NamedNode, fold_constants
+from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, real_inputs
+from nncg.frontend.names import node_reads, value_names
+from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
+from nncg.ir.graph import Graph, Node, Value
+
+
+def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] | None = None) -> Graph:
+    """The graph IR of an ONNX model (path, bytes, ModelProto or load_model's result)."""
+    proto, shapes = load_with_shapes(model, input_shapes)
+    folded = fold_constants(proto, shapes)
+    check_supported(folded.nodes)
+    ctx = _context(proto, folded)
+    nodes = tuple(CONVERTERS[node.op_type](OnnxOp.of(node, name), ctx) for node, name in folded.nodes)
+    return _assemble(proto.graph, nodes, ctx)
+
+
+def check_supported(nodes: list[NamedNode]) -> None:
+    """One error listing every node left after folding that has no converter."""
+    bad = [f"{node.op_type} (node '{name}')" for node, name in nodes if node.op_type not in CONVERTERS]
+    if bad:
+        raise UnsupportedOpsError(
+            f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "
+            f"(plus {FOLDED_OPS}, which are folded at compile time)"
+        )
+
+
+def _context(model: onnx.ModelProto, folded: Folded) -> Context:
+    used = {i for node, _ in folded.nodes for i in node_reads(node)}
+    used |= {v.name for v in model.graph.output}
+    return Context(
+        opset=opset_version(model),
+        constants=dict(folded.constants),
+        shapes=dict(folded.shapes),
+        used=used,
+        taken=value_names(model.graph) | set(folded.constants),
+    )
+
+
+def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> Graph:
+    inputs = tuple(Value(v.name, _static_shape(ctx, v.name, "input")) for v in real_inputs(graph))
+    outputs = tuple(Value(v.name, _static_shape(ctx, v.name, "output")) for v in graph.output)
+    shapes = {v.name: v.shape for v in (*inputs, *outputs)}
+    for node in nodes:
+        for output in node.outputs:
+            shapes[output] = _static_shape(ctx, output, f"output of {node.op} node '{node.name}'")
+    constants = {}
+    for node in nodes:
+        for name in node.inputs:
+            if name in ctx.constants:
+                constants[name] = _float32(node, name, ctx.constants[name])
+    return Graph(graph.name or "model", inputs, outputs, nodes, constants, shapes)
+
+
+def _static_shape(ctx: Context, value: str, role: str) -> tuple[int, ...]:
+    if value not in ctx.shapes:
+        raise NncgError(
+            f"no static shape could be inferred for '{value}' ({role}); fix the input shapes "
+            "or simplify the model (e.g. with onnxsim)"
+        )
+    return ctx.shapes[value]
+
+
+def _float32(node: Node, name: str, array: np.ndarray) -> np.ndarray:
+    """Weights fed to IR ops as float32; other float types (e.g. fp16 BN statistics) are widened."""
+    if array.dtype == np.float32:
+        return np.ascontiguousarray(array)
+    if "float" not in array.dtype.name:
+        raise NncgError(
+            f"{node.op} node '{node.name}' reads constant '{name}' of type {array.dtype.name}; "
+            "NNCG needs float32 weights: re-export the model in float32"
+        )
+    return np.ascontiguousarray(array.astype(np.float32))

@@ -1,0 +1,292 @@
+"""ONNX front end (ONNX -> graph IR), step 1: read and validate the model and fix its input shapes.
+
+The result is the exact model NNCG compiles, so callers can run onnxruntime on it for comparison.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+
+import numpy as np
+import onnx
+from onnx.external_data_helper import load_external_data_for_model, uses_external_data
+
+from nncg.errors import NncgError, UnsupportedOpsError
+from nncg.frontend.names import node_names
+from nncg.frontend.shapes import dtype_name, format_shape, inferred_shapes, one_line
+from nncg.ir.graph import Shape
+
+ModelSource = str | os.PathLike | bytes | onnx.ModelProto
+MIN_OPSET = 7
+DEFAULT_DOMAINS = ("", "ai.onnx")
+
+
+def load_model(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] | None = None) -> onnx.ModelProto:
+    """The validated model with static float32 inputs (value_info dropped); raises NncgError."""
+    return load_with_shapes(model, input_shapes)[0]
+
+
+def load_with_shapes(
+    model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] | None = None
+) -> tuple[onnx.ModelProto, dict[str, Shape]]:
+    """load_model's result and the static shapes strict ONNX shape inference gives its values."""
+    proto, where = _read(model)
+    _check_structure(proto, where)
+    _check_external_data(proto, where)
+    _check_domains(proto)
+    opset_version(proto)
+    # Inputs first: the checker would reject an unknown-rank input before we can say how to fix it.
+    fix_input_shapes(proto.graph, dict(input_shapes or {}))
+    _run_checker(proto)
+    for value in proto.graph.output:
+        _check_float32(value, "output")
+    # Exporters' value_info can contradict ONNX inference (ceil-mode MaxPool before opset 22) and
+    # adds nothing once the inputs are static, so shapes are inferred from scratch.
+    proto.graph.ClearField("value_info")
+    return proto, inferred_shapes(proto)
+
+
+def opset_version(model: onnx.ModelProto) -> int:
+    """The default-domain opset, which must be one NNCG knows the semantics of."""
+    versions = [o.version for o in model.opset_import if o.domain in DEFAULT_DOMAINS]
+    if not versions:
+        raise NncgError("the model imports no ONNX opset (opset_import is empty); re-export it")
+    version, newest = versions[0], onnx.defs.onnx_opset_version()
+    if not MIN_OPSET <= version <= newest:
+        raise NncgError(
+            f"the model uses ONNX opset {version}; NNCG supports opsets {MIN_OPSET} to {newest}: "
+            "convert it with onnx.version_converter.convert_version(model, 13)"
+        )
+    return version
+
+
+def real_inputs(graph: onnx.GraphProto) -> list[onnx.ValueInfoProto]:
+    """Graph inputs without an initializer; the others are constants with a default value."""
+    constants = {t.name for t in graph.initializer} | {t.values.name for t in graph.sparse_initializer}
+    return [v for v in graph.input if v.name not in constants]
+
+
+# --- reading -------------------------------------------------------------------------------------
+
+
+def _read(model: ModelSource) -> tuple[onnx.ModelProto, str]:
+    """The parsed model (a private copy) and how to name its source in messages."""
+    if isinstance(model, onnx.ModelProto):
+        proto = onnx.ModelProto()
+        proto.CopyFrom(model)
+        return proto, "the given ModelProto"
+    if isinstance(model, (bytes, bytearray, memoryview)):
+        return _parse(bytes(model), "the given bytes"), "the given bytes"
+    if isinstance(model, (str, os.PathLike)):
+        return _read_file(os.fspath(model))
+    raise NncgError(f"cannot load a model from a {type(model).__name__}; pass a file path, bytes or an onnx.ModelProto")
+
+
+def _read_file(path: str) -> tuple[onnx.ModelProto, str]:
+    where = f"'{path}'"
+    if not os.path.exists(path):
+        raise NncgError(f"model file {where} does not exist; check the path")
+    if not os.path.isfile(path):
+        raise NncgError(f"model path {where} is not a file; pass the .onnx file itself")
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as exc:
+        raise NncgError(f"cannot read model file {where}: {one_line(exc)}") from None
+    proto = _parse(data, where)
+    if _external_tensors(proto):
+        try:
+            load_external_data_for_model(proto, os.path.dirname(os.path.abspath(path)))
+        except Exception as exc:
+            raise NncgError(
+                f"cannot load the external weight data of {where}: {one_line(exc)}; "
+                "keep the data files next to the model"
+            ) from None
+    return proto, where
+
+
+def _parse(data: bytes, where: str) -> onnx.ModelProto:
+    if not data:
+        raise NncgError(f"{where} is empty, not an ONNX model; pass the .onnx file your exporter wrote")
+    try:
+        return onnx.load_model_from_string(data)
+    except Exception as exc:  # protobuf DecodeError and friends
+        raise NncgError(
+            f"{where} is not a valid ONNX model ({one_line(exc, 120)}); "
+            "the file is truncated or not ONNX: re-export or re-download it"
+        ) from None
+
+
+# --- validation ----------------------------------------------------------------------------------
+
+
+def _check_structure(model: onnx.ModelProto, where: str) -> None:
+    """Catch what protobuf parses silently: text or truncated bytes lose whole top-level fields."""
+    graph = model.graph
+    problem = None
+    if model.ir_version <= 0:
+        problem = "it has no ir_version"
+    elif not model.HasField("graph"):
+        problem = "it has no graph"
+    elif not model.opset_import:
+        problem = "it has no opset_import"
+    elif not graph.output:
+        problem = "its graph has no outputs"
+    else:
+        known = {v.name for v in graph.input} | {t.name for t in graph.initializer}
+        known |= {t.values.name for t in graph.sparse_initializer}
+        known |= {out for node in graph.node for out in node.output}
+        missing = [v.name for v in graph.output if v.name not in known]
+        if missing:
+            problem = f"graph output '{missing[0]}' is produced by nothing"
+    if problem:
+        raise NncgError(
+            f"{where} is not a complete ONNX model ({problem}); "
+            "the file is truncated or not ONNX: re-export or re-download it"
+        )
+
+
+def _external_tensors(model: onnx.ModelProto) -> list[str]:
+    return [t.name for t in model.graph.initializer if uses_external_data(t)]
+
+
+def _check_external_data(model: onnx.ModelProto, where: str) -> None:
+    external = _external_tensors(model)
+    if external:
+        raise NncgError(
+            f"tensor '{external[0]}' of {where} keeps its data in an external file; "
+            "pass the model as a file path so NNCG can find the data"
+        )
+
+
+def _check_domains(model: onnx.ModelProto) -> None:
+    names = node_names(model.graph)
+    foreign = [
+        f"{node.domain}.{node.op_type} (node '{name}')"
+        for node, name in zip(model.graph.node, names, strict=True)
+        if node.domain not in DEFAULT_DOMAINS
+    ]
+    if foreign:
+        raise UnsupportedOpsError(
+            f"unsupported operators from non-default domains: {', '.join(foreign)}; "
+            "NNCG compiles only standard ONNX (ai.onnx) operators: re-export without custom ops"
+        )
+
+
+def _run_checker(model: onnx.ModelProto) -> None:
+    try:
+        onnx.checker.check_model(_with_output_shapes(model))
+    except Exception as exc:  # ValidationError, or C++ errors surfacing as others
+        raise NncgError(f"the model fails the ONNX checker: {one_line(exc)}; fix or re-export it") from None
+
+
+def _with_output_shapes(model: onnx.ModelProto) -> onnx.ModelProto:
+    """A copy in which shapeless outputs have a shape field: the checker demands one (it does not
+    check its dims), onnxruntime does not, so the model itself stays as it is."""
+
+    def shapeless(value: onnx.ValueInfoProto) -> bool:
+        return value.type.HasField("tensor_type") and not value.type.tensor_type.HasField("shape")
+
+    if not any(shapeless(v) for v in model.graph.output):
+        return model
+    copy = onnx.ModelProto()
+    copy.CopyFrom(model)
+    for value in copy.graph.output:
+        if shapeless(value):
+            value.type.tensor_type.shape.SetInParent()
+    return copy
+
+
+# --- inputs and outputs --------------------------------------------------------------------------
+
+
+def fix_input_shapes(graph: onnx.GraphProto, input_shapes: dict[str, tuple[int, ...]]) -> None:
+    """Check every real input is float32 and make its shape static, from input_shapes if given."""
+    inputs = real_inputs(graph)
+    _check_shape_keys(graph, inputs, input_shapes)
+    for value in inputs:
+        _check_float32(value, "input")
+        if value.name in input_shapes:
+            _set_shape(value, input_shapes[value.name])
+        else:
+            _require_static(value)
+
+
+def _check_shape_keys(graph: onnx.GraphProto, inputs: list, input_shapes: dict) -> None:
+    names = [v.name for v in inputs]
+    constants = {v.name for v in graph.input} - set(names)
+    for key in input_shapes:
+        if key in names:
+            continue
+        what = "a constant (it has an initializer)" if key in constants else "not an input of the model"
+        raise NncgError(
+            f"input_shapes names '{key}', which is {what}; the model's inputs are " + ", ".join(f"'{n}'" for n in names)
+        )
+
+
+def _check_float32(value: onnx.ValueInfoProto, kind: str) -> None:
+    if not value.type.HasField("tensor_type"):
+        actual = str(value.type.WhichOneof("value")).removesuffix("_type")
+        raise NncgError(
+            f"{kind} '{value.name}' is not a tensor (its type is {actual}); "
+            "NNCG compiles models whose inputs and outputs are float32 tensors"
+        )
+    elem = value.type.tensor_type.elem_type
+    if elem != onnx.TensorProto.FLOAT:
+        raise NncgError(
+            f"NNCG compiles float32 models; {kind} '{value.name}' is {dtype_name(elem)}: "
+            f"re-export the model with a float32 {kind}"
+        )
+
+
+def _is_static(dim: onnx.TensorShapeProto.Dimension) -> bool:
+    return dim.HasField("dim_value") and dim.dim_value > 0
+
+
+def _require_static(value: onnx.ValueInfoProto) -> None:
+    ttype = value.type.tensor_type
+    if ttype.HasField("shape") and all(_is_static(d) for d in ttype.shape.dim):
+        return
+    shown = format_shape(value.name, value)
+    if ttype.HasField("shape") and all(d.HasField("dim_value") for d in ttype.shape.dim):
+        raise NncgError(f"input '{value.name}' has an empty dim {shown}; NNCG needs inputs with at least one element")
+    if not ttype.HasField("shape"):
+        example = f"{value.name}=1x3x224x224"
+    else:
+        example = value.name + "=" + "x".join(str(d.dim_value) if _is_static(d) else "1" for d in ttype.shape.dim)
+    raise NncgError(
+        f"input '{value.name}' has a dynamic shape {shown}; fix it with --input-shape {example} "
+        "(input_shapes in Python), using the sizes you need"
+    )
+
+
+def _set_shape(value: onnx.ValueInfoProto, dims: tuple[int, ...]) -> None:
+    """Replace the declared shape by `dims` after checking they agree with its static dims."""
+    name = value.name
+    if not isinstance(dims, (tuple, list)) or not all(_positive_int(d) for d in dims):
+        raise NncgError(f"input_shapes['{name}'] must be a tuple of positive ints, got {dims!r}")
+    dims = tuple(int(d) for d in dims)
+    ttype = value.type.tensor_type
+    if ttype.HasField("shape"):
+        declared = ttype.shape.dim
+        shown = format_shape(name, value)
+        if len(declared) != len(dims):
+            raise NncgError(
+                f"input_shapes gives input '{name}' {len(dims)} dims {tuple(dims)} but the model "
+                f"declares {shown} with {len(declared)}; give all {len(declared)} dims"
+            )
+        for i, (dim, size) in enumerate(zip(declared, dims, strict=True)):
+            if _is_static(dim) and dim.dim_value != size:
+                raise NncgError(
+                    f"input_shapes gives input '{name}' dim {i} = {size}, but the model fixes it "
+                    f"at {dim.dim_value} ({shown}); use {dim.dim_value} there"
+                )
+    ttype.ClearField("shape")
+    ttype.shape.SetInParent()  # rank 0 still needs a (dimensionless) shape
+    for size in dims:
+        ttype.shape.dim.add().dim_value = size
+
+
+def _positive_int(d: object) -> bool:
+    return isinstance(d, (int, np.integer)) and not isinstance(d, bool) and d > 0

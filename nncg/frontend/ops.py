@@ -1,0 +1,53 @@
+"""ONNX front end (ONNX -> graph IR), step 3: the table of ONNX ops NNCG converts and to what."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from nncg.frontend.context import Context, OnnxOp
+from nncg.frontend.ops_linear import convert_binary, convert_gemm, convert_matmul
+from nncg.frontend.ops_nn import (
+    convert_batchnorm,
+    convert_conv,
+    convert_leaky_relu,
+    convert_maxpool,
+    convert_relu,
+    convert_softmax,
+)
+from nncg.frontend.ops_shape import (
+    convert_dropout,
+    convert_flatten,
+    convert_identity,
+    convert_reshape,
+    convert_squeeze,
+    convert_unsqueeze,
+)
+from nncg.ir.graph import Node
+
+Converter = Callable[[OnnxOp, Context], Node]
+
+CONVERTERS: dict[str, Converter] = {
+    "Conv": convert_conv,
+    "MaxPool": convert_maxpool,
+    "Relu": convert_relu,
+    "LeakyRelu": convert_leaky_relu,
+    "BatchNormalization": convert_batchnorm,
+    "Softmax": convert_softmax,
+    "Dropout": convert_dropout,
+    "Identity": convert_identity,
+    "Flatten": convert_flatten,
+    "Reshape": convert_reshape,
+    "Squeeze": convert_squeeze,
+    "Unsqueeze": convert_unsqueeze,
+    "Gemm": convert_gemm,
+    "MatMul": convert_matmul,
+    "Add": convert_binary,
+    "Sub": convert_binary,
+    "Mul": convert_binary,
+    "Div": convert_binary,
+}
+
+SUPPORTED_OPS: tuple[str, ...] = tuple(sorted(CONVERTERS))
+
+# Ops that are accepted only when folded away (Shape/Size need a static input shape).
+FOLDED_OPS = "Constant, ConstantOfShape, Shape, Size and any other op whose inputs are all constants"

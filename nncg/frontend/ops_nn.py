@@ -1,0 +1,92 @@
+"""ONNX front end (ONNX -> graph IR), step 3: convert the CNN layers (Conv, MaxPool, activations,
+BatchNormalization, Softmax) into graph IR nodes with fully resolved attribute records.
+"""
+
+from __future__ import annotations
+
+from nncg.frontend.context import Context, OnnxOp
+from nncg.frontend.windows import pool_attrs, pool_output_shape, resolve_pads, window_steps
+from nncg.ir.graph import (
+    Activation,
+    BatchNormAttrs,
+    ConvAttrs,
+    Node,
+    SoftmaxAttrs,
+)
+
+
+def convert_conv(op: OnnxOp, ctx: Context) -> Node:
+    group = op.attr("group", 1)
+    if group != 1:
+        raise op.error(f"has group={group}; grouped and depthwise convolution are not supported yet")
+    x = op.input(0)
+    weight = ctx.constant_input(op, 1, "weight")
+    inputs = [x, op.input(1)]
+    if op.input(2):
+        ctx.constant_input(op, 2, "bias")
+        inputs.append(op.input(2))
+    kernel = tuple(int(k) for k in weight.shape[2:])
+    declared = op.attr("kernel_shape")
+    if declared is not None and tuple(declared) != kernel:
+        raise op.error(f"has kernel_shape {list(declared)} but its weight has kernel {list(kernel)}; fix the model")
+    strides, dilations = window_steps(op, len(kernel))
+    begin, end = resolve_pads(op, ctx.shape(x)[2:], kernel, strides, dilations)
+    return op.ir_node("Conv", inputs, ConvAttrs(kernel, strides, dilations, begin, end))
+
+
+def convert_maxpool(op: OnnxOp, ctx: Context) -> Node:
+    if op.attr("storage_order", 0) != 0:
+        raise op.error("has storage_order=1 (column-major indices); only storage_order=0 is supported")
+    if ctx.is_used(op.output(1)):
+        raise op.error(
+            f"has its Indices output '{op.output(1)}' used; NNCG computes only the pooled values: "
+            "remove the use of the indices"
+        )
+    x = op.input(0)
+    in_shape = ctx.shape(x)
+    attrs = pool_attrs(op, in_shape)
+    ctx.set_shape(op, op.node.output[0], pool_output_shape(attrs, in_shape))
+    return op.ir_node("MaxPool", [x], attrs)
+
+
+def convert_relu(op: OnnxOp, ctx: Context) -> Node:
+    return op.ir_node("Relu", [op.input(0)], Activation("relu"))
+
+
+def convert_leaky_relu(op: OnnxOp, ctx: Context) -> Node:
+    return op.ir_node("LeakyRelu", [op.input(0)], Activation("leaky_relu", float(op.attr("alpha", 0.01))))
+
+
+def convert_batchnorm(op: OnnxOp, ctx: Context) -> Node:
+    if op.attr("training_mode", 0) != 0:
+        raise op.error("has training_mode=1; only inference is supported: export the model in eval mode")
+    for index, output in enumerate(op.node.output[1:], start=1):
+        if ctx.is_used(output):
+            raise op.error(
+                f"has its output {index} ('{output}', running statistics) used; only the normalized "
+                "output may be used: export the model in eval mode"
+            )
+    x = op.input(0)
+    shape = ctx.shape(x)
+    if op.attr("spatial", 1) == 0 and len(shape) > 2:
+        raise op.error("has spatial=0 (per-position statistics); only per-channel BatchNormalization is supported")
+    roles = ("scale", "bias", "mean", "variance")
+    for index, role in enumerate(roles, start=1):
+        param = ctx.constant_input(op, index, role)
+        if param.shape != (shape[1],):
+            raise op.error(f"has {role} of shape {list(param.shape)}; expected [{shape[1]}] (one per channel)")
+    return op.ir_node("BatchNormalization", [x, *(op.input(i) for i in range(1, 5))], BatchNormAttrs(_epsilon(op)))
+
+
+def convert_softmax(op: OnnxOp, ctx: Context) -> Node:
+    x = op.input(0)
+    rank = len(ctx.shape(x))
+    legacy = ctx.opset < 13  # before 13: flatten to 2-D at axis, default axis 1
+    axis = op.attr("axis", 1 if legacy else -1)
+    if not -rank <= axis < rank:
+        raise op.error(f"has axis={axis}, out of range for its rank-{rank} input")
+    return op.ir_node("Softmax", [x], SoftmaxAttrs(axis=axis % rank, coerce_2d=legacy))
+
+
+def _epsilon(op: OnnxOp) -> float:
+    return float(op.attr("epsilon", 1e-5))

@@ -1,0 +1,131 @@
+"""ONNX front end (ONNX -> graph IR): ONNX shape inference and reading static shapes and dtypes.
+
+Shared by loading (validating the user's model) and folding (re-inferring after constants fold).
+"""
+
+from __future__ import annotations
+
+import onnx
+from onnx import helper
+
+from nncg.errors import NncgError
+from nncg.frontend.context import OnnxOp
+from nncg.frontend.names import node_names
+from nncg.frontend.windows import pool_attrs, pool_output_shape
+from nncg.ir.graph import Shape
+
+
+def inferred_shapes(model: onnx.ModelProto) -> dict[str, Shape]:
+    """Static shapes of all values by strict ONNX inference, ceil-mode MaxPool outputs fixed.
+
+    ONNX's MaxPool inference before opset 22 ignores the spec rule that drops a window starting in
+    the end padding (onnxruntime follows it); such outputs are pinned to the right shape, fed in as
+    inputs, and inference re-runs so everything downstream (and Shape folding) sees the real shape.
+    """
+    pinned: dict[str, Shape] = {}
+    while True:
+        shapes = static_shapes(infer(_inference_model(model, pinned)))
+        wrong = _misinferred_pool(model, shapes, pinned)
+        if wrong is None:
+            _check_declared_outputs(model, shapes)
+            return shapes
+        pinned[wrong[0]] = wrong[1]
+
+
+def infer(model: onnx.ModelProto) -> onnx.ModelProto:
+    """Strict ONNX shape inference; any inconsistency becomes a one-line NncgError."""
+    try:
+        return onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
+    except Exception as exc:  # onnx raises InferenceError, ValidationError or RuntimeError
+        raise NncgError(
+            f"ONNX shape inference failed: {one_line(exc)}; the model is inconsistent, "
+            "check it with onnx.checker and onnxruntime or re-export it"
+        ) from None
+
+
+def one_line(exc: BaseException, limit: int = 300) -> str:
+    """An exception text squeezed into one line, short enough for a CLI message."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def dtype_name(elem_type: int) -> str:
+    """numpy-style name of an ONNX element type: 'float32', 'int64', 'float16', ..."""
+    names = {onnx.TensorProto.FLOAT: "float32", onnx.TensorProto.DOUBLE: "float64"}
+    if elem_type in names:
+        return names[elem_type]
+    try:
+        return onnx.TensorProto.DataType.Name(elem_type).lower()
+    except ValueError:
+        return f"type {elem_type}"
+
+
+def static_shape(value: onnx.ValueInfoProto) -> Shape | None:
+    """The shape if it is fully known (rank and every dim), else None."""
+    ttype = value.type.tensor_type
+    if not value.type.HasField("tensor_type") or not ttype.HasField("shape"):
+        return None
+    dims = ttype.shape.dim
+    if not all(d.HasField("dim_value") for d in dims):
+        return None
+    return tuple(int(d.dim_value) for d in dims)
+
+
+def static_shapes(model: onnx.ModelProto) -> dict[str, Shape]:
+    """Every value of the main graph whose shape ONNX (inference) knows statically."""
+    graph = model.graph
+    shapes = {}
+    for value in (*graph.input, *graph.value_info, *graph.output):
+        shape = static_shape(value)
+        if shape is not None:
+            shapes[value.name] = shape
+    return shapes
+
+
+def format_shape(name: str, value: onnx.ValueInfoProto) -> str:
+    """`x[N,3,224,224]` with dim_params as names and unknown dims as '?'."""
+    ttype = value.type.tensor_type
+    if not ttype.HasField("shape"):
+        return f"{name}[unknown rank]"
+    dims = [str(d.dim_value) if d.HasField("dim_value") else (d.dim_param or "?") for d in ttype.shape.dim]
+    return f"{name}[{','.join(dims)}]"
+
+
+def _misinferred_pool(model: onnx.ModelProto, shapes: dict[str, Shape], pinned: dict) -> tuple[str, Shape] | None:
+    for node, name in zip(model.graph.node, node_names(model.graph), strict=True):
+        if node.op_type != "MaxPool" or node.output[0] in pinned or node.input[0] not in shapes:
+            continue
+        op, in_shape = OnnxOp.of(node, name), shapes[node.input[0]]
+        if op.attr("ceil_mode", 0):
+            expected = pool_output_shape(pool_attrs(op, in_shape), in_shape)
+            if shapes.get(node.output[0]) != expected:
+                return node.output[0], expected
+    return None
+
+
+def _inference_model(model: onnx.ModelProto, pinned: dict[str, Shape]) -> onnx.ModelProto:
+    """A copy for inference: outputs without declared shapes (checked afterwards instead), and the
+    MaxPools producing pinned values cut out, those values becoming inputs of the pinned shape."""
+    graph = model.graph
+    cut = [n for n in graph.node if n.op_type == "MaxPool" and n.output[0] in pinned]
+    extra = [helper.make_tensor_value_info(n.output[0], onnx.TensorProto.FLOAT, pinned[n.output[0]]) for n in cut]
+    extra += [  # a cut MaxPool's Indices would otherwise be undefined
+        helper.make_tensor_value_info(n.output[1], onnx.TensorProto.INT64, pinned[n.output[0]])
+        for n in cut
+        if len(n.output) > 1 and n.output[1]
+    ]
+    outputs = [helper.make_tensor_value_info(v.name, v.type.tensor_type.elem_type, None) for v in graph.output]
+    nodes = [n for n in graph.node if not (n.op_type == "MaxPool" and n.output[0] in pinned)]
+    copy = helper.make_graph(nodes, graph.name, [*graph.input, *extra], outputs, list(graph.initializer))
+    copy.sparse_initializer.extend(graph.sparse_initializer)
+    return helper.make_model(copy, opset_imports=list(model.opset_import), ir_version=model.ir_version)
+
+
+def _check_declared_outputs(model: onnx.ModelProto, shapes: dict[str, Shape]) -> None:
+    for value in model.graph.output:
+        declared = static_shape(value)
+        if declared is not None and value.name in shapes and shapes[value.name] != declared:
+            raise NncgError(
+                f"output '{value.name}' is declared with shape {list(declared)} but computes "
+                f"{list(shapes[value.name])}; fix the declared output shape or the input shapes"
+            )

@@ -1,0 +1,1 @@
+"""The two intermediate representations: the graph IR (graph.py) and the loop-nest IR (loops.py)."""

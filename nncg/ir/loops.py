@@ -1,0 +1,357 @@
+"""Loop-nest IR: what the graph lowers to, what loop passes rewrite and what backends print.
+
+A Program is a list of Kernels (one per layer) over flat float buffers. Indices are affine in the
+integer loop variables, so unrolling is substitution and vectorisation is a stride check. Every
+float expression has a lane count: a vector operation is the same node with lanes > 1.
+All nodes are frozen dataclasses, so two IRs compare structurally with ==.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Union
+
+import numpy as np
+
+# ---------------------------------------------------------------------------- integer indices
+
+
+@dataclass(frozen=True)
+class Affine:
+    """sum(coeff * var) + const over loop variables; terms are sorted and have no zero coefficient."""
+
+    terms: tuple[tuple[str, int], ...] = ()
+    const: int = 0
+
+    @staticmethod
+    def of(value: Affine | str | int) -> Affine:
+        if isinstance(value, Affine):
+            return value
+        if isinstance(value, str):
+            return Affine(((value, 1),))
+        return Affine((), int(value))
+
+    @staticmethod
+    def _make(coeffs: dict[str, int], const: int) -> Affine:
+        return Affine(tuple(sorted((v, c) for v, c in coeffs.items() if c)), const)
+
+    def __add__(self, other: Affine | str | int) -> Affine:
+        other = Affine.of(other)
+        coeffs = dict(self.terms)
+        for var, c in other.terms:
+            coeffs[var] = coeffs.get(var, 0) + c
+        return Affine._make(coeffs, self.const + other.const)
+
+    __radd__ = __add__
+
+    def __sub__(self, other: Affine | str | int) -> Affine:
+        return self + Affine.of(other) * -1
+
+    def __mul__(self, k: int) -> Affine:
+        return Affine._make({v: c * k for v, c in self.terms}, self.const * k)
+
+    __rmul__ = __mul__
+
+    def coeff(self, var: str) -> int:
+        return dict(self.terms).get(var, 0)
+
+    @property
+    def vars(self) -> tuple[str, ...]:
+        return tuple(v for v, _ in self.terms)
+
+    @property
+    def is_const(self) -> bool:
+        return not self.terms
+
+    def substitute(self, env: dict[str, Affine | int]) -> Affine:
+        out = Affine((), self.const)
+        for var, c in self.terms:
+            out = out + (Affine.of(env[var]) * c if var in env else Affine(((var, c),)))
+        return out
+
+    def bounds(self, extents: dict[str, int]) -> tuple[int, int]:
+        """Smallest and largest value over loop vars ranging in [0, extent)."""
+        lo = hi = self.const
+        for var, c in self.terms:
+            span = c * (extents[var] - 1)
+            lo, hi = lo + min(0, span), hi + max(0, span)
+        return lo, hi
+
+    def __str__(self) -> str:
+        parts = [var if c == 1 else f"{c}*{var}" for var, c in self.terms]
+        if self.const or not parts:
+            parts.append(str(self.const))
+        return " + ".join(parts).replace("+ -", "- ")
+
+
+# ---------------------------------------------------------------------------- float expressions
+
+
+@dataclass(frozen=True)
+class Const:
+    """A literal; one value per lane (a splat repeats it)."""
+
+    values: tuple[float, ...]
+
+    @staticmethod
+    def splat(value: float, lanes: int = 1) -> Const:
+        return Const((float(np.float32(value)),) * lanes)
+
+    @property
+    def lanes(self) -> int:
+        return len(self.values)
+
+    @property
+    def is_splat(self) -> bool:
+        return all(v == self.values[0] for v in self.values) and len({np.signbit(v) for v in self.values}) == 1
+
+
+@dataclass(frozen=True)
+class Load:
+    """buffer[index .. index + lanes - 1]."""
+
+    buffer: str
+    index: Affine
+    lanes: int = 1
+
+
+@dataclass(frozen=True)
+class LocalRef:
+    name: str
+    lanes: int = 1
+
+
+@dataclass(frozen=True)
+class Broadcast:
+    value: Expr
+    lanes: int
+
+
+@dataclass(frozen=True)
+class Binary:
+    op: str  # "+", "-", "*", "/", "max", "min"
+    a: Expr
+    b: Expr
+
+    @property
+    def lanes(self) -> int:
+        return max(self.a.lanes, self.b.lanes)
+
+
+@dataclass(frozen=True)
+class Select:
+    """The paper's conditional move: (lhs cmp rhs) ? then : otherwise, per lane."""
+
+    cmp: str  # ">", ">=", "<", "<="
+    lhs: Expr
+    rhs: Expr
+    then: Expr
+    otherwise: Expr
+
+    @property
+    def lanes(self) -> int:
+        return max(e.lanes for e in (self.lhs, self.rhs, self.then, self.otherwise))
+
+
+@dataclass(frozen=True)
+class Call:
+    fn: str  # "exp"
+    arg: Expr
+
+    @property
+    def lanes(self) -> int:
+        return self.arg.lanes
+
+
+Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call]
+
+BINARY_OPS = ("+", "-", "*", "/", "max", "min")
+COMPARISONS = (">", ">=", "<", "<=")
+FUNCTIONS = ("exp",)
+
+# ---------------------------------------------------------------------------- statements
+
+LOOP_KINDS = ("serial", "unrolled", "vectorized")
+
+
+@dataclass(frozen=True)
+class Loop:
+    """for var in [0, extent). `parallel`: iterations are independent (a spatial, not a reduction,
+    axis), set by the lowering. `kind` is a pass's decision that a later pass materialises."""
+
+    var: str
+    extent: int
+    body: tuple[Stmt, ...]
+    kind: str = "serial"
+    parallel: bool = False
+    lanes: int = 1  # the vector width chosen when kind == "vectorized"
+
+
+@dataclass(frozen=True)
+class Store:
+    buffer: str
+    index: Affine
+    value: Expr
+
+
+@dataclass(frozen=True)
+class Let:
+    """Declares a mutable local (scalar or vector) initialised to `init`, visible in `body`."""
+
+    name: str
+    init: Expr
+    body: tuple[Stmt, ...]
+
+
+@dataclass(frozen=True)
+class Assign:
+    name: str
+    value: Expr
+
+
+@dataclass(frozen=True)
+class Bound:
+    """lo <= expr < hi; a side that is None needs no check."""
+
+    expr: Affine
+    lo: int | None
+    hi: int | None
+
+    def holds(self) -> bool | None:
+        """True or False when expr is constant, else None."""
+        if not self.expr.is_const:
+            return None
+        v = self.expr.const
+        return (self.lo is None or self.lo <= v) and (self.hi is None or v < self.hi)
+
+
+@dataclass(frozen=True)
+class If:
+    """Runs body when every bound holds: the border checks of padded windows."""
+
+    bounds: tuple[Bound, ...]
+    body: tuple[Stmt, ...]
+
+
+Stmt = Union[Loop, Store, Let, Assign, If]
+
+# ---------------------------------------------------------------------------- program
+
+BUFFER_ROLES = ("input", "output", "internal", "constant")
+
+
+@dataclass(frozen=True)
+class Buffer:
+    """A flat float32 array. `shape` and `layout` are documentation for the reader of the C."""
+
+    name: str
+    size: int
+    role: str
+    shape: tuple[int, ...] = ()
+    layout: str = ""
+    onnx_name: str = ""
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """One layer: the unit that unroll levels count loops in."""
+
+    name: str
+    op: str
+    body: tuple[Stmt, ...]
+
+
+@dataclass(frozen=True)
+class Program:
+    """Buffers (inputs and outputs in ONNX graph order) and kernels run in order.
+    `constants` holds the data of the constant buffers, keyed by buffer name."""
+
+    name: str
+    buffers: tuple[Buffer, ...]
+    kernels: tuple[Kernel, ...]
+    constants: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
+
+    def buffer(self, name: str) -> Buffer:
+        for buf in self.buffers:
+            if buf.name == name:
+                return buf
+        raise KeyError(name)
+
+    def role(self, role: str) -> tuple[Buffer, ...]:
+        return tuple(b for b in self.buffers if b.role == role)
+
+
+# ---------------------------------------------------------------------------- generic traversal
+
+
+def map_expr(expr: Expr, fn) -> Expr:
+    """Rebuilds expr bottom-up, applying fn to every node after its children."""
+    if isinstance(expr, Broadcast):
+        expr = Broadcast(map_expr(expr.value, fn), expr.lanes)
+    elif isinstance(expr, Binary):
+        expr = Binary(expr.op, map_expr(expr.a, fn), map_expr(expr.b, fn))
+    elif isinstance(expr, Select):
+        expr = Select(
+            expr.cmp,
+            *(map_expr(e, fn) for e in (expr.lhs, expr.rhs, expr.then, expr.otherwise)),
+        )
+    elif isinstance(expr, Call):
+        expr = Call(expr.fn, map_expr(expr.arg, fn))
+    return fn(expr)
+
+
+def walk_exprs(expr: Expr):
+    """Yields expr and all its sub-expressions."""
+    yield expr
+    children: tuple = ()
+    if isinstance(expr, Broadcast):
+        children = (expr.value,)
+    elif isinstance(expr, Binary):
+        children = (expr.a, expr.b)
+    elif isinstance(expr, Select):
+        children = (expr.lhs, expr.rhs, expr.then, expr.otherwise)
+    elif isinstance(expr, Call):
+        children = (expr.arg,)
+    for child in children:
+        yield from walk_exprs(child)
+
+
+def stmt_exprs(stmt: Stmt) -> tuple[Expr, ...]:
+    """The expressions a statement evaluates itself (not those of nested statements)."""
+    if isinstance(stmt, Store | Assign):
+        return (stmt.value,)
+    if isinstance(stmt, Let):
+        return (stmt.init,)
+    return ()
+
+
+def walk_stmts(body: tuple[Stmt, ...]):
+    """Yields every statement, depth first, nested ones included."""
+    for stmt in body:
+        yield stmt
+        if isinstance(stmt, Loop | Let | If):
+            yield from walk_stmts(stmt.body)
+
+
+def map_body(body: tuple[Stmt, ...], fn) -> tuple[Stmt, ...]:
+    """Rebuilds statements bottom-up; fn(stmt) returns a replacement statement or a tuple of them."""
+    out: list[Stmt] = []
+    for stmt in body:
+        if isinstance(stmt, Loop | Let | If):
+            stmt = _with_body(stmt, map_body(stmt.body, fn))
+        result = fn(stmt)
+        out.extend(result if isinstance(result, tuple) else (result,))
+    return tuple(out)
+
+
+def _with_body(stmt: Loop | Let | If, body: tuple[Stmt, ...]) -> Stmt:
+    return replace(stmt, body=body)
+
+
+def map_stmt_exprs(stmt: Stmt, fn) -> Stmt:
+    """Applies map_expr(., fn) to the expressions a statement evaluates itself."""
+    if isinstance(stmt, Store | Assign):
+        return replace(stmt, value=map_expr(stmt.value, fn))
+    if isinstance(stmt, Let):
+        return replace(stmt, init=map_expr(stmt.init, fn))
+    return stmt

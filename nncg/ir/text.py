@@ -1,0 +1,109 @@
+"""Readable text form of both IRs, printed between passes (--print-ir-after-all)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .graph import Graph
+from .loops import (
+    Assign,
+    Binary,
+    Broadcast,
+    Call,
+    Const,
+    Expr,
+    If,
+    Let,
+    Load,
+    LocalRef,
+    Loop,
+    Program,
+    Select,
+    Stmt,
+    Store,
+)
+
+
+def graph_to_text(graph: Graph) -> str:
+    def sig(names):
+        return ", ".join(
+            f"{n}: const{list(graph.shape(n))}" if graph.is_constant(n) else f"{n}{list(graph.shape(n))}" for n in names
+        )
+
+    lines = [f"graph {graph.name}({sig(v.name for v in graph.inputs)}) -> ({sig(v.name for v in graph.outputs)}) {{"]
+    for node in graph.nodes:
+        attrs = f" {{{node.attrs}}}" if node.attrs is not None else ""
+        lines.append(f"  {', '.join(node.outputs)} = {node.op}({sig(node.inputs)}){attrs}  # {node.name}")
+    lines.append("}")
+    return "\n".join(lines)
+
+
+def program_to_text(program: Program) -> str:
+    lines = [f"program {program.name} {{"]
+    for buf in program.buffers:
+        shape = "x".join(map(str, buf.shape))
+        lines.append(f"  {buf.role} {buf.name}[{buf.size}]  # {shape} {buf.layout}".rstrip())
+    for kernel in program.kernels:
+        lines.append(f"  kernel {kernel.name} ({kernel.op}) {{")
+        lines.extend(_stmts(kernel.body, 2))
+        lines.append("  }")
+    lines.append("}")
+    return "\n".join(lines)
+
+
+def _stmts(body: tuple[Stmt, ...], depth: int) -> list[str]:
+    pad = "  " * depth
+    out: list[str] = []
+    for stmt in body:
+        if isinstance(stmt, Loop):
+            tags = [stmt.kind] if stmt.kind != "serial" else []
+            tags += ["parallel"] if stmt.parallel else []
+            tags += [f"lanes={stmt.lanes}"] if stmt.lanes > 1 else []
+            tag = f" [{', '.join(tags)}]" if tags else ""
+            out.append(f"{pad}for {stmt.var} in 0..{stmt.extent}{tag} {{")
+            out.extend(_stmts(stmt.body, depth + 1))
+            out.append(f"{pad}}}")
+        elif isinstance(stmt, Let):
+            out.append(f"{pad}let {stmt.name} = {expr_to_text(stmt.init)} {{")
+            out.extend(_stmts(stmt.body, depth + 1))
+            out.append(f"{pad}}}")
+        elif isinstance(stmt, If):
+            conds = " and ".join(
+                f"{'' if b.lo is None else f'{b.lo} <= '}{b.expr}{'' if b.hi is None else f' < {b.hi}'}"
+                for b in stmt.bounds
+            )
+            out.append(f"{pad}if {conds} {{")
+            out.extend(_stmts(stmt.body, depth + 1))
+            out.append(f"{pad}}}")
+        elif isinstance(stmt, Store):
+            out.append(f"{pad}{stmt.buffer}[{stmt.index}] = {expr_to_text(stmt.value)}")
+        elif isinstance(stmt, Assign):
+            out.append(f"{pad}{stmt.name} = {expr_to_text(stmt.value)}")
+    return out
+
+
+def expr_to_text(expr: Expr) -> str:
+    if isinstance(expr, Const):
+        vals = [f"{np.float32(v)!r}".removeprefix("np.float32(").removesuffix(")") for v in expr.values]
+        return (
+            vals[0]
+            if expr.is_splat and expr.lanes == 1
+            else (f"splat{expr.lanes}({vals[0]})" if expr.is_splat else f"<{', '.join(vals)}>")
+        )
+    if isinstance(expr, Load):
+        lanes = f":{expr.lanes}" if expr.lanes > 1 else ""
+        return f"{expr.buffer}[{expr.index}{lanes}]"
+    if isinstance(expr, LocalRef):
+        return expr.name
+    if isinstance(expr, Broadcast):
+        return f"broadcast{expr.lanes}({expr_to_text(expr.value)})"
+    if isinstance(expr, Binary):
+        if expr.op in ("max", "min"):
+            return f"{expr.op}({expr_to_text(expr.a)}, {expr_to_text(expr.b)})"
+        return f"({expr_to_text(expr.a)} {expr.op} {expr_to_text(expr.b)})"
+    if isinstance(expr, Select):
+        parts = [expr_to_text(e) for e in (expr.lhs, expr.rhs, expr.then, expr.otherwise)]
+        return f"({parts[0]} {expr.cmp} {parts[1]} ? {parts[2]} : {parts[3]})"
+    if isinstance(expr, Call):
+        return f"{expr.fn}({expr_to_text(expr.arg)})"
+    raise TypeError(f"not a loop-IR expression: {expr!r}")

@@ -1,0 +1,62 @@
+"""Lowering: graph IR -> loop-nest IR. One module per op family; this driver assigns buffers.
+
+Graph inputs and outputs are row-major (ONNX NCHW) buffers passed by the caller; internal
+activations get the layout their producer prefers (channels-last for Conv and MaxPool)."""
+
+from __future__ import annotations
+
+from ..errors import NncgError
+from ..ir.graph import Graph, Node
+from ..ir.loops import Program
+from .context import LoweringContext, row_major
+from .conv import lower_conv
+from .dense import lower_dense
+from .elementwise import lower_activation, lower_batchnorm, lower_binary, lower_scale_shift
+from .pool import lower_maxpool
+from .reshape import copy_nest, lower_reshape
+from .softmax import lower_softmax
+
+LOWERINGS = {
+    "Conv": lower_conv,
+    "MaxPool": lower_maxpool,
+    "Relu": lower_activation,
+    "LeakyRelu": lower_activation,
+    "BatchNormalization": lower_batchnorm,
+    "ScaleShift": lower_scale_shift,
+    "Dense": lower_dense,
+    "Softmax": lower_softmax,
+    "Reshape": lower_reshape,
+    "Identity": lower_reshape,
+    "Add": lower_binary,
+    "Sub": lower_binary,
+    "Mul": lower_binary,
+    "Div": lower_binary,
+}
+
+
+def lower(graph: Graph, function_name: str | None = None) -> Program:
+    ctx = LoweringContext(graph)
+    name = ctx.unique(function_name or graph.name)
+    for value in graph.inputs:
+        ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
+    outputs = {}
+    for value in graph.outputs:
+        outputs[value.name] = ctx.add_buffer(value.name, "output", value.shape, row_major(len(value.shape)), value.name)
+        if value.name not in ctx.refs:  # an input that is also an output is copied, not aliased
+            ctx.refs[value.name] = outputs[value.name]
+    for node in graph.nodes:
+        _lower_node(ctx, node)
+    for value, target in outputs.items():
+        if ctx.refs[value] != target:
+            ctx.emit(f"copy_{value}", "Copy", copy_nest(ctx.refs[value], target))
+    return Program(name, tuple(ctx.buffers), tuple(ctx.kernels), ctx.constants)
+
+
+def _lower_node(ctx: LoweringContext, node: Node) -> None:
+    lowering = LOWERINGS.get(node.op)
+    if lowering is None:
+        raise NncgError(f"no lowering for op {node.op} (node '{node.name}'); supported: {', '.join(LOWERINGS)}")
+    lowering(ctx, node)
+    for value, temp, target in ctx.pending_copies:
+        ctx.emit(f"{node.name}_to_{value}", "Copy", copy_nest(temp, target))
+    ctx.pending_copies.clear()

@@ -1,0 +1,161 @@
+"""Lowering state: buffers, layouts and C-safe names shared by the per-op lowerings."""
+
+from __future__ import annotations
+
+import keyword
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..ir.graph import Graph
+from ..ir.loops import Affine, Buffer, Kernel, Loop, Stmt
+
+C_KEYWORDS = frozenset(
+    """auto break case char const continue default do double else enum extern float for goto if
+    inline int long register restrict return short signed sizeof static struct switch typedef union
+    unsigned void volatile while main exp""".split()
+)
+
+
+def c_identifier(name: str) -> str:
+    """A valid C identifier resembling `name` (may still collide; callers make it unique)."""
+    ident = re.sub(r"[^A-Za-z0-9_]", "_", name) or "t"
+    if ident[0].isdigit():
+        ident = "t_" + ident
+    if ident in C_KEYWORDS or keyword.iskeyword(ident) or ident.startswith("__"):
+        ident = "t_" + ident.lstrip("_")
+    return ident
+
+
+def row_major(rank: int) -> tuple[int, ...]:
+    return tuple(range(rank))
+
+
+def channels_last(rank: int) -> tuple[int, ...]:
+    """Physical dim order N, spatial..., C: the output-channel loop becomes contiguous (vectorisable)."""
+    return (0, *range(2, rank), 1) if rank >= 3 else row_major(rank)
+
+
+def layout_name(shape: tuple[int, ...], order: tuple[int, ...]) -> str:
+    if order == row_major(len(shape)):
+        return "row-major"
+    return "channels-last"
+
+
+@dataclass(frozen=True)
+class TensorRef:
+    """Where a logical tensor lives: a buffer and the physical order of its logical dims."""
+
+    buffer: str
+    shape: tuple[int, ...]
+    order: tuple[int, ...]  # logical dims from outermost to innermost in memory
+
+    @property
+    def strides(self) -> tuple[int, ...]:
+        strides = [0] * len(self.shape)
+        step = 1
+        for dim in reversed(self.order):
+            strides[dim] = step
+            step *= self.shape[dim]
+        return tuple(strides)
+
+    def at(self, index) -> Affine:
+        """Flat offset of a logical index (a sequence of Affine/str/int, one per dim)."""
+        offset = Affine()
+        for i, stride in zip(index, self.strides):
+            offset = offset + Affine.of(i) * stride
+        return offset
+
+    @property
+    def is_row_major(self) -> bool:
+        physical = [d for d in self.order if self.shape[d] != 1]
+        return physical == sorted(physical)
+
+
+def same_memory_order(a: TensorRef, b: TensorRef) -> bool:
+    """Whether both place every element at the same offset (dims of extent 1 do not matter)."""
+    return all(sa == sb for sa, sb, d in zip(a.strides, b.strides, a.shape) if d != 1)
+
+
+def dim_vars(rank: int, prefix: str = "") -> tuple[str, ...]:
+    """Readable loop-variable names for the logical dims of a tensor."""
+    names = {2: "mn", 3: "ncl", 4: "nchw", 5: "ncdhw"}.get(rank)
+    return tuple(prefix + c for c in names) if names else tuple(f"{prefix}i{d}" for d in range(rank))
+
+
+def nest(
+    loops: list[tuple[str, int]], inner: Callable[[dict[str, Affine]], tuple[Stmt, ...]], parallel: bool
+) -> tuple[Stmt, ...]:
+    """Loops outermost first; an extent-1 loop is not emitted, its variable is 0."""
+    env = {var: (Affine.of(var) if extent > 1 else Affine()) for var, extent in loops}
+    body = inner(env)
+    for var, extent in reversed(loops):
+        if extent > 1:
+            body = (Loop(var, extent, body, parallel=parallel),)
+    return body
+
+
+class LoweringContext:
+    """Allocates buffers and remembers where each graph value lives."""
+
+    def __init__(self, graph: Graph):
+        self.graph = graph
+        self.buffers: list[Buffer] = []
+        self.constants: dict[str, np.ndarray] = {}
+        self.refs: dict[str, TensorRef] = {}
+        self.kernels: list[Kernel] = []
+        self._names: set[str] = set()
+        self.pending_copies: list[tuple[str, TensorRef, TensorRef]] = []
+
+    def unique(self, name: str) -> str:
+        """A C identifier for name, distinct from all given out so far, ignoring case (the header
+        derives upper-case macro names from them)."""
+        base = c_identifier(name)
+        ident, i = base, 1
+        while ident.lower() in self._names:
+            ident, i = f"{base}_{i}", i + 1
+        self._names.add(ident.lower())
+        return ident
+
+    def add_buffer(self, name: str, role: str, shape, order, onnx_name: str = "") -> TensorRef:
+        shape = tuple(int(d) for d in shape)
+        ident = self.unique(name)
+        size = int(np.prod(shape)) if shape else 1
+        self.buffers.append(Buffer(ident, size, role, shape, layout_name(shape, order), onnx_name))
+        return TensorRef(ident, shape, tuple(order))
+
+    def add_constant(self, name: str, data: np.ndarray) -> TensorRef:
+        """A packed weight array; its logical shape is the packed shape, row-major."""
+        data = np.ascontiguousarray(data, dtype=np.float32)
+        ref = self.add_buffer(name, "constant", data.shape, row_major(data.ndim))
+        self.constants[ref.buffer] = data
+        return ref
+
+    def ref(self, value: str) -> TensorRef:
+        """Where a value (or a graph constant, stored row-major on first use) lives."""
+        if value not in self.refs and self.graph.is_constant(value):
+            self.refs[value] = self.add_constant("c_" + value, self.graph.constants[value])
+        return self.refs[value]
+
+    def output(self, value: str, order: tuple[int, ...]) -> TensorRef:
+        """Allocates the buffer a node writes `value` to, in the layout the lowering prefers.
+
+        A graph output is row-major at the function boundary; where the preferred layout differs
+        in memory, the node writes an internal buffer and a copy kernel converts it afterwards."""
+        shape = self.graph.shape(value)
+        preferred = TensorRef("", shape, tuple(order))
+        if self.graph.is_graph_output(value):
+            target = self.refs[value]
+            if same_memory_order(preferred, target):
+                return target
+            temp = self.add_buffer("t_" + value, "internal", shape, order)
+            self.pending_copies.append((value, temp, target))
+            return temp
+        ref = self.add_buffer("t_" + value, "internal", shape, order)
+        self.refs[value] = ref
+        return ref
+
+    def emit(self, name: str, op: str, body: tuple[Stmt, ...]) -> None:
+        self.kernels.append(Kernel(self.unique(name), op, body))

@@ -1,0 +1,81 @@
+"""Element-wise lowerings: standalone activations, per-channel scale and shift (BatchNorm), and the
+binary arithmetic ops with NumPy broadcasting. Loops run in the output's memory order."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from ..ir.graph import Activation, Node, ScaleShiftAttrs
+from ..ir.loops import Affine, Binary, Expr, Load, Store
+from .activation import apply_activation
+from .context import LoweringContext, TensorRef, dim_vars, nest, row_major
+
+BINARY = {"Add": "+", "Sub": "-", "Mul": "*", "Div": "/"}
+
+
+def elementwise(ctx: LoweringContext, node: Node, order, value: Callable[[list[Affine]], Expr]) -> None:
+    """out[idx] = value(idx) for every logical idx, looping in the output's physical dim order."""
+    out = ctx.output(node.outputs[0], order)
+    names = dim_vars(len(out.shape))
+
+    def body(env: dict[str, Affine]) -> tuple:
+        idx = [env[v] for v in names]
+        return (Store(out.buffer, out.at(idx), value(idx)),)
+
+    loops = [(names[d], out.shape[d]) for d in out.order]
+    ctx.emit(node.name, node.op, nest(loops, body, parallel=True))
+
+
+def broadcast_load(ref: TensorRef, idx: list[Affine]) -> Load:
+    """Reads ref at the output index, NumPy-broadcast: dims aligned right, size-1 dims pinned to 0."""
+    skip = len(idx) - len(ref.shape)
+    return Load(ref.buffer, ref.at([i if d != 1 else 0 for i, d in zip(idx[skip:], ref.shape)]))
+
+
+def lower_activation(ctx: LoweringContext, node: Node) -> None:
+    x = ctx.ref(node.inputs[0])
+    act: Activation = node.attrs
+    elementwise(ctx, node, x.order, lambda idx: apply_activation(Load(x.buffer, x.at(idx)), act))
+
+
+def lower_scale_shift(ctx: LoweringContext, node: Node) -> None:
+    attrs: ScaleShiftAttrs = node.attrs
+    scale, shift = (ctx.graph.constants[name] for name in node.inputs[1:3])
+    _scale_shift(ctx, node, scale, shift, attrs.activation)
+
+
+def lower_batchnorm(ctx: LoweringContext, node: Node) -> None:
+    """A BatchNorm that no pass folded away still compiles: as its scale and shift."""
+    _scale_shift(ctx, node, *scale_shift_of_batchnorm(ctx.graph.constants, node), None)
+
+
+def _scale_shift(ctx: LoweringContext, node: Node, scale, shift, act: Activation | None) -> None:
+    x = ctx.ref(node.inputs[0])
+    scale_ref = ctx.add_constant(f"scale_{node.name}", scale)
+    shift_ref = ctx.add_constant(f"shift_{node.name}", shift)
+
+    def value(idx: list[Affine]) -> Expr:
+        c = idx[1]
+        scaled = Binary("*", Load(x.buffer, x.at(idx)), Load(scale_ref.buffer, scale_ref.at([c])))
+        return apply_activation(Binary("+", scaled, Load(shift_ref.buffer, shift_ref.at([c]))), act)
+
+    elementwise(ctx, node, x.order, value)
+
+
+def lower_binary(ctx: LoweringContext, node: Node) -> None:
+    a, b = (ctx.ref(name) for name in node.inputs)
+    out_shape = ctx.graph.shape(node.outputs[0])
+    # Follow the layout of a full-size runtime operand so its loads stay contiguous.
+    full = [r for name, r in zip(node.inputs, (a, b)) if not ctx.graph.is_constant(name) and r.shape == out_shape]
+    order = full[0].order if full else row_major(len(out_shape))
+    op = BINARY[node.op]
+    elementwise(ctx, node, order, lambda idx: Binary(op, broadcast_load(a, idx), broadcast_load(b, idx)))
+
+
+def scale_shift_of_batchnorm(constants: dict[str, np.ndarray], node: Node) -> tuple[np.ndarray, np.ndarray]:
+    """BatchNorm as y = x * scale + shift, with scale = gamma / sqrt(var + eps)."""
+    gamma, beta, mean, var = (constants[name].astype(np.float64) for name in node.inputs[1:5])
+    scale = gamma / np.sqrt(var + node.attrs.epsilon)
+    return scale.astype(np.float32), (beta - mean * scale).astype(np.float32)

@@ -1,0 +1,27 @@
+"""Graph pass `fuse-activation`: a Relu or LeakyRelu is applied by its producer at the store, so the
+activation costs no extra pass over memory."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..ir.graph import Graph
+from .rewrite import merge_into_producer, sole_consumer
+
+PRODUCERS = ("Conv", "Dense", "ScaleShift")
+
+
+def fuse_activation(graph: Graph) -> Graph:
+    for act in graph.nodes:
+        if act.op not in ("Relu", "LeakyRelu"):
+            continue
+        producer = graph.producer(act.inputs[0])
+        if (
+            producer is not None
+            and producer.op in PRODUCERS
+            and producer.attrs.activation is None
+            and sole_consumer(graph, act.inputs[0]) is act
+        ):
+            fused = replace(producer, attrs=replace(producer.attrs, activation=act.attrs))
+            return fuse_activation(merge_into_producer(graph, producer, act, fused))
+    return graph

@@ -1,0 +1,33 @@
+"""Loop pass `inline-constants`: the paper's "constants wherever possible" (principle 3).
+
+A weight read at an index that is constant (after unrolling) is written as a literal; a constant
+array that is no longer read at all is dropped from the program."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..ir.loops import Const, Expr, Load, Program, map_body, map_stmt_exprs, stmt_exprs, walk_exprs, walk_stmts
+
+
+def inline_constants(program: Program) -> Program:
+    data = program.constants
+
+    def literal(e: Expr) -> Expr:
+        if isinstance(e, Load) and e.buffer in data and e.index.is_const:
+            flat = data[e.buffer].reshape(-1)
+            return Const(tuple(float(v) for v in flat[e.index.const : e.index.const + e.lanes]))
+        return e
+
+    kernels = tuple(replace(k, body=map_body(k.body, lambda s: map_stmt_exprs(s, literal))) for k in program.kernels)
+    read = {
+        e.buffer
+        for k in kernels
+        for s in walk_stmts(k.body)
+        for top in stmt_exprs(s)
+        for e in walk_exprs(top)
+        if isinstance(e, Load)
+    }
+    buffers = tuple(b for b in program.buffers if b.role != "constant" or b.name in read)
+    constants = {name: arr for name, arr in data.items() if name in read}
+    return replace(program, buffers=buffers, kernels=kernels, constants=constants)

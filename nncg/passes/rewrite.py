@@ -1,0 +1,33 @@
+"""Helpers for graph passes: find a node's single consumer, splice a node out of the graph."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..ir.graph import Graph, Node
+
+
+def sole_consumer(graph: Graph, value: str) -> Node | None:
+    """The one node reading `value`, if exactly one does and value is not also a graph output."""
+    consumers = graph.consumers(value)
+    if len(consumers) != 1 or graph.is_graph_output(value):
+        return None
+    return consumers[0]
+
+
+def merge_into_producer(graph: Graph, producer: Node, merged: Node, new_producer: Node, constants=None) -> Graph:
+    """Replaces producer by new_producer, which now writes merged's output; merged disappears."""
+    new_producer = replace(new_producer, outputs=merged.outputs)
+    nodes = [new_producer if n is producer else n for n in graph.nodes if n is not merged]
+    return graph.with_nodes(nodes, constants)
+
+
+def rename_input(node: Node, old: str, new: str) -> Node:
+    return replace(node, inputs=tuple(new if name == old else name for name in node.inputs))
+
+
+def fresh_name(graph: Graph, base: str, taken: dict) -> str:
+    name, i = base, 1
+    while name in graph.constants or name in graph.shapes or name in taken:
+        name, i = f"{base}_{i}", i + 1
+    return name

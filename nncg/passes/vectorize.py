@@ -1,0 +1,147 @@
+"""Loop pass `vectorize{lanes=N}`: SIMD over output channels (the paper's principle 4).
+
+Marks, in each kernel, the innermost parallel loop that every store walks contiguously, then
+materialises it: a loop over vector blocks whose expressions have N lanes, plus a scalar tail when
+the extent is not a multiple of N. Loads that do not depend on the loop become broadcasts."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..ir.loops import (
+    Affine,
+    Assign,
+    Binary,
+    Broadcast,
+    Call,
+    Const,
+    Expr,
+    If,
+    Let,
+    Load,
+    LocalRef,
+    Loop,
+    Program,
+    Select,
+    Stmt,
+    Store,
+    map_body,
+    walk_exprs,
+    walk_stmts,
+)
+from .substitute import substitute_body
+
+
+def vectorize(program: Program, lanes: int = 4) -> Program:
+    if lanes <= 1:
+        return program
+    kernels = []
+    for kernel in program.kernels:
+        body = mark_vector_loop(kernel.body, lanes)
+        kernels.append(replace(kernel, body=map_body(body, lambda s: materialize(s))))
+    return replace(program, kernels=tuple(kernels))
+
+
+# ---------------------------------------------------------------------------- choice
+
+
+def mark_vector_loop(body: tuple[Stmt, ...], lanes: int) -> tuple[Stmt, ...]:
+    """Marks the innermost eligible loop on each path (loops already marked are kept)."""
+
+    def mark(stmt: Stmt) -> Stmt:
+        if not isinstance(stmt, Loop) or stmt.kind != "serial" or not vectorizable(stmt, lanes):
+            return stmt
+        if any(isinstance(s, Loop) and s.kind == "vectorized" for s in walk_stmts(stmt.body)):
+            return stmt
+        return replace(stmt, kind="vectorized", lanes=lanes)
+
+    return map_body(body, mark)
+
+
+def vectorizable(loop: Loop, lanes: int) -> bool:
+    """Parallel, at least one full vector, stores contiguous along the loop, loads contiguous or
+    invariant, no calls (no vector exp), no branch or outer local that depends on the loop."""
+    if not loop.parallel or loop.extent < lanes:
+        return False
+    var = loop.var
+    declared = {s.name for s in walk_stmts(loop.body) if isinstance(s, Let)}
+    stores = 0
+    for stmt in walk_stmts(loop.body):
+        if isinstance(stmt, Store):
+            stores += 1
+            if stmt.index.coeff(var) != 1:
+                return False
+        if isinstance(stmt, Assign) and stmt.name not in declared:
+            return False
+        if isinstance(stmt, If) and any(b.expr.coeff(var) for b in stmt.bounds):
+            return False
+        for expr in _exprs_of(stmt):
+            for e in walk_exprs(expr):
+                if isinstance(e, Call) or (isinstance(e, Load) and e.index.coeff(var) not in (0, 1)):
+                    return False
+    return stores > 0
+
+
+def _exprs_of(stmt: Stmt) -> tuple[Expr, ...]:
+    if isinstance(stmt, Store | Assign):
+        return (stmt.value,)
+    if isinstance(stmt, Let):
+        return (stmt.init,)
+    return ()
+
+
+# ---------------------------------------------------------------------------- mechanism
+
+
+def materialize(stmt: Stmt) -> Stmt | tuple[Stmt, ...]:
+    if not isinstance(stmt, Loop) or stmt.kind != "vectorized":
+        return stmt
+    lanes, var = stmt.lanes, stmt.var
+    blocks, tail = divmod(stmt.extent, lanes)
+    out: list[Stmt] = []
+    # Which loads become vector loads is decided on the original indices, before var is scaled.
+    vector = _vector_body(stmt.body, var, lanes, set())
+    if blocks == 1:
+        out += substitute_body(vector, {var: Affine()})
+    elif blocks > 1:
+        out.append(
+            Loop(var, blocks, substitute_body(vector, {var: Affine.of(var) * lanes}), parallel=True, lanes=lanes)
+        )
+    start = Affine.of(blocks * lanes)
+    if tail == 1:
+        out += substitute_body(stmt.body, {var: start})
+    elif tail:
+        out.append(Loop(var, tail, substitute_body(stmt.body, {var: start + var}), parallel=True))
+    return tuple(out)
+
+
+def _vector_body(body: tuple[Stmt, ...], var: str, lanes: int, vector_locals: set[str]) -> tuple[Stmt, ...]:
+    out: list[Stmt] = []
+    for stmt in body:
+        if isinstance(stmt, Store):
+            out.append(Store(stmt.buffer, stmt.index, _vector(stmt.value, var, lanes, vector_locals)))
+        elif isinstance(stmt, Let):
+            inner = vector_locals | {stmt.name}
+            init = _vector(stmt.init, var, lanes, vector_locals)
+            out.append(Let(stmt.name, init, _vector_body(stmt.body, var, lanes, inner)))
+        elif isinstance(stmt, Assign):
+            out.append(Assign(stmt.name, _vector(stmt.value, var, lanes, vector_locals)))
+        else:
+            out.append(replace(stmt, body=_vector_body(stmt.body, var, lanes, vector_locals)))
+    return tuple(out)
+
+
+def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
+    """The lanes-wide version of e; operands that do not vary along the loop are broadcast."""
+    if isinstance(e, Load):
+        return Load(e.buffer, e.index, lanes) if e.index.coeff(var) else Broadcast(e, lanes)
+    if isinstance(e, Const):
+        return Const.splat(e.values[0], lanes)
+    if isinstance(e, LocalRef):
+        return LocalRef(e.name, lanes) if e.name in vector_locals else Broadcast(e, lanes)
+    if isinstance(e, Binary):
+        return Binary(e.op, _vector(e.a, var, lanes, vector_locals), _vector(e.b, var, lanes, vector_locals))
+    if isinstance(e, Select):
+        parts = (_vector(x, var, lanes, vector_locals) for x in (e.lhs, e.rhs, e.then, e.otherwise))
+        return Select(e.cmp, *parts)
+    raise TypeError(f"cannot vectorize {e!r}")

@@ -1,0 +1,403 @@
+"""Verification: compile the generated C into a small test program, run it on fixed-seed inputs
+and compare with onnxruntime."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+
+from nncg.errors import NncgError
+
+SANITIZE_FLAGS = (
+    "-fsanitize=address,undefined",
+    "-fno-sanitize-recover=all",
+    "-fno-omit-frame-pointer",
+)
+COMPILE_TIMEOUT_S = 600
+RUN_TIMEOUT_S = 600
+STDERR_LINES = 40
+_SANITIZER_REPORT = re.compile(r"Sanitizer|runtime error:")
+
+
+class VerificationError(NncgError):
+    """The generated C did not compile cleanly, crashed, or broke the calling contract."""
+
+
+@dataclass(frozen=True)
+class ErrorStat:
+    """How far one output is from the reference; `problem` is set when the numbers are not comparable.
+
+    max_rel is max|out - ref| / max(max|ref|, 1e-12): the error relative to the output's scale.
+    Element-wise relative error is meaningless where the reference crosses zero (any rounding
+    difference next to a zero is an "infinite" relative error), so one scale per output is used.
+    """
+
+    name: str
+    shape: tuple[int, ...]
+    max_abs: float
+    max_rel: float
+    problem: str | None = None
+
+
+@dataclass(frozen=True)
+class VerifyReport:
+    """The outcome of verify(): per-output errors against onnxruntime and the tolerance applied."""
+
+    name: str
+    target: str
+    stats: tuple[ErrorStat, ...]
+    tolerance: float
+    seed: int
+
+    @property
+    def ok(self) -> bool:
+        """True when every output is comparable and its max_rel is within the tolerance."""
+        return all(s.problem is None and s.max_rel <= self.tolerance for s in self.stats)
+
+    def format(self) -> str:
+        """A small aligned table (output, shape, max abs err, max rel err) and a PASS/FAIL line."""
+        rows = [("output", "shape", "max abs err", "max rel err")]
+        rows += [(s.name, str(s.shape), f"{s.max_abs:.3g}", f"{s.max_rel:.3g}") for s in self.stats]
+        widths = [max(len(row[i]) for row in rows) for i in range(4)]
+        lines = [f"verify {self.name} (target {self.target}, seed {self.seed})"]
+        lines += ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
+        lines += [f"{s.name}: {s.problem}" for s in self.stats if s.problem is not None]
+        verdict = "PASS" if self.ok else "FAIL"
+        lines.append(f"{verdict}: max rel err <= {self.tolerance:g} required")
+        return "\n".join(lines)
+
+
+def find_c_compiler(cc: str | None = None) -> str:
+    """Return `cc` if it is on PATH; with no `cc`, the first of cc, gcc, clang on PATH."""
+    if cc is not None:
+        if shutil.which(cc) is None:
+            raise NncgError(f"C compiler {cc!r} not found on PATH; install it or pass another compiler")
+        return cc
+    for candidate in ("cc", "gcc", "clang"):
+        if shutil.which(candidate) is not None:
+            return candidate
+    raise NncgError("no C compiler found (looked for cc, gcc, clang on PATH); install gcc or clang")
+
+
+def random_inputs(inputs: Sequence[Any], seed: int = 0) -> list[np.ndarray]:
+    """Fixed-seed float32 standard-normal arrays, one per input (objects with `.shape`), in order."""
+    rng = np.random.default_rng(seed)
+    return [rng.standard_normal(tuple(spec.shape), dtype=np.float32) for spec in inputs]
+
+
+def _element_count(shape: Sequence[int]) -> int:
+    return math.prod(int(d) for d in shape)
+
+
+def _head(text: str, lines: int = STDERR_LINES) -> str:
+    """The first `lines` lines of a compiler's or program's stderr, noting how many were cut."""
+    all_lines = text.rstrip().splitlines()
+    cut = len(all_lines) - lines
+    return "\n".join(all_lines[:lines] + ([f"... ({cut} more lines)"] if cut > 0 else []))
+
+
+def harness_source(compiled: Any) -> str:
+    """C89 test program: reads each input file, calls the model once, writes each output file."""
+    n_in, n_out = len(compiled.inputs), len(compiled.outputs)
+    in_sizes = [_element_count(spec.shape) for spec in compiled.inputs]
+    out_sizes = [_element_count(spec.shape) for spec in compiled.outputs]
+    buffers = [f"static float nncg_in{i}[{max(n, 1)}];" for i, n in enumerate(in_sizes)]
+    buffers += [f"static float nncg_out{i}[{max(n, 1)}];" for i, n in enumerate(out_sizes)]
+    args = [f"nncg_in{i}" for i in range(n_in)] + [f"nncg_out{i}" for i in range(n_out)]
+    usage = " ".join([f"IN{i}" for i in range(n_in)] + [f"OUT{i}" for i in range(n_out)])
+    reads = [f"    if (!nncg_read(argv[{1 + i}], nncg_in{i}, {n}UL)) return 1;" for i, n in enumerate(in_sizes)]
+    # Outputs start as all-ones bytes (a NaN), so an element the model never writes shows up.
+    fills = [f"    memset(nncg_out{i}, 0xff, sizeof nncg_out{i});" for i in range(n_out)]
+    writes = [
+        f"    if (!nncg_write(argv[{1 + n_in + i}], nncg_out{i}, {n}UL)) return 1;" for i, n in enumerate(out_sizes)
+    ]
+    return _HARNESS_TEMPLATE.format(
+        name=compiled.name,
+        buffers="\n".join(buffers),
+        argc=1 + n_in + n_out,
+        usage=usage,
+        body="\n".join(reads + fills + [f"    {compiled.name}({', '.join(args)});"] + writes),
+    )
+
+
+_HARNESS_TEMPLATE = """\
+/* Test program generated by nncg.verify: reads raw little-endian float32 inputs from the files
+   named on the command line, calls {name} once and writes its outputs the same way. */
+#include <stdio.h>
+#include <string.h>
+#include "{name}.h"
+
+{buffers}
+
+/* Converts between little-endian file data and native floats (a no-op on little-endian hosts). */
+static void nncg_swap_if_big_endian(float *data, unsigned long count)
+{{
+    unsigned int one = 1;
+    unsigned char *p = (unsigned char *)data;
+    unsigned char t;
+    unsigned long i;
+    if (*(unsigned char *)&one == 1) return;
+    for (i = 0; i < count; ++i, p += 4) {{
+        t = p[0]; p[0] = p[3]; p[3] = t;
+        t = p[1]; p[1] = p[2]; p[2] = t;
+    }}
+}}
+
+static int nncg_read(const char *path, float *data, unsigned long count)
+{{
+    FILE *f = fopen(path, "rb");
+    int ok;
+    if (f == NULL) {{
+        fprintf(stderr, "harness: cannot open %s\\n", path);
+        return 0;
+    }}
+    ok = fread(data, sizeof(float), count, f) == count && fgetc(f) == EOF;
+    fclose(f);
+    if (!ok) fprintf(stderr, "harness: %s does not hold exactly %lu floats\\n", path, count);
+    nncg_swap_if_big_endian(data, count);
+    return ok;
+}}
+
+static int nncg_write(const char *path, float *data, unsigned long count)
+{{
+    FILE *f = fopen(path, "wb");
+    int ok;
+    if (f == NULL) {{
+        fprintf(stderr, "harness: cannot create %s\\n", path);
+        return 0;
+    }}
+    nncg_swap_if_big_endian(data, count);
+    ok = fwrite(data, sizeof(float), count, f) == count;
+    ok = fclose(f) == 0 && ok;
+    if (!ok) fprintf(stderr, "harness: cannot write %s\\n", path);
+    return ok;
+}}
+
+int main(int argc, char *argv[])
+{{
+    if (argc != {argc}) {{
+        fprintf(stderr, "usage: %s {usage}\\n", argv[0]);
+        return 2;
+    }}
+{body}
+    return 0;
+}}
+"""
+
+
+def _run_tool(cmd: list[str], cwd: Path, what: str) -> None:
+    """Run one compiler or linker step; any error or warning raises with its stderr."""
+    try:
+        proc = subprocess.run(cmd, check=False, cwd=cwd, capture_output=True, text=True, timeout=COMPILE_TIMEOUT_S)
+    except subprocess.TimeoutExpired as exc:
+        raise VerificationError(f"{what} timed out after {COMPILE_TIMEOUT_S}s: {' '.join(cmd)}") from exc
+    if proc.returncode != 0 or "warning:" in proc.stderr:
+        status = "failed" if proc.returncode != 0 else "warned"
+        raise VerificationError(f"{what} {status}: {' '.join(cmd)}\n{_head(proc.stderr + proc.stdout)}")
+
+
+def _check_inputs(compiled: Any, inputs: Sequence[np.ndarray]) -> None:
+    if len(inputs) != len(compiled.inputs):
+        raise VerificationError(f"{compiled.name} takes {len(compiled.inputs)} inputs, got {len(inputs)}")
+    for spec, array in zip(compiled.inputs, inputs):
+        if tuple(np.shape(array)) != tuple(spec.shape):
+            raise VerificationError(
+                f"input {spec.name!r} must have shape {tuple(spec.shape)}, got {tuple(np.shape(array))}"
+            )
+
+
+def _build(compiled: Any, workdir: Path, cc: str, opt: str, flags: Sequence[str], sanitize: bool) -> Path:
+    """Write the model and harness into workdir, compile both and link; returns the program path."""
+    c_path, h_path = compiled.write(workdir)
+    (workdir / "harness.c").write_text(harness_source(compiled))
+    compile_flags = [opt, *compiled.strict_cflags, *compiled.cflags, *flags]
+    if sanitize:
+        compile_flags += SANITIZE_FLAGS
+    include = f"-I{Path(h_path).parent}"
+    obj = f"{compiled.name}.o"
+    _run_tool(
+        [cc, *compile_flags, "-c", str(c_path), "-o", obj],
+        workdir,
+        f"compiling {Path(c_path).name}",
+    )
+    _run_tool(
+        [cc, *compile_flags, include, "-c", "harness.c", "-o", "harness.o"],
+        workdir,
+        "compiling harness.c",
+    )
+    link_flags = [opt, *compiled.cflags, *flags, *(SANITIZE_FLAGS if sanitize else ())]
+    _run_tool([cc, *link_flags, obj, "harness.o", "-o", "harness", "-lm"], workdir, "linking harness")
+    return workdir / "harness"
+
+
+def _execute(program: Path, args: list[str], workdir: Path, sanitize: bool) -> None:
+    """Run the test program; a crash, nonzero exit or any sanitizer report raises."""
+    env = dict(os.environ)
+    env.setdefault("ASAN_OPTIONS", "abort_on_error=0:detect_leaks=1")
+    env.setdefault("UBSAN_OPTIONS", "print_stacktrace=1:halt_on_error=1")
+    try:
+        proc = subprocess.run(
+            [str(program), *args],
+            check=False,
+            cwd=workdir,
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=RUN_TIMEOUT_S,
+        )
+    except subprocess.TimeoutExpired as exc:
+        raise VerificationError(f"test program timed out after {RUN_TIMEOUT_S}s") from exc
+    if proc.returncode < 0:
+        status = f"crashed with signal {-proc.returncode}"
+    elif proc.returncode > 0:
+        status = f"exited with status {proc.returncode}"
+    elif sanitize and _SANITIZER_REPORT.search(proc.stderr):
+        status = "produced a sanitizer report"
+    else:
+        return
+    raise VerificationError(f"test program {status} (workdir {workdir})\n{_head(proc.stderr)}")
+
+
+def run_compiled(
+    compiled: Any,
+    inputs: list[np.ndarray],
+    *,
+    cc: str | None = None,
+    opt: str = "-O2",
+    extra_cflags: Sequence[str] = (),
+    sanitize: bool = False,
+    workdir: str | os.PathLike[str] | None = None,
+) -> list[np.ndarray]:
+    """Compile the model with a test harness, run it once on `inputs`; returns the outputs.
+
+    `cc=None` picks the first of cc, gcc, clang on PATH. The generated file is compiled with the
+    target's strict flags; `sanitize` builds with ASan+UBSan and fails on any report. Files are
+    kept in `workdir` when given, else in a temporary directory that is removed afterwards.
+    """
+    _check_inputs(compiled, inputs)
+    cc = find_c_compiler(cc)
+    if workdir is None:
+        with tempfile.TemporaryDirectory(prefix="nncg-verify-") as tmp:
+            return _build_and_run(compiled, inputs, Path(tmp), cc, opt, extra_cflags, sanitize)
+    Path(workdir).mkdir(parents=True, exist_ok=True)
+    return _build_and_run(compiled, inputs, Path(workdir).resolve(), cc, opt, extra_cflags, sanitize)
+
+
+def _build_and_run(
+    compiled: Any,
+    inputs: Sequence[np.ndarray],
+    workdir: Path,
+    cc: str,
+    opt: str,
+    flags: Sequence[str],
+    sanitize: bool,
+) -> list[np.ndarray]:
+    program = _build(compiled, workdir, cc, opt, flags, sanitize)
+    in_files = [f"input{i}.bin" for i in range(len(inputs))]
+    out_files = [f"output{i}.bin" for i in range(len(compiled.outputs))]
+    for name, array in zip(in_files, inputs):
+        np.ascontiguousarray(array, dtype="<f4").tofile(workdir / name)
+    _execute(program, in_files + out_files, workdir, sanitize)
+    return [_read_output(workdir / name, spec) for name, spec in zip(out_files, compiled.outputs)]
+
+
+def _read_output(path: Path, spec: Any) -> np.ndarray:
+    data = np.fromfile(path, dtype="<f4")
+    shape = tuple(spec.shape)
+    if data.size != _element_count(shape):
+        raise VerificationError(f"output {spec.name!r}: expected {_element_count(shape)} floats, got {data.size}")
+    return data.astype(np.float32).reshape(shape)
+
+
+def reference_outputs(
+    model: onnx.ModelProto, compiled_inputs: Sequence[Any], inputs: Sequence[np.ndarray]
+) -> list[np.ndarray]:
+    """onnxruntime (CPU, no graph optimizations) on the same inputs; outputs in graph order."""
+    import onnxruntime as ort  # imported here: only verification needs it, not compiling
+
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    options.intra_op_num_threads = 1
+    options.log_severity_level = 3
+    feed = {spec.name: np.asarray(array, dtype=np.float32) for spec, array in zip(compiled_inputs, inputs)}
+    try:
+        session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+        return [np.asarray(out) for out in session.run(None, feed)]
+    except Exception as exc:  # onnxruntime raises its own exception types
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise VerificationError(f"onnxruntime cannot run this model for comparison: {first}") from None
+
+
+def _error_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
+    """Errors of one output; elements where the reference is NaN are not compared."""
+    shape = tuple(out.shape)
+    if out.shape != ref.shape:
+        return ErrorStat(name, shape, math.inf, math.inf, f"shape {shape} != reference shape {tuple(ref.shape)}")
+    out64, ref64 = out.astype(np.float64), ref.astype(np.float64)
+    ref_nan = np.isnan(ref64)
+    bad_nan = int(np.count_nonzero(np.isnan(out64) & ~ref_nan))
+    if bad_nan:
+        problem = f"{bad_nan} NaN elements where the reference is not NaN (unwritten or invalid output)"
+        return ErrorStat(name, shape, math.inf, math.inf, problem)
+    # Equal elements (same infinities included) have zero error; inf - finite stays inf.
+    diff = np.where(out64 == ref64, 0.0, np.abs(out64 - ref64))[~ref_nan]
+    finite_ref = np.abs(ref64[np.isfinite(ref64)])
+    max_abs = float(diff.max()) if diff.size else 0.0
+    scale = max(float(finite_ref.max()) if finite_ref.size else 0.0, 1e-12)
+    return ErrorStat(name, shape, max_abs, max_abs / scale)
+
+
+def compare(
+    outputs: Sequence[np.ndarray],
+    references: Sequence[np.ndarray],
+    names: Sequence[str] | None = None,
+) -> list[ErrorStat]:
+    """Per-output max abs and max rel error (see ErrorStat), shape and NaN checks."""
+    if len(outputs) != len(references):
+        raise VerificationError(f"{len(outputs)} outputs but {len(references)} reference outputs")
+    names = list(names) if names is not None else [f"output{i}" for i in range(len(outputs))]
+    return [_error_stat(n, np.asarray(o), np.asarray(r)) for n, o, r in zip(names, outputs, references)]
+
+
+def _check_interface(model: onnx.ModelProto, compiled: Any) -> None:
+    """The C function's parameters must be the graph's inputs then outputs, in graph order."""
+    initializers = {init.name for init in model.graph.initializer}
+    graph_inputs = [v.name for v in model.graph.input if v.name not in initializers]
+    graph_outputs = [v.name for v in model.graph.output]
+    compiled_inputs = [spec.name for spec in compiled.inputs]
+    compiled_outputs = [spec.name for spec in compiled.outputs]
+    if compiled_inputs != graph_inputs or compiled_outputs != graph_outputs:
+        raise VerificationError(
+            f"{compiled.name} has inputs {compiled_inputs} and outputs {compiled_outputs}, "
+            f"but the model has inputs {graph_inputs} and outputs {graph_outputs}"
+        )
+
+
+def verify(
+    model: onnx.ModelProto,
+    compiled: Any,
+    *,
+    seed: int = 0,
+    tolerance: float = 1e-4,
+    cc: str | None = None,
+    sanitize: bool = False,
+    opt: str = "-O2",
+) -> VerifyReport:
+    """Run the compiled C and onnxruntime on the same fixed-seed inputs and compare every output."""
+    _check_interface(model, compiled)
+    inputs = random_inputs(compiled.inputs, seed)
+    outputs = run_compiled(compiled, inputs, cc=cc, sanitize=sanitize, opt=opt)
+    references = reference_outputs(model, compiled.inputs, inputs)
+    stats = compare(outputs, references, [spec.name for spec in compiled.outputs])
+    return VerifyReport(compiled.name, compiled.target, tuple(stats), tolerance, seed)

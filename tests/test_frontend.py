@@ -1,0 +1,831 @@
+"""Tests of the ONNX front end (ONNX -> graph IR): loading, validation, constant folding, op conversion."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from nncg.errors import NncgError, UnsupportedOpsError
+from nncg.frontend import import_onnx, load_model
+from nncg.frontend.context import Context, OnnxOp
+from nncg.frontend.ops_nn import convert_maxpool
+from nncg.frontend.ops_shape import convert_dropout
+from nncg.ir.graph import (
+    OPS,
+    Activation,
+    BatchNormAttrs,
+    ConvAttrs,
+    DenseAttrs,
+    Graph,
+    Node,
+    PoolAttrs,
+    ReshapeAttrs,
+    SoftmaxAttrs,
+)
+
+F = TensorProto.FLOAT
+RNG = np.random.default_rng(0)
+
+
+# --- helpers -------------------------------------------------------------------------------------
+
+
+def value(name, shape, dtype=F):
+    return helper.make_tensor_value_info(name, dtype, shape)
+
+
+def const(name, array):
+    return numpy_helper.from_array(np.asarray(array), name)
+
+
+def rand(*shape):
+    return RNG.standard_normal(shape).astype(np.float32)
+
+
+def model(nodes, inputs, outputs, inits=(), opset=13, ir_version=None):
+    """A model from helper pieces; inputs/outputs are (name, shape) pairs or ValueInfoProtos."""
+    inputs = [v if isinstance(v, onnx.ValueInfoProto) else value(*v) for v in inputs]
+    outputs = [v if isinstance(v, onnx.ValueInfoProto) else value(*v) for v in outputs]
+    graph = helper.make_graph(nodes, "test", inputs, outputs, initializer=list(inits))
+    opsets = [helper.make_opsetid("", opset)]
+    ir = ir_version or max(helper.find_min_ir_version_for(opsets), 4)
+    return helper.make_model(graph, opset_imports=opsets, ir_version=ir)
+
+
+def one_op(op, in_shape, out_shape=None, inits=(), extra_inputs=(), opset=13, outputs=("y",), **attrs):
+    """A model with a single node reading x (and constants), writing y."""
+    node = helper.make_node(op, ["x", *extra_inputs], list(outputs), **attrs)
+    return model([node], [("x", in_shape)], [("y", out_shape)], inits, opset)
+
+
+def run_ort(proto, feeds):
+    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    return session.run(None, feeds)
+
+
+def ort_shape(proto, name="x"):
+    """Output shape onnxruntime actually produces on the model NNCG compiled."""
+    loaded = load_model(proto)
+    shape = [d.dim_value for d in loaded.graph.input[0].type.tensor_type.shape.dim]
+    return tuple(run_ort(loaded, {name: rand(*shape)})[0].shape)
+
+
+def only(graph: Graph) -> Node:
+    assert len(graph.nodes) == 1, graph.nodes
+    return graph.nodes[0]
+
+
+def fails(source, *fragments, error=NncgError, **kwargs) -> str:
+    """import_onnx raises `error` with a one-line message containing every fragment."""
+    with pytest.raises(error) as info:
+        import_onnx(source, **kwargs)
+    message = str(info.value)
+    assert "\n" not in message
+    for fragment in fragments:
+        assert fragment in message, message
+    return message
+
+
+def conv_model(x_shape=(1, 2, 7, 7), w_shape=(3, 2, 3, 3), bias=True, opset=13, **attrs):
+    inputs = ["x", "w", "b"] if bias else ["x", "w"]
+    inits = [const("w", rand(*w_shape))] + ([const("b", rand(w_shape[0]))] if bias else [])
+    node = helper.make_node("Conv", inputs, ["y"], name="conv", **attrs)
+    return model([node], [("x", x_shape)], [("y", None)], inits, opset)
+
+
+# --- loading -------------------------------------------------------------------------------------
+
+
+def test_loads_path_bytes_proto_and_load_model_result(tmp_path):
+    proto = one_op("Relu", [1, 4])
+    path = tmp_path / "m.onnx"
+    onnx.save(proto, path)
+    graphs = [import_onnx(src) for src in (str(path), path, proto.SerializeToString(), proto, load_model(proto))]
+    assert all(g == graphs[0] for g in graphs)
+    assert graphs[0].nodes == (Node("Relu", "Relu_0", ("x",), ("y",), Activation("relu")),)
+
+
+def test_load_model_does_not_modify_the_callers_proto():
+    proto = one_op("Relu", ["N", 4])
+    load_model(proto, {"x": (2, 4)})
+    assert proto.graph.input[0].type.tensor_type.shape.dim[0].dim_param == "N"
+
+
+def test_missing_file(tmp_path):
+    fails(tmp_path / "nope.onnx", "nope.onnx", "does not exist")
+
+
+def test_text_file_is_not_onnx(tmp_path):
+    path = tmp_path / "notes.onnx"
+    path.write_text("this is a text file, not a model\n")
+    fails(path, "notes.onnx", "not", "ONNX")
+
+
+def test_empty_file(tmp_path):
+    path = tmp_path / "empty.onnx"
+    path.write_bytes(b"")
+    fails(path, "empty.onnx", "empty")
+
+
+def test_directory_is_not_a_model(tmp_path):
+    fails(tmp_path, "not a file")
+
+
+def test_wrong_argument_type():
+    fails(42, "int", "file path")
+
+
+def test_every_truncation_of_a_real_model_is_detected(tmp_path):
+    data = conv_model(opset=13).SerializeToString()
+    for cut in range(len(data)):
+        with pytest.raises(NncgError):
+            import_onnx(data[:cut])
+    path = tmp_path / "cut.onnx"
+    path.write_bytes(data[: len(data) * 2 // 3])
+    fails(path, "cut.onnx", "truncated")
+
+
+def test_cut_before_opset_import_parses_but_is_detected():
+    data = conv_model().SerializeToString()
+    opset = helper.make_model(helper.make_graph([], "g", [], []), opset_imports=[helper.make_opsetid("", 13)])
+    tail = len(opset.opset_import[0].SerializeToString()) + 2  # field tag and length byte
+    cut = data[:-tail]
+    assert onnx.load_model_from_string(cut).graph.node  # protobuf accepts it silently
+    fails(cut, "opset_import")
+
+
+def test_model_failing_the_checker():
+    node = helper.make_node("Relu", ["x", "x"], ["y"])  # Relu takes one input
+    fails(model([node], [("x", [1, 2])], [("y", [1, 2])]), "ONNX checker")
+
+
+def test_non_default_domain_is_refused():
+    node = helper.make_node("FusedConv", ["x"], ["y"], name="fc", domain="com.microsoft")
+    proto = model([node], [("x", [1, 2])], [("y", [1, 2])])
+    proto.opset_import.append(helper.make_opsetid("com.microsoft", 1))
+    fails(proto, "com.microsoft.FusedConv (node 'fc')", "non-default domain", error=UnsupportedOpsError)
+
+
+def test_too_old_opset():
+    fails(one_op("Relu", [1, 2], opset=6), "opset 6", "7 to")
+
+
+def test_external_data_is_read_from_a_path_but_not_from_bytes(tmp_path):
+    proto = conv_model()
+    weight = numpy_helper.to_array(proto.graph.initializer[0])
+    path = tmp_path / "ext.onnx"
+    onnx.save(proto, path, save_as_external_data=True, all_tensors_to_one_file=True, size_threshold=0)
+    assert len(list(tmp_path.iterdir())) == 2  # the model and its data file
+    np.testing.assert_array_equal(import_onnx(path).constants["w"], weight)
+    fails(path.read_bytes(), "'w'", "external", "file path")
+
+
+def test_declared_output_shape_must_match():
+    fails(one_op("Relu", [1, 4], out_shape=[1, 5]), "output 'y'", "[1, 5]", "[1, 4]")
+
+
+def test_shape_inference_errors_are_wrapped():
+    node = helper.make_node("Add", ["x", "c"], ["y"])
+    proto = model([node], [("x", [1, 3])], [("y", None)], [const("c", rand(1, 4))])
+    fails(proto, "shape inference")
+
+
+# --- graph inputs and outputs --------------------------------------------------------------------
+
+
+def test_inputs_with_initializers_are_constants():
+    # Old exporters (IR 3) list every initializer among the graph inputs.
+    node = helper.make_node("Add", ["x", "c"], ["y"])
+    proto = model([node], [("x", [1, 3]), ("c", [1, 3])], [("y", [1, 3])], [const("c", rand(1, 3))], 7, 3)
+    graph = import_onnx(proto)
+    assert [v.name for v in graph.inputs] == ["x"]
+    assert graph.is_constant("c") and graph.constants["c"].dtype == np.float32
+
+
+def test_non_float32_input():
+    node = helper.make_node("Cast", ["ids"], ["y"], to=F)
+    proto = model([node], [value("ids", [1, 4], TensorProto.INT64)], [("y", [1, 4])])
+    fails(proto, "NNCG compiles float32 models; input 'ids' is int64")
+
+
+def test_non_float32_output():
+    node = helper.make_node("Cast", ["x"], ["y"], to=TensorProto.INT64)
+    proto = model([node], [("x", [1, 4])], [value("y", [1, 4], TensorProto.INT64)])
+    fails(proto, "output 'y' is int64")
+
+
+def test_dynamic_dim_param():
+    fails(one_op("Relu", ["N", 3, 8, 8]), "input 'x'", "x[N,3,8,8]", "--input-shape x=1x3x8x8")
+
+
+def test_missing_dim_value():
+    proto = one_op("Relu", [None, 3])
+    fails(proto, "x[?,3]", "--input-shape x=1x3")
+
+
+def test_unknown_rank():
+    proto = one_op("Relu", [1, 3])
+    proto.graph.input[0].type.tensor_type.ClearField("shape")
+    fails(proto, "input 'x'", "x[unknown rank]", "--input-shape")
+
+
+def test_input_shapes_fix_dynamic_dims():
+    graph = import_onnx(one_op("Relu", ["N", 3, "H", 8]), {"x": (2, 3, 5, 8)})
+    assert graph.inputs[0].shape == (2, 3, 5, 8)
+    assert graph.outputs[0].shape == (2, 3, 5, 8)
+    assert graph.shapes["y"] == (2, 3, 5, 8)
+
+
+def test_input_shapes_give_unknown_rank():
+    proto = one_op("Relu", [1, 3])
+    proto.graph.input[0].type.tensor_type.ClearField("shape")
+    assert import_onnx(proto, {"x": (4, 5)}).shapes["y"] == (4, 5)
+
+
+@pytest.mark.parametrize(
+    ("shapes", "fragments"),
+    [
+        ({"z": (1, 3)}, ["'z'", "not an input", "'x'"]),
+        ({"c": (1, 3)}, ["'c'", "constant"]),
+        ({"x": (1, 3, 8)}, ["input 'x'", "3 dims", "x[N,3]"]),
+        ({"x": (1, 4)}, ["input 'x'", "dim 1 = 4", "fixes it at 3"]),
+        ({"x": (1, -3)}, ["input_shapes['x']", "positive ints"]),
+    ],
+)
+def test_bad_input_shapes(shapes, fragments):
+    node = helper.make_node("Add", ["x", "c"], ["y"])
+    proto = model([node], [("x", ["N", 3]), ("c", [1, 3])], [("y", None)], [const("c", rand(1, 3))])
+    fails(proto, *fragments, input_shapes=shapes)
+
+
+def test_inputs_outputs_keep_onnx_order_and_all_shapes_are_recorded():
+    nodes = [helper.make_node("Relu", ["b"], ["r"]), helper.make_node("Add", ["r", "a"], ["s"])]
+    proto = model(nodes, [("b", [1, 2]), ("a", [1, 2])], [("s", None), ("r", None)])
+    graph = import_onnx(proto)
+    assert [v.name for v in graph.inputs] == ["b", "a"]
+    assert [v.name for v in graph.outputs] == ["s", "r"]
+    assert graph.shapes == {"a": (1, 2), "b": (1, 2), "r": (1, 2), "s": (1, 2)}
+
+
+def test_node_names_default_to_op_and_index_and_are_unique():
+    nodes = [
+        helper.make_node("Relu", ["x"], ["a"], name="act"),
+        helper.make_node("Relu", ["a"], ["b"], name="act"),
+        helper.make_node("Relu", ["b"], ["y"]),
+    ]
+    graph = import_onnx(model(nodes, [("x", [1, 2])], [("y", None)]))
+    assert [n.name for n in graph.nodes] == ["act", "act_1", "Relu_2"]
+
+
+def test_every_ir_node_uses_a_canonical_op_and_its_attr_record():
+    graph = import_onnx(conv_model())
+    for node in graph.nodes:
+        expected = OPS[node.op]
+        assert node.attrs is None if expected is None else isinstance(node.attrs, expected)
+
+
+# --- constant folding ----------------------------------------------------------------------------
+
+
+def test_shape_gather_concat_reshape_chain_folds_away():
+    nodes = [
+        helper.make_node("Shape", ["x"], ["s"]),
+        helper.make_node("Gather", ["s", "zero"], ["n"], axis=0),
+        helper.make_node("Unsqueeze", ["n", "axes"], ["n1"]),
+        helper.make_node("Concat", ["n1", "minus1"], ["target"], axis=0),
+        helper.make_node("Cast", ["target"], ["target64"], to=TensorProto.INT64),
+        helper.make_node("Reshape", ["x", "target64"], ["y"], name="flat"),
+    ]
+    inits = [const("zero", np.array(0, np.int64)), const("axes", [0]), const("minus1", [-1])]
+    proto = model(nodes, [("x", ["N", 3, 4, 4])], [("y", ["N", "K"])], inits)
+    graph = import_onnx(proto, {"x": (2, 3, 4, 4)})
+    assert only(graph) == Node("Reshape", "flat", ("x",), ("y",), ReshapeAttrs((2, 48)))
+    assert graph.constants == {}
+    assert graph.outputs[0].shape == (2, 48)
+
+
+def test_shape_start_end_folds():
+    # Shape with start (opset 15): keep the last two dims, merge the rest.
+    nodes = [
+        helper.make_node("Shape", ["x"], ["tail"], start=-2),
+        helper.make_node("Concat", ["minus1", "tail"], ["target"], axis=0),
+        helper.make_node("Reshape", ["x", "target"], ["y"]),
+    ]
+    graph = import_onnx(model(nodes, [("x", [2, 3, 4, 5])], [("y", None)], [const("minus1", [-1])], opset=15))
+    assert only(graph).attrs == ReshapeAttrs((6, 4, 5))
+
+
+def test_constant_of_shape_and_size_fold():
+    nodes = [
+        helper.make_node("ConstantOfShape", ["shape"], ["twos"], value=const("v", np.array([2.0], np.float32))),
+        helper.make_node("Size", ["x"], ["n"]),
+        helper.make_node("Cast", ["n"], ["nf"], to=F),
+        helper.make_node("Mul", ["x", "twos"], ["m"]),
+        helper.make_node("Div", ["m", "nf"], ["y"]),
+    ]
+    graph = import_onnx(model(nodes, [("x", [1, 3])], [("y", None)], [const("shape", [1, 3])]))
+    assert [n.op for n in graph.nodes] == ["Mul", "Div"]
+    np.testing.assert_array_equal(graph.constants["twos"], np.full((1, 3), 2.0, np.float32))
+    assert graph.constants["nf"] == np.float32(3)
+
+
+@pytest.mark.parametrize(
+    ("attrs", "expected"),
+    [
+        ({"value": const("t", np.array([1.5, 2.5, 3.5], np.float32))}, [1.5, 2.5, 3.5]),
+        ({"value_float": 4.0}, 4.0),
+        ({"value_floats": [1.0, 2.0, 3.0]}, [1.0, 2.0, 3.0]),
+        ({"value_int": 7}, 7.0),
+        ({"value_ints": [1, 2, 3]}, [1.0, 2.0, 3.0]),
+        (
+            {
+                "sparse_value": helper.make_sparse_tensor(
+                    const("sv", np.array([5.0], np.float32)), const("si", [1]), [3]
+                )
+            },
+            [0.0, 5.0, 0.0],
+        ),
+    ],
+)
+def test_constant_value_forms_fold(attrs, expected):
+    nodes = [
+        helper.make_node("Constant", [], ["c"], **attrs),
+        helper.make_node("Cast", ["c"], ["cf"], to=F),  # value_int(s) are int64
+        helper.make_node("Add", ["x", "cf"], ["y"], name="add"),
+    ]
+    graph = import_onnx(model(nodes, [("x", [1, 3])], [("y", None)]))
+    assert only(graph) == Node("Add", "add", ("x", "cf"), ("y",))
+    assert graph.constants["cf"].dtype == np.float32
+    np.testing.assert_array_equal(graph.constants["cf"], np.asarray(expected, np.float32))
+
+
+def test_weight_computed_from_constants_folds_to_float32():
+    nodes = [
+        helper.make_node("Transpose", ["w16"], ["wt"], perm=[1, 0, 2, 3]),
+        helper.make_node("Cast", ["wt"], ["w"], to=F),
+        helper.make_node("Conv", ["x", "w"], ["y"]),
+    ]
+    w16 = rand(2, 3, 1, 1).astype(np.float16)
+    graph = import_onnx(model(nodes, [("x", [1, 2, 4, 4])], [("y", None)], [const("w16", w16)]))
+    node = only(graph)
+    assert node.inputs == ("x", "w")
+    np.testing.assert_array_equal(graph.constants["w"], w16.transpose(1, 0, 2, 3).astype(np.float32))
+
+
+def test_constant_graph_output_is_refused():
+    nodes = [helper.make_node("Relu", ["x"], ["y"]), helper.make_node("Constant", [], ["k"], value_float=1.0)]
+    fails(model(nodes, [("x", [1, 2])], [("y", None), value("k", [])]), "output 'k'", "constant")
+
+
+def test_dead_branches_are_not_compiled():
+    nodes = [helper.make_node("Relu", ["x"], ["y"]), helper.make_node("Tanh", ["x"], ["unused"])]
+    graph = import_onnx(model(nodes, [("x", [1, 2])], [("y", None)]))
+    assert [n.op for n in graph.nodes] == ["Relu"]
+
+
+# --- unsupported operators -----------------------------------------------------------------------
+
+
+def test_all_unsupported_ops_are_listed_at_once():
+    nodes = [
+        helper.make_node("Tanh", ["x"], ["t"], name="t1"),
+        helper.make_node("Relu", ["t"], ["r"]),
+        helper.make_node("Sigmoid", ["r"], ["y"]),
+    ]
+    message = fails(
+        model(nodes, [("x", [1, 2])], [("y", None)]),
+        "Tanh (node 't1')",
+        "Sigmoid (node 'Sigmoid_2')",
+        error=UnsupportedOpsError,
+    )
+    supported = message.split("NNCG supports ")[1]
+    assert "Relu (node" not in message
+    for op in ("BatchNormalization", "Conv", "Gemm", "MatMul", "Unsqueeze"):
+        assert op in supported
+    assert "Constant" in supported  # folded-only ops are named too
+
+
+def test_unsupported_op_with_constant_inputs_is_folded_not_refused():
+    nodes = [helper.make_node("Tanh", ["c"], ["t"]), helper.make_node("Add", ["x", "t"], ["y"])]
+    c = np.array([[0.5, 1.0]], np.float32)
+    graph = import_onnx(model(nodes, [("x", [1, 2])], [("y", None)], [const("c", c)]))
+    assert only(graph).inputs == ("x", "t")
+    np.testing.assert_allclose(graph.constants["t"], np.tanh(c), rtol=1e-6)
+
+
+# --- Conv ----------------------------------------------------------------------------------------
+
+
+def test_conv_explicit_asymmetric_pads_and_defaults():
+    proto = conv_model(pads=[0, 1, 2, 3])
+    graph = import_onnx(proto)
+    node = only(graph)
+    assert node == Node(
+        "Conv", "conv", ("x", "w", "b"), ("y",), ConvAttrs((3, 3), (1, 1), (1, 1), pads_begin=(0, 1), pads_end=(2, 3))
+    )
+    assert graph.shapes["y"] == ort_shape(proto) == (1, 3, 7, 9)
+    assert graph.constants["w"].dtype == np.float32
+
+
+@pytest.mark.parametrize(
+    ("auto_pad", "begin", "end"),
+    [("SAME_UPPER", (1, 1), (2, 2)), ("SAME_LOWER", (2, 2), (1, 1)), ("VALID", (0, 0), (0, 0))],
+)
+def test_conv_auto_pad(auto_pad, begin, end):
+    # in 7, k 4, stride 2: SAME gives ceil(7/2) = 4 outputs, total pad (4-1)*2 + 4 - 7 = 3.
+    proto = conv_model(w_shape=(3, 2, 4, 4), auto_pad=auto_pad, strides=[2, 2])
+    graph = import_onnx(proto)
+    attrs = only(graph).attrs
+    assert (attrs.pads_begin, attrs.pads_end, attrs.strides) == (begin, end, (2, 2))
+    assert graph.shapes["y"] == ort_shape(proto)
+
+
+def test_conv_same_pad_uses_dilation():
+    # in 8, k 3, dilation 2 (span 5), stride 1: total pad 4.
+    graph = import_onnx(conv_model(x_shape=(1, 2, 8, 8), auto_pad="SAME_UPPER", dilations=[2, 2]))
+    attrs = only(graph).attrs
+    assert (attrs.pads_begin, attrs.pads_end, attrs.dilations) == ((2, 2), (2, 2), (2, 2))
+    assert graph.shapes["y"] == (1, 3, 8, 8)
+
+
+@pytest.mark.parametrize(("x_shape", "w_shape"), [((1, 2, 9), (4, 2, 3)), ((1, 2, 5, 6, 7), (4, 2, 1, 2, 3))])
+def test_conv_any_number_of_spatial_dims(x_shape, w_shape):
+    proto = conv_model(x_shape, w_shape, bias=False, strides=[2] * (len(x_shape) - 2))
+    graph = import_onnx(proto)
+    node = only(graph)
+    assert node.inputs == ("x", "w")
+    assert node.attrs.kernel == w_shape[2:]
+    assert node.attrs.pads_begin == node.attrs.pads_end == (0,) * (len(x_shape) - 2)
+    assert graph.shapes["y"] == ort_shape(proto)
+
+
+def test_conv_old_opset_and_kernel_shape_attribute():
+    graph = import_onnx(conv_model(opset=7, kernel_shape=[3, 3], pads=[1, 1, 1, 1]))
+    assert only(graph).attrs.kernel == (3, 3)
+    assert graph.shapes["y"] == (1, 3, 7, 7)
+
+
+def test_conv_group_is_refused():
+    proto = conv_model(x_shape=(1, 4, 5, 5), w_shape=(4, 2, 3, 3), group=2)
+    fails(proto, "Conv 'conv' has group=2; grouped and depthwise convolution are not supported yet")
+
+
+def test_conv_runtime_weight_is_refused():
+    node = helper.make_node("Conv", ["x", "w"], ["y"], name="conv")
+    proto = model([node], [("x", [1, 2, 5, 5]), ("w", [3, 2, 3, 3])], [("y", None)])
+    fails(proto, "Conv 'conv'", "'w'", "runtime weights are not supported yet")
+
+
+# --- MaxPool -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("size", "attrs"),
+    [
+        (5, {"kernel_shape": [2, 2], "strides": [2, 2]}),
+        (5, {"kernel_shape": [2, 2], "strides": [2, 2], "ceil_mode": 1}),
+        (6, {"kernel_shape": [3, 3], "strides": [2, 2], "ceil_mode": 1, "pads": [1, 1, 1, 1]}),
+        # ceil would add a window starting in the end padding; the spec drops it: 2 outputs, not 3.
+        (4, {"kernel_shape": [2, 2], "strides": [2, 2], "ceil_mode": 1, "pads": [0, 0, 1, 1]}),
+        (7, {"kernel_shape": [3, 3], "strides": [2, 2], "dilations": [2, 2], "ceil_mode": 1}),
+        (5, {"kernel_shape": [2, 2], "strides": [2, 2], "ceil_mode": 1, "auto_pad": "VALID"}),
+        (5, {"kernel_shape": [3, 3], "strides": [2, 2], "auto_pad": "SAME_UPPER"}),
+        (6, {"kernel_shape": [2, 2], "strides": [2, 2], "ceil_mode": 1, "auto_pad": "SAME_LOWER"}),
+    ],
+)
+def test_maxpool_output_shape_matches_onnxruntime(size, attrs):
+    proto = one_op("MaxPool", [1, 2, size, size], opset=12, **attrs)
+    graph = import_onnx(proto)
+    node = only(graph)
+    assert node.op == "MaxPool" and node.attrs.ceil_mode == bool(attrs.get("ceil_mode", 0))
+    assert graph.shapes["y"] == ort_shape(proto)
+
+
+def test_ceil_maxpool_shape_reaches_downstream_shapes_and_folding_in_old_opsets():
+    # ONNX's MaxPool-12 inference says 3x3 here; the spec and onnxruntime say 2x2, and the Shape
+    # chain and Gemm after it must see 2x2 too.
+    nodes = [
+        helper.make_node("MaxPool", ["x"], ["p"], kernel_shape=[2, 2], strides=[2, 2], pads=[0, 0, 1, 1], ceil_mode=1),
+        helper.make_node("Shape", ["p"], ["s"]),
+        helper.make_node("Gather", ["s", "zero"], ["n"], axis=0),
+        helper.make_node("Unsqueeze", ["n"], ["n1"], axes=[0]),
+        helper.make_node("Concat", ["n1", "minus1"], ["target"], axis=0),
+        helper.make_node("Reshape", ["p", "target"], ["f"]),
+        helper.make_node("Gemm", ["f", "B"], ["y"]),
+    ]
+    inits = [const("zero", np.array(0, np.int64)), const("minus1", [-1]), const("B", rand(4, 3))]
+    proto = model(nodes, [("x", [1, 1, 4, 4])], [("y", None)], inits, opset=12)
+    graph = import_onnx(proto)
+    assert [n.op for n in graph.nodes] == ["MaxPool", "Reshape", "Dense"]
+    assert graph.shapes["p"] == (1, 1, 2, 2) and graph.shapes["f"] == (1, 4)
+    assert graph.shapes["y"] == ort_shape(proto) == (1, 3)
+
+
+def test_maxpool_attrs_resolved():
+    proto = one_op("MaxPool", [1, 2, 9, 9], kernel_shape=[3, 3], strides=[2, 2], auto_pad="SAME_LOWER", opset=12)
+    node = only(import_onnx(proto))
+    assert node.attrs == PoolAttrs((3, 3), (2, 2), (1, 1), pads_begin=(1, 1), pads_end=(1, 1), ceil_mode=False)
+
+
+def test_maxpool_unused_indices_output_is_fine():
+    proto = one_op("MaxPool", [1, 1, 4, 4], outputs=("y", "idx"), kernel_shape=[2, 2], opset=12)
+    node = only(import_onnx(proto))
+    assert node.outputs == ("y",)
+
+
+def converter_context(shapes, used, opset=13):
+    """A Context as the importer builds it, for reaching converter checks no valid float model can."""
+    return Context(opset=opset, constants={}, shapes=shapes, used=set(used), taken=set())
+
+
+def test_maxpool_used_indices_are_refused():
+    node = helper.make_node("MaxPool", ["x"], ["y", "idx"], name="pool", kernel_shape=[2, 2])
+    # Through import, Indices can only escape as an (int64) graph output, which is refused as such.
+    proto = model([node], [("x", [1, 1, 4, 4])], [("y", None), value("idx", None, TensorProto.INT64)], opset=12)
+    fails(proto, "output 'idx' is int64")
+    ctx = converter_context({"x": (1, 1, 4, 4)}, used={"idx"})
+    with pytest.raises(NncgError, match="MaxPool 'pool' has its Indices output 'idx' used"):
+        convert_maxpool(OnnxOp.of(node, "pool"), ctx)
+
+
+def test_maxpool_storage_order_is_refused():
+    node = helper.make_node("MaxPool", ["x"], ["y"], name="pool", kernel_shape=[2, 2], storage_order=1)
+    fails(model([node], [("x", [1, 1, 4, 4])], [("y", None)], opset=12), "MaxPool 'pool'", "storage_order")
+
+
+# --- activations, BatchNormalization, Softmax ----------------------------------------------------
+
+
+def test_relu_and_leaky_relu():
+    nodes = [
+        helper.make_node("Relu", ["x"], ["a"]),
+        helper.make_node("LeakyRelu", ["a"], ["b"]),
+        helper.make_node("LeakyRelu", ["b"], ["y"], alpha=0.25),
+    ]
+    graph = import_onnx(model(nodes, [("x", [1, 2])], [("y", None)]))
+    assert [(n.op, n.attrs) for n in graph.nodes] == [
+        ("Relu", Activation("relu")),
+        ("LeakyRelu", Activation("leaky_relu", pytest.approx(0.01))),
+        ("LeakyRelu", Activation("leaky_relu", 0.25)),
+    ]
+
+
+def bn_model(opset, outputs=("y",), params_dtype=np.float32, **attrs):
+    names = ["scale", "bias", "mean", "var"]
+    inits = [const(n, (np.abs(rand(3)) + 0.1).astype(params_dtype)) for n in names]
+    node = helper.make_node("BatchNormalization", ["x", *names], list(outputs), name="bn", **attrs)
+    outs = [(o, None) for o in outputs]
+    return model([node], [("x", [1, 3, 4, 4])], outs, inits, opset)
+
+
+@pytest.mark.parametrize(("opset", "attrs"), [(7, {"spatial": 1}), (9, {}), (15, {"training_mode": 0})])
+def test_batchnorm(opset, attrs):
+    graph = import_onnx(bn_model(opset, epsilon=1e-3, **attrs))
+    node = only(graph)
+    assert node.op == "BatchNormalization"
+    assert node.inputs == ("x", "scale", "bias", "mean", "var")
+    assert node.attrs == BatchNormAttrs(epsilon=pytest.approx(1e-3))
+    assert graph.shapes["y"] == (1, 3, 4, 4)
+
+
+def test_batchnorm_default_epsilon_and_fp16_statistics_become_float32():
+    graph = import_onnx(bn_model(15, params_dtype=np.float16))
+    assert only(graph).attrs == BatchNormAttrs(1e-5)
+    assert all(graph.constants[n].dtype == np.float32 for n in ("scale", "bias", "mean", "var"))
+
+
+def test_batchnorm_training_mode_is_refused():
+    proto = bn_model(15, outputs=("y", "rm", "rv"), training_mode=1)
+    del proto.graph.output[1:]
+    fails(proto, "BatchNormalization 'bn'", "training_mode=1")
+
+
+def test_batchnorm_extra_outputs_must_be_unused():
+    proto = bn_model(9, outputs=("y", "run_mean", "run_var", "saved_mean", "saved_var"))
+    del proto.graph.output[1:]
+    proto.graph.output.append(value("run_mean", [3]))
+    fails(proto, "BatchNormalization 'bn'", "'run_mean'")
+
+
+def test_batchnorm_spatial_0_is_refused():
+    fails(bn_model(7, spatial=0), "BatchNormalization 'bn'", "spatial=0")
+
+
+@pytest.mark.parametrize(
+    ("opset", "attrs", "expected"),
+    [
+        (11, {}, SoftmaxAttrs(axis=1, coerce_2d=True)),
+        (11, {"axis": -1}, SoftmaxAttrs(axis=2, coerce_2d=True)),
+        (13, {}, SoftmaxAttrs(axis=2, coerce_2d=False)),
+        (13, {"axis": -2}, SoftmaxAttrs(axis=1, coerce_2d=False)),
+        (13, {"axis": 0}, SoftmaxAttrs(axis=0, coerce_2d=False)),
+    ],
+)
+def test_softmax_axis_per_opset(opset, attrs, expected):
+    node = only(import_onnx(one_op("Softmax", [2, 3, 4], opset=opset, **attrs)))
+    assert (node.op, node.attrs) == ("Softmax", expected)
+
+
+# --- Dropout, Identity, and the Reshape family ---------------------------------------------------
+
+
+@pytest.mark.parametrize("opset", [7, 10, 13])
+def test_dropout_becomes_identity(opset):
+    if opset < 12:
+        node = helper.make_node("Dropout", ["x"], ["y"], name="drop", ratio=0.3)
+        inits = []
+    else:
+        node = helper.make_node("Dropout", ["x", "ratio", "mode"], ["y"], name="drop")
+        inits = [const("ratio", np.array(0.3, np.float32)), const("mode", np.array(False))]
+    graph = import_onnx(model([node], [("x", [1, 4])], [("y", None)], inits, opset))
+    assert only(graph) == Node("Identity", "drop", ("x",), ("y",))
+
+
+def test_dropout_unused_mask_is_fine_but_a_used_one_is_refused():
+    node = helper.make_node("Dropout", ["x"], ["y", "mask"], name="drop")
+    assert only(import_onnx(model([node], [("x", [1, 4])], [("y", None)], opset=13))).outputs == ("y",)
+    ctx = converter_context({"x": (1, 4)}, used={"mask"})
+    with pytest.raises(NncgError, match="Dropout 'drop' has its mask output 'mask' used"):
+        convert_dropout(OnnxOp.of(node, "drop"), ctx)
+
+
+def test_dropout_training_mode_is_refused():
+    node = helper.make_node("Dropout", ["x", "", "mode"], ["y"], name="drop")
+    proto = model([node], [("x", [1, 4])], [("y", None)], [const("mode", np.array(True))], 13)
+    fails(proto, "Dropout 'drop'", "training_mode")
+
+
+def test_identity():
+    assert only(import_onnx(one_op("Identity", [1, 4]))) == Node("Identity", "Identity_0", ("x",), ("y",))
+
+
+@pytest.mark.parametrize(
+    ("target", "expected", "opset", "attrs"),
+    [
+        ([0, -1], (2, 12), 13, {}),
+        ([-1, 0, 2], (4, 3, 2), 13, {}),
+        ([4, 6], (4, 6), 14, {"allowzero": 1}),
+        ([0, 0, 4], (2, 3, 4), 7, {}),
+    ],
+)
+def test_reshape_zero_and_minus_one(target, expected, opset, attrs):
+    proto = one_op("Reshape", [2, 3, 4], extra_inputs=["t"], inits=[const("t", target)], opset=opset, **attrs)
+    graph = import_onnx(proto)
+    assert only(graph) == Node("Reshape", "Reshape_0", ("x",), ("y",), ReshapeAttrs(expected))
+    assert graph.shapes["y"] == expected == ort_shape(proto)
+
+
+@pytest.mark.parametrize(
+    ("axis", "expected"), [(None, (2, 12)), (0, (1, 24)), (-1, (6, 4)), (-3, (1, 24)), (3, (24, 1))]
+)
+def test_flatten_axis(axis, expected):
+    attrs = {} if axis is None else {"axis": axis}
+    proto = one_op("Flatten", [2, 3, 4], opset=13, **attrs)
+    assert only(import_onnx(proto)).attrs == ReshapeAttrs(expected)
+    assert ort_shape(proto) == expected
+
+
+def axes_model(op, in_shape, axes, opset):
+    if axes is not None and opset >= 13:
+        return one_op(op, in_shape, extra_inputs=["axes"], inits=[const("axes", axes)], opset=opset)
+    attrs = {} if axes is None else {"axes": axes}
+    return one_op(op, in_shape, opset=opset, **attrs)
+
+
+@pytest.mark.parametrize("opset", [11, 13])
+@pytest.mark.parametrize(
+    ("in_shape", "axes", "expected"),
+    [([1, 3, 1, 2], [0, 2], (3, 2)), ([1, 3, 1, 2], [-2], (1, 3, 2)), ([1, 3, 1, 2], None, (3, 2))],
+)
+def test_squeeze(opset, in_shape, axes, expected):
+    proto = axes_model("Squeeze", in_shape, axes, opset)
+    graph = import_onnx(proto)
+    assert only(graph) == Node("Reshape", "Squeeze_0", ("x",), ("y",), ReshapeAttrs(expected))
+    assert ort_shape(proto) == expected
+
+
+@pytest.mark.parametrize("opset", [11, 13])
+@pytest.mark.parametrize(
+    ("in_shape", "axes", "expected"),
+    [([3, 2], [0, 3], (1, 3, 2, 1)), ([3, 2], [-1], (3, 2, 1)), ([3, 2], [1, -4], (1, 1, 3, 2))],
+)
+def test_unsqueeze(opset, in_shape, axes, expected):
+    proto = axes_model("Unsqueeze", in_shape, axes, opset)
+    graph = import_onnx(proto)
+    assert only(graph) == Node("Reshape", "Unsqueeze_0", ("x",), ("y",), ReshapeAttrs(expected))
+    assert ort_shape(proto) == expected
+
+
+# --- Gemm, MatMul, elementwise -------------------------------------------------------------------
+
+
+def dense_reference(graph: Graph, x: np.ndarray) -> np.ndarray:
+    """What the IR Dense node means: rows of x (or x.T) times w plus b."""
+    node = only(graph)
+    w = graph.constants[node.inputs[1]]
+    rows = x.T if node.attrs.trans_x else x
+    y = rows @ w
+    return y + graph.constants[node.inputs[2]] if len(node.inputs) == 3 else y
+
+
+@pytest.mark.parametrize(
+    ("alpha", "beta", "trans_a", "trans_b", "c_shape"),
+    [
+        (1.0, 1.0, 0, 0, (5,)),
+        (0.5, 2.0, 0, 1, (1, 5)),
+        (2.0, 0.5, 1, 0, ()),
+        (1.5, 1.0, 1, 1, (3, 5)),  # same row repeated: allowed
+        (1.0, 1.0, 0, 1, None),
+        (1.0, 0.0, 0, 0, (5,)),  # beta 0 drops C
+    ],
+)
+def test_gemm_folds_alpha_beta_trans_into_w_and_b(alpha, beta, trans_a, trans_b, c_shape):
+    m, k, n = 3, 4, 5
+    a_shape = [k, m] if trans_a else [m, k]
+    b = rand(n, k) if trans_b else rand(k, n)
+    inputs, inits = ["x", "B"], [const("B", b)]
+    if c_shape is not None:
+        c = np.broadcast_to(rand(n), (m, n)).copy() if c_shape == (m, n) else rand(*c_shape)
+        inputs.append("C")
+        inits.append(const("C", c))
+    attrs = {"alpha": alpha, "beta": beta, "transA": trans_a, "transB": trans_b}
+    node = helper.make_node("Gemm", inputs, ["y"], name="fc", **attrs)
+    proto = model([node], [("x", a_shape)], [("y", None)], inits)
+    graph = import_onnx(proto)
+    dense = only(graph)
+    has_bias = c_shape is not None and beta != 0
+    assert dense.op == "Dense" and dense.attrs == DenseAttrs(trans_x=bool(trans_a))
+    assert dense.inputs[:2] == ("x", "fc_w") and len(dense.inputs) == 2 + has_bias
+    assert graph.constants["fc_w"].shape == (k, n) and graph.constants["fc_w"].dtype == np.float32
+    if has_bias:
+        assert graph.constants[dense.inputs[2]].shape == (n,)
+    x = rand(*a_shape)
+    expected = alpha * (x.T if trans_a else x) @ (b.T if trans_b else b)
+    if c_shape is not None:
+        expected = expected + beta * c
+    np.testing.assert_allclose(dense_reference(graph, x), expected, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(dense_reference(graph, x), run_ort(proto, {"x": x})[0], rtol=1e-5, atol=1e-5)
+    assert graph.shapes["y"] == (m, n)
+
+
+def test_gemm_opset_7_with_required_c():
+    node = helper.make_node("Gemm", ["x", "B", "C"], ["y"], transB=1)
+    proto = model([node], [("x", [2, 3])], [("y", None)], [const("B", rand(4, 3)), const("C", rand(4))], 7)
+    x = rand(2, 3)
+    np.testing.assert_allclose(dense_reference(import_onnx(proto), x), run_ort(proto, {"x": x})[0], rtol=1e-5)
+
+
+def test_gemm_c_with_distinct_rows_is_refused():
+    node = helper.make_node("Gemm", ["x", "B", "C"], ["y"], name="fc")
+    proto = model([node], [("x", [2, 3])], [("y", None)], [const("B", rand(3, 4)), const("C", rand(2, 4))])
+    fails(proto, "Gemm 'fc'", "different rows")
+
+
+def test_gemm_new_constant_names_do_not_collide():
+    node = helper.make_node("Gemm", ["x", "fc_w"], ["y"], name="fc")
+    graph = import_onnx(model([node], [("x", [2, 3])], [("y", None)], [const("fc_w", rand(3, 4))]))
+    assert only(graph).inputs == ("x", "fc_w_1")
+
+
+def test_gemm_runtime_b_is_refused():
+    node = helper.make_node("Gemm", ["x", "w"], ["y"], name="fc")
+    fails(model([node], [("x", [2, 3]), ("w", [3, 4])], [("y", None)]), "Gemm 'fc'", "'w'", "runtime")
+
+
+def test_matmul_becomes_dense_without_bias():
+    node = helper.make_node("MatMul", ["x", "W"], ["y"], name="mm")
+    w = rand(4, 5)
+    proto = model([node], [("x", [2, 3, 4])], [("y", None)], [const("W", w)])
+    graph = import_onnx(proto)
+    assert only(graph) == Node("Dense", "mm", ("x", "W"), ("y",), DenseAttrs())
+    assert graph.shapes["y"] == (2, 3, 5)
+    x = rand(2, 3, 4)
+    np.testing.assert_allclose(x @ graph.constants["W"], run_ort(proto, {"x": x})[0], rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("inputs", "w_shape", "fragment"),
+    [
+        ([("x", [2, 4]), ("w", [4, 5])], None, "runtime"),
+        ([("x", [2, 3, 4])], (2, 4, 5), "3-D weight"),
+        ([("x", [4])], (4, 5), "1-D input"),
+    ],
+)
+def test_matmul_refusals(inputs, w_shape, fragment):
+    node = helper.make_node("MatMul", ["x", "w"], ["y"], name="mm")
+    inits = [] if w_shape is None else [const("w", rand(*w_shape))]
+    fails(model([node], inputs, [("y", None)], inits), "MatMul 'mm'", fragment)
+
+
+@pytest.mark.parametrize("op", ["Add", "Sub", "Mul", "Div"])
+def test_elementwise_ops_keep_both_inputs(op):
+    nodes = [
+        helper.make_node(op, ["c", "x"], ["t"], name="first"),  # constant on the left
+        helper.make_node(op, ["t", "x"], ["y"], name="second"),  # both at runtime
+    ]
+    graph = import_onnx(model(nodes, [("x", [2, 3])], [("y", None)], [const("c", rand(3))]))
+    assert graph.nodes == (Node(op, "first", ("c", "x"), ("t",)), Node(op, "second", ("t", "x"), ("y",)))
+    assert graph.shapes["t"] == (2, 3) and graph.constants["c"].shape == (3,)

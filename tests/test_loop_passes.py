@@ -1,0 +1,157 @@
+"""Loop passes checked on their output IR (Before/Expected), without a C compiler."""
+
+import numpy as np
+import pytest
+
+from nncg.ir.loops import (
+    Affine,
+    Assign,
+    Binary,
+    Bound,
+    Broadcast,
+    Buffer,
+    Call,
+    Const,
+    If,
+    Kernel,
+    Let,
+    Load,
+    LocalRef,
+    Loop,
+    Program,
+    Store,
+    walk_stmts,
+)
+from nncg.ir.verify import verify_program
+from nncg.passes.inline_constants import inline_constants
+from nncg.passes.unroll import mark_unroll, unroll
+from nncg.passes.vectorize import vectorize
+
+A = Affine.of
+
+
+def program(body, constants=None, size=64):
+    constants = constants or {"w": np.arange(16, dtype=np.float32)}
+    buffers = (
+        Buffer("x", size, "input"),
+        Buffer("y", size, "output"),
+        *(Buffer(name, arr.size, "constant") for name, arr in constants.items()),
+    )
+    return Program("f", buffers, (Kernel("k", "Test", tuple(body)),), constants)
+
+
+def scale_nest(extent_i=2, extent_c=8):
+    """y[i*C + c] = x[i*C + c] * w[c]: parallel over i and c."""
+    C = extent_c
+    store = Store("y", A("i") * C + "c", Binary("*", Load("x", A("i") * C + "c"), Load("w", A("c"))))
+    return (Loop("i", extent_i, (Loop("c", C, (store,), parallel=True),), parallel=True),)
+
+
+# ----------------------------------------------------------------------------------------- unroll
+
+
+def test_unroll_level_1_keeps_outer_loop_and_expands_inner():
+    out = unroll(program(scale_nest(2, 3)), level=1)
+    expected = (
+        Loop(
+            "i",
+            2,
+            tuple(
+                Store("y", A("i") * 3 + c, Binary("*", Load("x", A("i") * 3 + c), Load("w", A(c)))) for c in range(3)
+            ),
+            parallel=True,
+        ),
+    )
+    assert out.kernels[0].body == expected
+
+
+def test_unroll_level_0_leaves_no_loop_and_none_leaves_all():
+    full = unroll(program(scale_nest(2, 3)), level=0)
+    assert not [s for s in walk_stmts(full.kernels[0].body) if isinstance(s, Loop)]
+    assert len(full.kernels[0].body) == 6
+    assert full.kernels[0].body[5] == Store("y", A(5), Binary("*", Load("x", A(5)), Load("w", A(2))))
+    assert unroll(program(scale_nest()), level=None) == program(scale_nest())
+
+
+def test_unroll_levels_count_loops_through_lets_and_ifs():
+    inner = Loop("k", 3, (Assign("acc", LocalRef("acc")),))
+    body = (Loop("o", 4, (Let("acc", Const.splat(0.0), (If((Bound(A("o"), 1, None),), (inner,)),)),)),)
+    marked = mark_unroll(body, 1)
+    assert marked[0].kind == "serial"
+    assert marked[0].body[0].body[0].body[0].kind == "unrolled"
+
+
+def test_unrolling_resolves_border_checks_statically():
+    # for k in 0..3: if 0 <= k - 1: y[k] = x[k - 1]   -> only k = 1, 2 survive, unguarded
+    guarded = If((Bound(A("k") - 1, 0, None),), (Store("y", A("k"), Load("x", A("k") - 1)),))
+    out = unroll(program([Loop("k", 3, (guarded,), parallel=True)]), level=0)
+    assert out.kernels[0].body == (Store("y", A(1), Load("x", A(0))), Store("y", A(2), Load("x", A(1))))
+
+
+# -------------------------------------------------------------------------------------- vectorize
+
+
+def test_vectorize_channels_into_vector_loads_and_broadcasts():
+    out = vectorize(program(scale_nest(2, 8)), lanes=4)
+    vec = Store(
+        "y",
+        A("i") * 8 + A("c") * 4,
+        Binary("*", Load("x", A("i") * 8 + A("c") * 4, 4), Load("w", A("c") * 4, 4)),
+    )
+    expected = (Loop("i", 2, (Loop("c", 2, (vec,), parallel=True, lanes=4),), parallel=True),)
+    assert out.kernels[0].body == expected
+    assert verify_program(out) == []
+
+
+def test_vectorize_adds_scalar_tail_and_broadcasts_invariant_operands():
+    # y[c] = x[0] * w[c] for c in 0..6: one vector block (loop elided) and a 2-iteration scalar tail
+    store = Store("y", A("c"), Binary("*", Load("x", A(0)), Load("w", A("c"))))
+    out = vectorize(program([Loop("c", 6, (store,), parallel=True)]), lanes=4)
+    body = out.kernels[0].body
+    assert body[0] == Store("y", A(0), Binary("*", Broadcast(Load("x", A(0)), 4), Load("w", A(0), 4)))
+    tail = Store("y", A("c") + 4, Binary("*", Load("x", A(0)), Load("w", A("c") + 4)))
+    assert body[1] == Loop("c", 2, (tail,), parallel=True)
+    assert verify_program(out) == []
+
+
+def test_vectorize_makes_reduction_locals_vectors():
+    update = Assign("acc", Binary("+", LocalRef("acc"), Binary("*", Load("x", A("k")), Load("w", A("k") * 4 + "c"))))
+    let = Let("acc", Const.splat(0.0), (Loop("k", 2, (update,)), Store("y", A("c"), LocalRef("acc"))))
+    out = vectorize(program([Loop("c", 4, (let,), parallel=True)]), lanes=4)
+    let_v = out.kernels[0].body[0]
+    assert let_v.init == Const.splat(0.0, 4)
+    assert let_v.body[1] == Store("y", A(0), LocalRef("acc", 4))
+    assert let_v.body[0].body[0].value.b.a == Broadcast(Load("x", A("k")), 4)
+    assert verify_program(out) == []
+
+
+@pytest.mark.parametrize(
+    "loop",
+    [
+        Loop("c", 8, (Store("y", A("c") * 2, Load("x", A("c"))),), parallel=True),  # strided store
+        Loop("c", 8, (Store("y", A("c"), Load("x", A("c"))),), parallel=False),  # a reduction axis
+        Loop("c", 8, (Store("y", A("c"), Call("exp", Load("x", A("c")))),), parallel=True),  # no vector exp
+        Loop("c", 2, (Store("y", A("c"), Load("x", A("c"))),), parallel=True),  # shorter than a vector
+    ],
+)
+def test_vectorize_leaves_ineligible_loops_scalar(loop):
+    p = program([loop])
+    assert vectorize(p, lanes=4) == p
+
+
+# ------------------------------------------------------------------------------- inline-constants
+
+
+def test_inline_constants_writes_literals_and_drops_unused_arrays():
+    p = unroll(program(scale_nest(1, 4)), level=0)  # w read at constant indices only
+    out = inline_constants(p)
+    assert out.kernels[0].body[2] == Store("y", A(2), Binary("*", Load("x", A(2)), Const((2.0,))))
+    assert "w" not in out.constants and all(b.role != "constant" for b in out.buffers)
+
+
+def test_inline_constants_keeps_arrays_read_in_loops_and_inlines_vectors():
+    p = vectorize(program(scale_nest(1, 8)), lanes=4)  # w read as w[4*c:4] inside a loop
+    assert inline_constants(p) == p
+    vec = unroll(p, level=0)
+    out = inline_constants(vec)
+    assert out.kernels[0].body[1].value.b == Const((4.0, 5.0, 6.0, 7.0))

@@ -1,0 +1,242 @@
+"""Per-operator tests: a one- or two-node ONNX model per attribute combination, compiled for every
+target, run, and compared with onnxruntime on the same inputs."""
+
+import re
+
+import numpy as np
+import pytest
+from helpers import check_against_onnxruntime
+from onnx import TensorProto, helper, numpy_helper
+
+import nncg
+
+RNG = np.random.default_rng(1234)
+TARGETS = ["ansi-c", "ssse3"]
+
+
+def model(nodes, inputs, output_shape, initializers=(), opset=13, output="y"):
+    """A float32 model; `inputs` maps name -> shape, initializers are numpy arrays by name."""
+    graph = helper.make_graph(
+        nodes,
+        "op_test",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in inputs.items()],
+        [helper.make_tensor_value_info(output, TensorProto.FLOAT, output_shape)],
+        [numpy_helper.from_array(np.asarray(a, dtype=np.float32), name) for name, a in initializers],
+    )
+    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
+    m.ir_version = 8
+    return m
+
+
+def weights(*shape):
+    return (RNG.standard_normal(shape) / np.sqrt(np.prod(shape[1:]) or 1)).astype(np.float32)
+
+
+def conv_model(x_shape, c_out, kernel, bias=True, **attrs):
+    c_in = x_shape[1]
+    inits = [("w", weights(c_out, c_in, *kernel))] + ([("b", weights(c_out))] if bias else [])
+    node = helper.make_node("Conv", ["x", "w"] + (["b"] if bias else []), ["y"], **attrs)
+    return model([node], {"x": x_shape}, None, inits)
+
+
+def compile_and_check(m, target, unroll=1, sanitize=False):
+    compiled = nncg.compile(m, target=target, unroll=unroll, verify_ir=True)
+    check_against_onnxruntime(m, compiled, sanitize=sanitize)
+    return compiled
+
+
+CONV_CASES = {
+    "3x3_pad1": ((1, 3, 7, 9), 8, (3, 3), dict(pads=[1, 1, 1, 1])),
+    "asymmetric_pads": ((1, 2, 6, 6), 4, (3, 3), dict(pads=[0, 1, 2, 1])),
+    "same_upper_stride2": ((1, 2, 7, 8), 8, (3, 3), dict(auto_pad="SAME_UPPER", strides=[2, 2])),
+    "same_lower_stride2": ((1, 2, 7, 8), 8, (4, 4), dict(auto_pad="SAME_LOWER", strides=[2, 2])),
+    "valid": ((1, 3, 6, 5), 4, (2, 3), dict(auto_pad="VALID")),
+    "strides_2x1": ((1, 2, 9, 7), 4, (3, 3), dict(strides=[2, 1], pads=[1, 1, 1, 1])),
+    "dilations": ((1, 2, 9, 9), 4, (3, 3), dict(dilations=[2, 2], pads=[2, 2, 2, 2])),
+    "channel_tail_6": ((1, 3, 5, 5), 6, (3, 3), dict(pads=[1, 1, 1, 1])),
+    "one_channel_out": ((1, 3, 5, 5), 1, (3, 3), dict()),
+    "pointwise_1x1": ((1, 8, 4, 4), 12, (1, 1), dict()),
+    "batch_2": ((2, 3, 5, 5), 4, (3, 3), dict(pads=[1, 1, 1, 1])),
+    "conv1d": ((1, 3, 11), 4, (3,), dict(pads=[1, 1], strides=[2])),
+    "conv3d": ((1, 2, 4, 5, 5), 4, (2, 3, 3), dict(pads=[0, 1, 1, 1, 1, 1])),
+    "pads_exceed_kernel": ((1, 1, 4, 4), 4, (2, 2), dict(pads=[3, 3, 3, 3])),
+}
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("case", CONV_CASES)
+def test_conv(case, target):
+    x_shape, c_out, kernel, attrs = CONV_CASES[case]
+    compile_and_check(conv_model(x_shape, c_out, kernel, bias=case != "valid", **attrs), target)
+
+
+@pytest.mark.parametrize("unroll", [0, 2, None])
+def test_conv_padding_at_every_unroll_level_under_sanitizers(unroll):
+    m = conv_model((1, 3, 6, 7), 8, (3, 3), pads=[1, 2, 1, 0], strides=[2, 1])
+    for target in TARGETS:
+        compile_and_check(m, target, unroll=unroll, sanitize=True)
+
+
+POOL_CASES = {
+    "2x2_stride2": ((1, 8, 6, 6), dict(kernel_shape=[2, 2], strides=[2, 2])),
+    "3x3_stride2_pad1": ((1, 4, 7, 7), dict(kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1])),
+    "ceil_mode": ((1, 4, 5, 5), dict(kernel_shape=[2, 2], strides=[2, 2], ceil_mode=1)),
+    "ceil_mode_pads": ((1, 4, 6, 6), dict(kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1], ceil_mode=1)),
+    "dilations": ((1, 4, 7, 7), dict(kernel_shape=[2, 2], dilations=[2, 2])),
+    "odd_floor": ((1, 5, 9, 4), dict(kernel_shape=[2, 2], strides=[2, 2])),
+    "pool1d": ((1, 4, 9), dict(kernel_shape=[3], strides=[2], pads=[1, 1])),
+}
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("case", POOL_CASES)
+def test_maxpool(case, target):
+    x_shape, attrs = POOL_CASES[case]
+    node = helper.make_node("MaxPool", ["x"], ["y"], **attrs)
+    compile_and_check(model([node], {"x": x_shape}, None), target, sanitize=case == "ceil_mode_pads")
+
+
+ACTIVATIONS = {
+    "relu": ("Relu", {}),
+    "leaky_relu_0.1": ("LeakyRelu", dict(alpha=0.1)),
+    "leaky_relu_default": ("LeakyRelu", {}),
+    "leaky_relu_1.5": ("LeakyRelu", dict(alpha=1.5)),
+    "leaky_relu_negative": ("LeakyRelu", dict(alpha=-0.2)),
+}
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("case", ACTIVATIONS)
+def test_standalone_activation(case, target):
+    op, attrs = ACTIVATIONS[case]
+    compile_and_check(model([helper.make_node(op, ["x"], ["y"], **attrs)], {"x": (1, 3, 4, 8)}, None), target)
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("act", ["Relu", "LeakyRelu"])
+def test_conv_batchnorm_activation_fused(act, target):
+    c = 8
+    bn = [
+        ("g", RNG.uniform(0.5, 1.5, c)),
+        ("beta", RNG.normal(0, 0.1, c)),
+        ("mu", RNG.normal(0, 0.1, c)),
+        ("var", RNG.uniform(0.5, 1.5, c)),
+    ]
+    nodes = [
+        helper.make_node("Conv", ["x", "w"], ["c"], pads=[1, 1, 1, 1]),
+        helper.make_node("BatchNormalization", ["c", "g", "beta", "mu", "var"], ["bn"], epsilon=1e-3),
+        helper.make_node(act, ["bn"], ["y"], **({"alpha": 0.1} if act == "LeakyRelu" else {})),
+    ]
+    m = model(nodes, {"x": (1, 3, 6, 6)}, None, [("w", weights(c, 3, 3, 3)), *bn])
+    compiled = compile_and_check(m, target)
+    kernels = re.findall(r"^/\* \w+: (\w+) \*/$", compiled.source, re.M)
+    assert kernels[0] == "Conv" and "ScaleShift" not in kernels and "BatchNormalization" not in kernels
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_standalone_batchnorm(target):
+    c = 4
+    bn = [
+        ("g", RNG.uniform(0.5, 1.5, c)),
+        ("beta", RNG.normal(0, 0.1, c)),
+        ("mu", RNG.normal(0, 0.1, c)),
+        ("var", RNG.uniform(0.5, 1.5, c)),
+    ]
+    node = helper.make_node("BatchNormalization", ["x", "g", "beta", "mu", "var"], ["y"])
+    compile_and_check(model([node], {"x": (1, c, 3, 5)}, None, bn), target)
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("axis", [0, 1, 2, 3, -1])
+def test_softmax(axis, target):
+    node = helper.make_node("Softmax", ["x"], ["y"], axis=axis)
+    compile_and_check(model([node], {"x": (2, 3, 4, 5)}, None), target)
+
+
+@pytest.mark.parametrize("axis", [1, 2])
+def test_softmax_opset_11_flattens_from_axis(axis):
+    node = helper.make_node("Softmax", ["x"], ["y"], axis=axis)
+    compile_and_check(model([node], {"x": (2, 3, 4, 5)}, None, opset=11), "ansi-c")
+
+
+def test_softmax_is_stable_for_large_inputs():
+    node = helper.make_node("Softmax", ["x"], ["y"], axis=1)
+    m = model([helper.make_node("Mul", ["x", "k"], ["big"]), node], {"x": (1, 6)}, None, [("k", np.float32(500.0))])
+    m.graph.node[1].input[0] = "big"
+    compile_and_check(m, "ansi-c")
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_conv_dropout_flatten_gemm(target):
+    nodes = [
+        helper.make_node("Conv", ["x", "w", "b"], ["c"], pads=[1, 1, 1, 1]),
+        helper.make_node("Relu", ["c"], ["r"]),
+        helper.make_node("Dropout", ["r"], ["d"]),
+        helper.make_node("Flatten", ["d"], ["f"]),
+        helper.make_node("Gemm", ["f", "fc_w", "fc_b"], ["y"], transB=1),
+    ]
+    inits = [("w", weights(4, 2, 3, 3)), ("b", weights(4)), ("fc_w", weights(10, 4 * 5 * 6)), ("fc_b", weights(10))]
+    compile_and_check(model(nodes, {"x": (1, 2, 5, 6)}, None, inits), target)
+
+
+GEMM_CASES = {
+    "plain": (dict(), (1, 16), (16, 12), (12,)),
+    "trans_b_alpha_beta": (dict(transB=1, alpha=0.5, beta=2.0), (1, 16), (12, 16), (1, 12)),
+    "trans_a": (dict(transA=1), (16, 3), (16, 8), (8,)),
+    "no_bias_rows": (dict(), (3, 7), (7, 5), None),
+    "scalar_c": (dict(), (2, 9), (9, 6), ()),
+}
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("case", GEMM_CASES)
+def test_gemm(case, target):
+    attrs, a_shape, b_shape, c_shape = GEMM_CASES[case]
+    inits = [("B", weights(*b_shape))] + (
+        [("C", RNG.standard_normal(c_shape).astype(np.float32))] if c_shape is not None else []
+    )
+    node = helper.make_node("Gemm", ["x", "B"] + (["C"] if c_shape is not None else []), ["y"], **attrs)
+    compile_and_check(model([node], {"x": a_shape}, None, inits), target)
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_matmul_add_is_a_dense_layer(target):
+    nodes = [helper.make_node("MatMul", ["x", "w"], ["mm"]), helper.make_node("Add", ["mm", "b"], ["y"])]
+    m = model(nodes, {"x": (1, 20)}, None, [("w", weights(20, 9)), ("b", weights(9))])
+    compile_and_check(m, target)
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_matmul_rank3(target):
+    m = model([helper.make_node("MatMul", ["x", "w"], ["y"])], {"x": (1, 3, 10)}, None, [("w", weights(10, 8))])
+    compile_and_check(m, target)
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("op", ["Add", "Sub", "Mul", "Div"])
+def test_binary_broadcasting(op, target):
+    nodes = [
+        helper.make_node(op, ["x", "per_channel"], ["t"]),
+        helper.make_node(op, ["t", "x2"], ["y"]),
+    ]
+    inits = [("per_channel", RNG.uniform(0.5, 2.0, (3, 1, 1)))]
+    m = model(nodes, {"x": (1, 3, 4, 5), "x2": (1, 1, 4, 5)}, None, inits)
+    if op == "Div":  # keep the divisor away from zero
+        m.graph.node[1].op_type = "Mul"
+    compile_and_check(m, target)
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_reshape_between_layouts(target):
+    """A channels-last conv output reshaped to row-major order needs a real copy."""
+    nodes = [
+        helper.make_node("Conv", ["x", "w"], ["c"], pads=[1, 1, 1, 1]),
+        helper.make_node("Reshape", ["c", "shape"], ["y"]),
+    ]
+    m = model(nodes, {"x": (1, 2, 3, 4)}, None, [("w", weights(4, 2, 3, 3))])
+    m.graph.initializer.append(numpy_helper.from_array(np.array([1, 4, 12], dtype=np.int64), "shape"))
+    compile_and_check(m, target)
+
+
+def test_identity_model_copies_input_to_output():
+    compile_and_check(model([helper.make_node("Identity", ["x"], ["y"])], {"x": (1, 3)}, None), "ansi-c")
