@@ -155,3 +155,15 @@ def test_inline_constants_keeps_arrays_read_in_loops_and_inlines_vectors():
     vec = unroll(p, level=0)
     out = inline_constants(vec)
     assert out.kernels[0].body[1].value.b == Const((4.0, 5.0, 6.0, 7.0))
+
+
+def test_unrolling_prunes_border_check_sides_that_always_hold():
+    # for o in 0..4: for k in 0..3: if 0 <= o + k - 1 < 4: y[o] = x[o + k - 1]
+    pos = A("o") + "k" - 1
+    guarded = If((Bound(pos, 0, 4),), (Store("y", A("o"), Load("x", pos)),))
+    p = program([Loop("o", 4, (Loop("k", 3, (guarded,)),), parallel=True)])
+    (outer,) = unroll(p, level=1).kernels[0].body
+    first, middle, last = outer.body
+    assert first == If((Bound(A("o") - 1, 0, None),), (Store("y", A("o"), Load("x", A("o") - 1)),))
+    assert middle == Store("y", A("o"), Load("x", A("o")))
+    assert last == If((Bound(A("o") + 1, None, 4),), (Store("y", A("o"), Load("x", A("o") + 1)),))

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from dataclasses import fields, is_dataclass
+
 import numpy as np
 
-from .graph import Graph
+from .graph import Activation, Graph
 from .loops import (
     Assign,
     Binary,
@@ -32,10 +34,24 @@ def graph_to_text(graph: Graph) -> str:
 
     lines = [f"graph {graph.name}({sig(v.name for v in graph.inputs)}) -> ({sig(v.name for v in graph.outputs)}) {{"]
     for node in graph.nodes:
-        attrs = f" {{{node.attrs}}}" if node.attrs is not None else ""
+        attrs = attrs_to_text(node.attrs) if node.attrs is not None else ""
+        attrs = f" {{{attrs}}}" if attrs else ""
         lines.append(f"  {', '.join(node.outputs)} = {node.op}({sig(node.inputs)}){attrs}  # {node.name}")
     lines.append("}")
     return "\n".join(lines)
+
+
+def attrs_to_text(attrs) -> str:
+    """The fields that differ from their defaults, e.g. `kernel=3x3, pads_begin=1x1, activation=relu`."""
+    if not is_dataclass(attrs) or isinstance(attrs, Activation):
+        return str(attrs)
+    parts = []
+    for f in fields(attrs):
+        value = getattr(attrs, f.name)
+        if value == f.default or (f.name in ("strides", "dilations") and set(value) == {1}):
+            continue
+        parts.append(f"{f.name}={'x'.join(map(str, value)) if isinstance(value, tuple) else value}")
+    return ", ".join(parts)
 
 
 def program_to_text(program: Program) -> str:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..ir.loops import Affine, Bound, Expr, If, Load, Stmt, Store, map_body, map_stmt_exprs
+from ..ir.loops import Affine, Bound, Expr, If, Let, Load, Loop, Stmt, Store, map_body, map_stmt_exprs
 
 
 def substitute_body(body: tuple[Stmt, ...], env: dict[str, Affine]) -> tuple[Stmt, ...]:
@@ -33,3 +33,41 @@ def resolve_if(stmt: If) -> If | tuple[Stmt, ...]:
         return ()
     remaining = tuple(b for b, k in zip(stmt.bounds, known) if k is None)
     return replace(stmt, bounds=remaining) if remaining else stmt.body
+
+
+def prune_bounds(body: tuple[Stmt, ...], extents: dict[str, int] | None = None) -> tuple[Stmt, ...]:
+    """Drops border checks that hold for every value the enclosing loops give their variables, and
+    the guarded code that can never run."""
+    extents = extents or {}
+    out: list[Stmt] = []
+    for stmt in body:
+        if isinstance(stmt, Loop):
+            out.append(replace(stmt, body=prune_bounds(stmt.body, extents | {stmt.var: stmt.extent})))
+        elif isinstance(stmt, Let):
+            out.append(replace(stmt, body=prune_bounds(stmt.body, extents)))
+        elif isinstance(stmt, If):
+            bounds = tuple(_needed_sides(b, extents) for b in stmt.bounds)
+            if None in bounds:
+                continue
+            pruned = replace(stmt, bounds=tuple(b for b in bounds if b.lo is not None or b.hi is not None))
+            resolved = resolve_if(pruned)
+            inner = resolved.body if isinstance(resolved, If) else resolved
+            inner = prune_bounds(inner, extents)
+            out.extend((replace(resolved, body=inner),) if isinstance(resolved, If) else inner)
+        else:
+            out.append(stmt)
+    return tuple(out)
+
+
+def _needed_sides(bound: Bound, extents: dict[str, int]) -> Bound | None:
+    """The bound without the sides that always hold; None when it can never hold."""
+    if any(var not in extents for var in bound.expr.vars):
+        return bound
+    lo, hi = bound.expr.bounds(extents)
+    if (bound.lo is not None and hi < bound.lo) or (bound.hi is not None and lo >= bound.hi):
+        return None
+    return Bound(
+        bound.expr,
+        None if bound.lo is None or lo >= bound.lo else bound.lo,
+        None if bound.hi is None or hi < bound.hi else bound.hi,
+    )

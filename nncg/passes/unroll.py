@@ -2,18 +2,19 @@
 
 Level K keeps the K outermost loops of each kernel's nest and unrolls all loops inside them; level 0
 unrolls everything; `none` unrolls nothing. Choice and mechanism are apart: `mark_unroll` decides
-(a tuner may mark loops its own way), `expand_unrolled` materialises whatever is marked."""
+(a tuner may mark loops its own way), `expand_unrolled` materialises whatever is marked. Border
+checks that unrolling made redundant are pruned."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
 from ..ir.loops import Affine, If, Let, Loop, Program, Stmt
-from .substitute import substitute_body
+from .substitute import prune_bounds, substitute_body
 
 
 def unroll(program: Program, level: int | None = 1) -> Program:
-    kernels = tuple(replace(k, body=expand_unrolled(mark_unroll(k.body, level))) for k in program.kernels)
+    kernels = tuple(replace(k, body=prune_bounds(expand_unrolled(mark_unroll(k.body, level)))) for k in program.kernels)
     return replace(program, kernels=kernels)
 
 
