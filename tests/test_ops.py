@@ -32,6 +32,16 @@ def weights(*shape):
     return (RNG.standard_normal(shape) / np.sqrt(np.prod(shape[1:]) or 1)).astype(np.float32)
 
 
+def batchnorm_params(c):
+    """Inference statistics for BatchNormalization inputs g, beta, mu, var."""
+    return [
+        ("g", RNG.uniform(0.5, 1.5, c)),
+        ("beta", RNG.normal(0, 0.1, c)),
+        ("mu", RNG.normal(0, 0.1, c)),
+        ("var", RNG.uniform(0.5, 1.5, c)),
+    ]
+
+
 def conv_model(x_shape, c_out, kernel, bias=True, **attrs):
     c_in = x_shape[1]
     inits = [("w", weights(c_out, c_in, *kernel))] + ([("b", weights(c_out))] if bias else [])
@@ -116,12 +126,7 @@ def test_standalone_activation(case, target):
 @pytest.mark.parametrize("act", ["Relu", "LeakyRelu"])
 def test_conv_batchnorm_activation_fused(act, target):
     c = 8
-    bn = [
-        ("g", RNG.uniform(0.5, 1.5, c)),
-        ("beta", RNG.normal(0, 0.1, c)),
-        ("mu", RNG.normal(0, 0.1, c)),
-        ("var", RNG.uniform(0.5, 1.5, c)),
-    ]
+    bn = batchnorm_params(c)
     nodes = [
         helper.make_node("Conv", ["x", "w"], ["c"], pads=[1, 1, 1, 1]),
         helper.make_node("BatchNormalization", ["c", "g", "beta", "mu", "var"], ["bn"], epsilon=1e-3),
@@ -136,12 +141,7 @@ def test_conv_batchnorm_activation_fused(act, target):
 @pytest.mark.parametrize("target", TARGETS)
 def test_standalone_batchnorm(target):
     c = 4
-    bn = [
-        ("g", RNG.uniform(0.5, 1.5, c)),
-        ("beta", RNG.normal(0, 0.1, c)),
-        ("mu", RNG.normal(0, 0.1, c)),
-        ("var", RNG.uniform(0.5, 1.5, c)),
-    ]
+    bn = batchnorm_params(c)
     node = helper.make_node("BatchNormalization", ["x", "g", "beta", "mu", "var"], ["y"])
     compile_and_check(model([node], {"x": (1, c, 3, 5)}, None, bn), target)
 

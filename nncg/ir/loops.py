@@ -284,35 +284,43 @@ class Program:
 # ---------------------------------------------------------------------------- generic traversal
 
 
+def children(expr: Expr) -> tuple[Expr, ...]:
+    if isinstance(expr, Broadcast):
+        return (expr.value,)
+    if isinstance(expr, Binary):
+        return (expr.a, expr.b)
+    if isinstance(expr, Select):
+        return (expr.lhs, expr.rhs, expr.then, expr.otherwise)
+    if isinstance(expr, Call):
+        return (expr.arg,)
+    return ()
+
+
+def with_children(expr: Expr, new: tuple[Expr, ...]) -> Expr:
+    """expr with its children (in the order `children` gives them) replaced."""
+    if isinstance(expr, Broadcast):
+        return Broadcast(new[0], expr.lanes)
+    if isinstance(expr, Binary):
+        return Binary(expr.op, *new)
+    if isinstance(expr, Select):
+        return Select(expr.cmp, *new)
+    if isinstance(expr, Call):
+        return Call(expr.fn, new[0])
+    return expr
+
+
 def map_expr(expr: Expr, fn) -> Expr:
     """Rebuilds expr bottom-up, applying fn to every node after its children."""
-    if isinstance(expr, Broadcast):
-        expr = Broadcast(map_expr(expr.value, fn), expr.lanes)
-    elif isinstance(expr, Binary):
-        expr = Binary(expr.op, map_expr(expr.a, fn), map_expr(expr.b, fn))
-    elif isinstance(expr, Select):
-        expr = Select(
-            expr.cmp,
-            *(map_expr(e, fn) for e in (expr.lhs, expr.rhs, expr.then, expr.otherwise)),
-        )
-    elif isinstance(expr, Call):
-        expr = Call(expr.fn, map_expr(expr.arg, fn))
+    kids = children(expr)
+    if kids:
+        expr = with_children(expr, tuple(map_expr(k, fn) for k in kids))
     return fn(expr)
 
 
 def walk_exprs(expr: Expr):
     """Yields expr and all its sub-expressions."""
     yield expr
-    children: tuple = ()
-    if isinstance(expr, Broadcast):
-        children = (expr.value,)
-    elif isinstance(expr, Binary):
-        children = (expr.a, expr.b)
-    elif isinstance(expr, Select):
-        children = (expr.lhs, expr.rhs, expr.then, expr.otherwise)
-    elif isinstance(expr, Call):
-        children = (expr.arg,)
-    for child in children:
+    for child in children(expr):
         yield from walk_exprs(child)
 
 

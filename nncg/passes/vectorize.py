@@ -26,6 +26,7 @@ from ..ir.loops import (
     Stmt,
     Store,
     map_body,
+    stmt_exprs,
     walk_exprs,
     walk_stmts,
 )
@@ -75,19 +76,11 @@ def vectorizable(loop: Loop, lanes: int) -> bool:
             return False
         if isinstance(stmt, If) and any(b.expr.coeff(var) for b in stmt.bounds):
             return False
-        for expr in _exprs_of(stmt):
+        for expr in stmt_exprs(stmt):
             for e in walk_exprs(expr):
                 if isinstance(e, Call) or (isinstance(e, Load) and e.index.coeff(var) not in (0, 1)):
                     return False
     return stores > 0
-
-
-def _exprs_of(stmt: Stmt) -> tuple[Expr, ...]:
-    if isinstance(stmt, Store | Assign):
-        return (stmt.value,)
-    if isinstance(stmt, Let):
-        return (stmt.init,)
-    return ()
 
 
 # ---------------------------------------------------------------------------- mechanism
