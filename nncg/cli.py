@@ -54,7 +54,15 @@ def build_parser() -> argparse.ArgumentParser:
         "inputs, print the errors; exit 1 above tolerance",
     )
     p.add_argument("--tolerance", type=float, default=1e-4, help="max relative error for --verify (default 1e-4)")
-    p.add_argument("--cc", help="C compiler for --verify (default: cc, gcc or clang on PATH)")
+    p.add_argument(
+        "--benchmark",
+        action="store_true",
+        help="time the generated C (-O3) against onnxruntime (1 thread, IOBinding and plain run), "
+        "interleaved; print speed-up, GFLOP/s, %% of the ISA's peak, error and object sizes",
+    )
+    p.add_argument("--profile", action="store_true", help="time every layer of the generated C; print µs, %% and MACs")
+    p.add_argument("--cpu", type=int, help="pin --benchmark/--profile to this core")
+    p.add_argument("--cc", help="C compiler for --verify, --benchmark, --profile (default: cc, gcc or clang on PATH)")
     p.add_argument("--list-passes", action="store_true", help="list the passes and the default pipeline, then exit")
     p.add_argument("--debug", action="store_true", help="show the traceback of an internal error")
     p.add_argument("--version", action="version", version=f"nncg {__version__}")
@@ -102,16 +110,33 @@ def run(args: argparse.Namespace) -> int:
     )
     c_path, h_path = compiled.write(args.output_dir)
     print(f"wrote {c_path} ({len(compiled.source.encode())} bytes) and {h_path}")
-    if not args.verify:
-        return 0
+    status = verify_command(args, compiled) if args.verify else 0
+    if args.benchmark or args.profile:
+        measure_command(args)
+    return status
+
+
+def verify_command(args: argparse.Namespace, compiled) -> int:
     from .frontend import load_model
     from .verify import verify
 
-    report = verify(
-        load_model(args.model, dict(args.input_shape) or None), compiled, tolerance=args.tolerance, cc=args.cc
-    )
+    model = load_model(args.model, dict(args.input_shape) or None)
+    report = verify(model, compiled, tolerance=args.tolerance, cc=args.cc)
     print(report.format())
     return 0 if report.ok else 1
+
+
+def measure_command(args: argparse.Namespace) -> None:
+    from .bench.benchmark import benchmark, format_profile, format_results, profile
+
+    options = dict(
+        target=args.target, unroll=args.unroll, cc=args.cc, cpu=args.cpu,
+        input_shapes=dict(args.input_shape) or None, name=args.name,
+    )  # fmt: skip
+    if args.benchmark:
+        print(format_results([benchmark(args.model, **options)]))
+    if args.profile:
+        print(format_profile(profile(args.model, **options)))
 
 
 if __name__ == "__main__":

@@ -76,9 +76,13 @@ class AnsiC:
 
     # ------------------------------------------------------------------ the file
 
-    def source(self, program: Program, first_line: str, header_name: str) -> str:
-        lines = [first_line, f'#include "{header_name}"']
-        lines += [f"#include {inc}" for inc in self.includes]
+    def source(self, program: Program, first_line: str, header_name: str, profile: bool = False) -> str:
+        """The .c file. `profile` adds per-layer timers (POSIX clock_gettime; for --profile only)."""
+        lines = [first_line]
+        if profile:
+            lines.append("#define _POSIX_C_SOURCE 199309L")
+        lines.append(f'#include "{header_name}"')
+        lines += [f"#include {inc}" for inc in (*self.includes, *(["<time.h>"] if profile else []))]
         lines.append("")
         lines += self._constants(program)
         lines += self._internal_buffers(program)
@@ -86,9 +90,38 @@ class AnsiC:
         for kernel in program.kernels:
             params = self._kernel_params(program, kernel)
             lines += self._kernel(program.name, kernel, params)
-            calls.append(f"{INDENT}{program.name}_{kernel.name}({', '.join(b.name for b in params)});")
-        lines += [self.signature(program), "{", *calls, "}"]
+            calls.append(f"{program.name}_{kernel.name}({', '.join(b.name for b in params)});")
+        if profile:
+            lines += self._profile_globals(program)
+            calls = self._timed(program, calls)
+        lines += [self.signature(program), "{", *(INDENT + c for c in calls), "}"]
         return "\n".join(lines) + "\n"
+
+    @staticmethod
+    def _profile_globals(program: Program) -> list[str]:
+        names = ", ".join(f'"{k.name}"' for k in program.kernels)
+        count = len(program.kernels)
+        return [
+            f"const int {program.name}_profile_count = {count};",
+            f"const char *const {program.name}_profile_layers[{count}] = {{{names}}};",
+            f"double {program.name}_profile_seconds[{count}];",
+            "",
+            "static double nncg_now(void)",
+            "{",
+            f"{INDENT}struct timespec t;",
+            f"{INDENT}clock_gettime(CLOCK_MONOTONIC, &t);",
+            f"{INDENT}return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;",
+            "}",
+            "",
+        ]
+
+    @staticmethod
+    def _timed(program: Program, calls: list[str]) -> list[str]:
+        """Each layer's call followed by adding its time to NAME_profile_seconds[i]."""
+        out = ["double start = nncg_now(), end;"]
+        for i, call in enumerate(calls):
+            out += [call, "end = nncg_now();", f"{program.name}_profile_seconds[{i}] += end - start;", "start = end;"]
+        return out
 
     def header(self, program: Program, first_line: str) -> str:
         guard = f"{program.name.upper()}_H"

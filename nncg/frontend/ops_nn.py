@@ -16,10 +16,7 @@ from nncg.ir.graph import (
 
 
 def convert_conv(op: OnnxOp, ctx: Context) -> Node:
-    group = op.attr("group", 1)
-    if group != 1:
-        raise op.error(f"has group={group}; grouped and depthwise convolution are not supported yet")
-    x = op.input(0)
+    x = op.input(0)  # group != 1 was refused with the unsupported operators (importer.check_supported)
     weight = ctx.constant_input(op, 1, "weight")
     inputs = [x, op.input(1)]
     if op.input(2):

@@ -1,0 +1,156 @@
+"""The benchmark suite: every model x every target, NNCG against onnxruntime and the hardware peak.
+
+    python3 -m benchmarks.suite [--cpu 0] [--targets ansi-c ssse3] [--models ball robot]
+
+writes benchmarks/RESULTS.md (the table, the machine's CPU, the date) and benchmarks/results.png (speed-up
+over onnxruntime and % of peak per model and target). Models NNCG cannot compile yet are listed, not hidden.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import platform
+import re
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+from nncg.backends import BACKENDS
+from nncg.bench.benchmark import BenchResult, benchmark
+from nncg.bench.peak import measure_peaks
+from nncg.errors import NncgError
+
+ROOT = Path(__file__).resolve().parent.parent
+PAPER = ["ball", "pedestrian", "robot"]
+MLPERF_TINY = ["resnet8", "dscnn", "mobilenet_v1_025", "autoencoder"]
+
+
+def model_path(name: str) -> Path:
+    folder = ROOT / "examples" if name in PAPER else ROOT / "benchmarks" / "models"
+    return folder / f"{name}.onnx"
+
+
+@dataclass(frozen=True)
+class Row:
+    model: str
+    target: str
+    result: BenchResult | None
+    problem: str = ""  # why there is no result (an unsupported operator, ...)
+
+
+def run_suite(
+    models, targets, *, cpu=None, batches=15, min_batch_seconds=0.02, peaks=None, progress=print
+) -> list[Row]:
+    peaks = peaks if peaks is not None else measure_peaks()
+    rows = []
+    for model in models:
+        for target in targets:
+            progress(f"{model} / {target} ...")
+            try:
+                result = benchmark(
+                    model_path(model),
+                    target,
+                    cpu=cpu,
+                    batches=batches,
+                    min_batch_seconds=min_batch_seconds,
+                    peaks=peaks,
+                )
+                rows.append(Row(model, target, result))
+            except NncgError as exc:
+                rows.append(Row(model, target, None, short_problem(str(exc))))
+    return rows
+
+
+def short_problem(message: str) -> str:
+    """An unsupported-operators error as `Clip x27, AveragePool x1`; other errors' first line."""
+    ops = re.findall(r"([\w\[\]=]+) \(node '", message.split("; NNCG supports")[0])
+    if not ops:
+        return message.splitlines()[0]
+    return ", ".join(f"{op} x{n}" for op, n in Counter(ops).items())
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -> str:
+    peak_text = ", ".join(f"{isa} {g:.1f} GFLOP/s" if g else f"{isa} n/a" for isa, g in peaks.items())
+    lines = [
+        "# Benchmark results",
+        "",
+        f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'})",
+        f"- Date: {date}",
+        f"- Measured peak (this core, `python3 -m nncg.bench.peak`): {peak_text}",
+        "- NNCG: the generated C at `gcc -O3` plus the target's flags, default unroll level; onnxruntime: batch 1,",
+        "  one intra-op thread, all graph optimisations; `ORT µs` with IOBinding, `ORT run µs` through",
+        "  `InferenceSession.run`. Medians of 15 batches of >= 20 ms each, NNCG and onnxruntime interleaved.",
+        "- speed-up = ORT µs / NNCG µs; GFLOP/s = 2 x MACs / NNCG time; % peak of the ISA the target uses.",
+        "- text + rodata go to flash, bss (the static activation buffers) to RAM; gen s / cc s: C generation and",
+        "  compile time.",
+        "",
+        "| model | target | NNCG µs | ORT µs | ORT run µs | speed-up | MACs | GFLOP/s | % peak | max abs err "
+        "| max rel err | text B | rodata B | bss B | gen s | cc s |",
+        "|" + "---|" * 16,
+    ]
+    for row in rows:
+        r = row.result
+        if r is None:
+            lines.append(f"| {row.model} | {row.target} | not supported yet: {row.problem} |" + " |" * 13)
+            continue
+        pct = f"{r.percent_of_peak:.1f} ({r.peak_isa})" if r.percent_of_peak is not None else "n/a"
+        lines.append(
+            f"| {row.model} | {row.target} | {r.nncg_us:.2f} | {r.ort_bound_us:.2f} | {r.ort_run_us:.2f} "
+            f"| {r.speedup:.2f}x | {r.macs:,} | {r.gflops:.2f} | {pct} | {r.max_abs_err:.1e} | {r.max_rel_err:.1e} "
+            f"| {r.sizes.text:,} | {r.sizes.rodata:,} | {r.sizes.bss:,} | {r.generate_seconds:.2f} "
+            f"| {r.compile_seconds:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def write_chart(rows: list[Row], path: Path) -> None:
+    """Two bar panels: speed-up over onnxruntime, and % of peak, per model and target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    measured = [row for row in rows if row.result is not None]
+    labels = [f"{row.model}\n{row.target}" for row in measured]
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(max(6, 0.8 * len(labels) + 2), 7), sharex=True)
+    top.bar(labels, [row.result.speedup for row in measured], color="tab:blue")
+    top.axhline(1.0, color="black", linewidth=0.8)
+    top.set_ylabel("speed-up vs onnxruntime")
+    bottom.bar(labels, [row.result.percent_of_peak or 0.0 for row in measured], color="tab:orange")
+    bottom.set_ylabel("% of ISA peak")
+    bottom.tick_params(axis="x", labelsize=8)
+    fig.suptitle("NNCG, batch 1, one core")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100, metadata={"Software": None})
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--models", nargs="+", default=PAPER + MLPERF_TINY)
+    parser.add_argument("--targets", nargs="+", default=sorted(BACKENDS))
+    parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
+    parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
+    args = parser.parse_args(argv)
+    peaks = measure_peaks()
+    rows = run_suite(args.models, args.targets, cpu=args.cpu, peaks=peaks)
+    today = datetime.date.today().isoformat()
+    (args.out_dir / "RESULTS.md").write_text(results_markdown(rows, peaks, args.cpu, today))
+    write_chart(rows, args.out_dir / "results.png")
+    print((args.out_dir / "RESULTS.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

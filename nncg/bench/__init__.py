@@ -1,0 +1,1 @@
+"""Benchmarking: NNCG against onnxruntime and against the hardware limit."""

@@ -1,0 +1,213 @@
+"""`--benchmark` and `--profile`: NNCG's generated C against onnxruntime on the same model and inputs,
+measured interleaved (A B A B ...) so the ratio holds while the machine drifts, and against the
+peak of the instruction set the target uses."""
+
+from __future__ import annotations
+
+import os
+import statistics
+import tempfile
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..compiler import compile as compile_model
+from ..frontend import load_model
+from ..verify import compare, find_c_compiler, random_inputs
+from .harness import CompiledHarness, ObjectSizes
+from .onnxruntime_timer import OnnxruntimeTimer
+
+
+@dataclass(frozen=True)
+class BenchResult:
+    model: str
+    target: str
+    nncg_us: float  # median µs per inference
+    ort_bound_us: float  # onnxruntime, IOBinding
+    ort_run_us: float  # onnxruntime, InferenceSession.run
+    max_abs_err: float
+    max_rel_err: float
+    sizes: ObjectSizes
+    macs: int
+    peak_isa: str
+    peak_gflops: float | None
+    generate_seconds: float
+    compile_seconds: float
+
+    @property
+    def speedup(self) -> float:
+        return self.ort_bound_us / self.nncg_us
+
+    @property
+    def gflops(self) -> float:
+        return 2 * self.macs / (self.nncg_us * 1e-6) / 1e9
+
+    @property
+    def percent_of_peak(self) -> float | None:
+        return None if not self.peak_gflops else 100 * self.gflops / self.peak_gflops
+
+
+def calibrate(timer, min_seconds: float) -> int:
+    """Calls per batch so a batch lasts at least min_seconds; the calls made doubling are warm-up."""
+    calls = 1
+    while (elapsed := timer(calls)) < min_seconds:
+        calls = max(calls * 2, int(calls * 1.2 * min_seconds / max(elapsed, 1e-9)))
+    return calls
+
+
+def interleaved_medians(timers: dict, batches: int, min_seconds: float) -> dict[str, float]:
+    """Median seconds per call of each timer, batches run in turn A B C A B C ..."""
+    calls = {key: calibrate(timer, min_seconds) for key, timer in timers.items()}
+    samples: dict[str, list[float]] = {key: [] for key in timers}
+    for _ in range(batches):
+        for key, timer in timers.items():
+            samples[key].append(timer(calls[key]) / calls[key])
+    return {key: statistics.median(values) for key, values in samples.items()}
+
+
+def benchmark(
+    model,
+    target: str = "ssse3",
+    unroll: str | int | None = 2,
+    *,
+    batches: int = 15,
+    min_batch_seconds: float = 0.02,
+    cc: str | None = None,
+    cpu: int | None = None,
+    peaks: dict[str, float | None] | None = None,
+    input_shapes=None,
+    name: str | None = None,
+) -> BenchResult:
+    """Compiles `model`, then times it and onnxruntime side by side. `peaks` (GFLOP/s per ISA, from
+    nncg.bench.peak.measure_peaks) is measured here when not given."""
+    from .peak import TARGET_ISA, measure_peak
+
+    cc = find_c_compiler(cc)
+    proto = load_model(model, input_shapes)
+    start = time.perf_counter()
+    compiled = compile_model(model, target=target, unroll=unroll, name=name, input_shapes=input_shapes)
+    generate_seconds = time.perf_counter() - start
+    inputs = random_inputs(compiled.inputs, seed=0)
+    isa = TARGET_ISA[target]
+    peak = peaks[isa] if peaks is not None else measure_peak(isa, cc)
+    with pinned(cpu), tempfile.TemporaryDirectory(prefix="nncg-bench-") as tmp:
+        harness = CompiledHarness(compiled, Path(tmp), cc, inputs)
+        try:
+            ort = OnnxruntimeTimer(proto, [p.name for p in compiled.inputs], inputs)
+            timers = {"nncg": harness.run, "ort_bound": ort.run_bound, "ort_run": ort.run_plain}
+            medians = interleaved_medians(timers, batches, min_batch_seconds)
+            stats = compare(harness.outputs(), ort.outputs(), [p.name for p in compiled.outputs])
+        finally:
+            harness.close()
+    return BenchResult(
+        model=compiled.name,
+        target=target,
+        nncg_us=medians["nncg"] * 1e6,
+        ort_bound_us=medians["ort_bound"] * 1e6,
+        ort_run_us=medians["ort_run"] * 1e6,
+        max_abs_err=max(s.max_abs for s in stats),
+        max_rel_err=max(s.max_rel for s in stats),
+        sizes=harness.sizes,
+        macs=compiled.macs,
+        peak_isa=isa,
+        peak_gflops=peak,
+        generate_seconds=generate_seconds,
+        compile_seconds=harness.compile_seconds,
+    )
+
+
+@dataclass(frozen=True)
+class LayerTime:
+    layer: str
+    us: float
+    percent: float
+    macs: int
+
+    @property
+    def gflops(self) -> float:
+        return 2 * self.macs / (self.us * 1e-6) / 1e9 if self.us > 0 else 0.0
+
+
+def profile(
+    model,
+    target: str = "ssse3",
+    unroll: str | int | None = 2,
+    *,
+    min_seconds: float = 0.2,
+    cc: str | None = None,
+    cpu: int | None = None,
+    input_shapes=None,
+    name: str | None = None,
+) -> list[LayerTime]:
+    """Time per layer, from timers the profile build puts around each layer's function."""
+    cc = find_c_compiler(cc)
+    compiled = compile_model(model, target=target, unroll=unroll, name=name, input_shapes=input_shapes, profile=True)
+    macs = dict(compiled.layer_macs)
+    inputs = random_inputs(compiled.inputs, seed=0)
+    with pinned(cpu), tempfile.TemporaryDirectory(prefix="nncg-profile-") as tmp:
+        harness = CompiledHarness(compiled, Path(tmp), cc, inputs, profile=True)
+        try:
+            calls = calibrate(harness.run, min_seconds)  # also warms up
+            harness.layer_seconds()  # discard what calibration accumulated
+            harness.run(calls)
+            rows = harness.layer_seconds()
+        finally:
+            harness.close()
+    total = sum(seconds for _, seconds in rows) or 1.0
+    return [
+        LayerTime(layer, seconds / calls * 1e6, 100 * seconds / total, macs.get(layer, 0)) for layer, seconds in rows
+    ]
+
+
+@contextmanager
+def pinned(cpu: int | None):
+    """Runs the block (and the processes it starts) on one core when `cpu` is given."""
+    if cpu is None:
+        yield
+        return
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {cpu})
+    try:
+        yield
+    finally:
+        os.sched_setaffinity(0, before)
+
+
+def format_results(results: list[BenchResult]) -> str:
+    header = (
+        "model",
+        "target",
+        "NNCG µs",
+        "ORT µs",
+        "ORT run µs",
+        "speed-up",
+        "GFLOP/s",
+        "% peak",
+        "max rel err",
+        "text B",
+        "rodata B",
+        "bss B",
+    )
+    rows = [header]
+    for r in results:
+        pct = "n/a" if r.percent_of_peak is None else f"{r.percent_of_peak:.1f} ({r.peak_isa})"
+        rows.append((
+            r.model, r.target, f"{r.nncg_us:.2f}", f"{r.ort_bound_us:.2f}", f"{r.ort_run_us:.2f}",
+            f"{r.speedup:.2f}x", f"{r.gflops:.2f}", pct, f"{r.max_rel_err:.1e}",
+            str(r.sizes.text), str(r.sizes.rodata), str(r.sizes.bss),
+        ))  # fmt: skip
+    return _table(rows)
+
+
+def format_profile(rows: list[LayerTime]) -> str:
+    table = [("layer", "µs", "%", "MACs", "GFLOP/s")]
+    table += [(r.layer, f"{r.us:.2f}", f"{r.percent:.1f}", str(r.macs), f"{r.gflops:.2f}") for r in rows]
+    total_us = sum(r.us for r in rows)
+    table.append(("total", f"{total_us:.2f}", "100.0", str(sum(r.macs for r in rows)), ""))
+    return _table(table)
+
+
+def _table(rows) -> str:
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows)

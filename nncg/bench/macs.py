@@ -1,0 +1,29 @@
+"""Multiply-accumulates per layer, counted from the graph IR: the work behind GFLOP/s and % of peak."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..ir.graph import Graph, Node
+from ..lowering.context import c_identifier
+
+
+def node_macs(graph: Graph, node: Node) -> int:
+    """Conv: outputs x c_in/group x kernel taps; Dense: rows x K x N; other ops do no MACs."""
+    if node.op == "Conv":
+        weight = graph.constants[node.inputs[1]]  # [c_out, c_in/group, k...]
+        return int(np.prod(graph.shape(node.outputs[0]))) * int(np.prod(weight.shape[1:]))
+    if node.op == "Dense":
+        k, n = graph.constants[node.inputs[1]].shape
+        rows = int(np.prod(graph.shape(node.outputs[0])[:-1]))
+        return rows * k * n
+    return 0
+
+
+def total_macs(graph: Graph) -> int:
+    return sum(node_macs(graph, node) for node in graph.nodes)
+
+
+def macs_by_layer(graph: Graph) -> dict[str, int]:
+    """MACs keyed by the C name a node's kernel gets (its name made a C identifier)."""
+    return {c_identifier(node.name): node_macs(graph, node) for node in graph.nodes}

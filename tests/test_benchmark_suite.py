@@ -1,0 +1,33 @@
+"""The benchmark suite's report and chart are produced and well formed on a tiny run (no timing claims)."""
+
+from benchmarks.suite import results_markdown, run_suite, write_chart
+
+PEAKS = {"sse": 10.0, "avx2-fma": None, "avx512-fma": None}
+
+
+def test_suite_report_lists_results_and_unsupported_models(tmp_path, monkeypatch):
+    import benchmarks.suite as suite
+
+    bad = tmp_path / "broken.onnx"
+    bad.write_text("not a model")
+    real_path = suite.model_path
+    monkeypatch.setattr(suite, "model_path", lambda name: bad if name == "broken" else real_path(name))
+    rows = run_suite(
+        ["ball", "broken"],
+        ["ansi-c", "ssse3"],
+        batches=2,
+        min_batch_seconds=0.001,
+        peaks=PEAKS,
+        progress=lambda _: None,
+    )
+    assert [(r.model, r.target, r.result is not None) for r in rows] == [
+        ("ball", "ansi-c", True), ("ball", "ssse3", True), ("broken", "ansi-c", False), ("broken", "ssse3", False),
+    ]  # fmt: skip
+    text = results_markdown(rows, PEAKS, cpu=0, date="2026-01-01")
+    table = [line for line in text.splitlines() if line.startswith("| ")]
+    assert table[0].startswith("| model | target | NNCG µs") and len(table) == 1 + len(rows)
+    assert all(line.count("|") == table[0].count("|") for line in table)
+    assert "| broken | ssse3 | not supported yet: " in text and "pinned to core 0" in text and "2026-01-01" in text
+    chart = tmp_path / "results.png"
+    write_chart(rows, chart)
+    assert chart.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and chart.stat().st_size > 5000
