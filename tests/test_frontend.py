@@ -468,9 +468,11 @@ def test_conv_old_opset_and_kernel_shape_attribute():
     assert graph.shapes["y"] == (1, 3, 7, 7)
 
 
-def test_conv_group_is_refused():
-    proto = conv_model(x_shape=(1, 4, 5, 5), w_shape=(4, 2, 3, 3), group=2)
-    fails(proto, "unsupported operators: Conv[group=2] (node 'conv')", error=UnsupportedOpsError)
+def test_conv_group_is_kept_and_checked():
+    proto = conv_model(x_shape=(1, 4, 5, 5), w_shape=(6, 2, 3, 3), group=2)
+    assert import_onnx(proto).nodes[0].attrs.group == 2
+    bad = conv_model(x_shape=(1, 4, 5, 5), w_shape=(6, 1, 3, 3), group=2)
+    fails(bad, "Conv 'conv' has group=2 with 4 input channels and weight [6, 1, 3, 3]")
 
 
 def test_conv_runtime_weight_is_refused():

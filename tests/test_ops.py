@@ -43,7 +43,7 @@ def batchnorm_params(c):
 
 
 def conv_model(x_shape, c_out, kernel, bias=True, **attrs):
-    c_in = x_shape[1]
+    c_in = x_shape[1] // attrs.get("group", 1)
     inits = [("w", weights(c_out, c_in, *kernel))] + ([("b", weights(c_out))] if bias else [])
     node = helper.make_node("Conv", ["x", "w"] + (["b"] if bias else []), ["y"], **attrs)
     return model([node], {"x": x_shape}, None, inits)
@@ -70,6 +70,9 @@ CONV_CASES = {
     "conv1d": ((1, 3, 11), 4, (3,), dict(pads=[1, 1], strides=[2])),
     "conv3d": ((1, 2, 4, 5, 5), 4, (2, 3, 3), dict(pads=[0, 1, 1, 1, 1, 1])),
     "pads_exceed_kernel": ((1, 1, 4, 4), 4, (2, 2), dict(pads=[3, 3, 3, 3])),
+    "depthwise": ((1, 8, 6, 6), 8, (3, 3), dict(group=8, pads=[1, 1, 1, 1])),
+    "depthwise_stride2_multiplier2": ((1, 4, 7, 7), 8, (3, 3), dict(group=4, strides=[2, 2], pads=[1, 1, 1, 1])),
+    "grouped": ((1, 6, 5, 5), 12, (3, 3), dict(group=3, pads=[1, 1, 1, 1])),
 }
 
 
@@ -104,6 +107,67 @@ def test_maxpool(case, target):
     x_shape, attrs = POOL_CASES[case]
     node = helper.make_node("MaxPool", ["x"], ["y"], **attrs)
     compile_and_check(model([node], {"x": x_shape}, None), target, sanitize=case == "ceil_mode_pads")
+
+
+AVERAGE_POOL_CASES = {
+    "2x2_stride2": ((1, 8, 6, 6), dict(kernel_shape=[2, 2], strides=[2, 2])),
+    "3x3_pads_exclude": ((1, 4, 7, 7), dict(kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1])),
+    "3x3_pads_include": (
+        (1, 4, 7, 7),
+        dict(kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1], count_include_pad=1),
+    ),
+    "ceil_mode_asymmetric_pads": (
+        (1, 4, 6, 7),
+        dict(kernel_shape=[3, 2], strides=[2, 2], pads=[0, 1, 1, 0], ceil_mode=1),
+    ),
+    "ceil_mode_include_pad": (
+        (1, 4, 6, 6),
+        dict(kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1], ceil_mode=1, count_include_pad=1),
+    ),
+    "pool1d": ((1, 4, 9), dict(kernel_shape=[3], strides=[2], pads=[1, 1])),
+}
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("case", AVERAGE_POOL_CASES)
+def test_averagepool(case, target):
+    x_shape, attrs = AVERAGE_POOL_CASES[case]
+    node = helper.make_node("AveragePool", ["x"], ["y"], **attrs)
+    compile_and_check(model([node], {"x": x_shape}, None, opset=19), target, unroll=1)
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("op", ["GlobalAveragePool", "GlobalMaxPool"])
+@pytest.mark.parametrize("unroll", [2, None])
+def test_global_pools(op, unroll, target):
+    compile_and_check(model([helper.make_node(op, ["x"], ["y"])], {"x": (1, 12, 5, 7)}, None), target, unroll=unroll)
+
+
+CLIP_CASES = {
+    "relu6": (13, [("lo", np.float32(0.0)), ("hi", np.float32(6.0))], ["x", "lo", "hi"], {}),
+    "min_only": (13, [("lo", np.float32(-0.5))], ["x", "lo"], {}),
+    "max_only": (13, [("hi", np.float32(0.25))], ["x", "", "hi"], {}),
+    "opset10_attributes": (10, [], ["x"], dict(min=-0.3, max=0.4)),
+}
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("case", CLIP_CASES)
+def test_clip(case, target):
+    opset, inits, inputs, attrs = CLIP_CASES[case]
+    node = helper.make_node("Clip", inputs, ["y"], **attrs)
+    compile_and_check(model([node], {"x": (1, 3, 4, 8)}, None, inits, opset=opset), target)
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_depthwise_conv_clip_is_fused_relu6(target):
+    nodes = [
+        helper.make_node("Conv", ["x", "w", "b"], ["c"], group=8, pads=[1, 1, 1, 1]),
+        helper.make_node("Clip", ["c", "lo", "hi"], ["y"]),
+    ]
+    inits = [("w", 3 * weights(8, 1, 3, 3)), ("b", weights(8)), ("lo", np.float32(0)), ("hi", np.float32(6))]
+    compiled = compile_and_check(model(nodes, {"x": (1, 8, 5, 5)}, None, inits), target)
+    assert "Clip" not in re.findall(r"^/\* \w+: (\w+) \*/$", compiled.source, re.M)
 
 
 ACTIVATIONS = {

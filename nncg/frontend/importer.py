@@ -30,28 +30,12 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
 
 def check_supported(nodes: list[NamedNode]) -> None:
     """One error listing every node left after folding that has no converter."""
-    bad = [f"{_op_label(node)} (node '{name}')" for node, name in nodes if not _convertible(node)]
+    bad = [f"{node.op_type} (node '{name}')" for node, name in nodes if node.op_type not in CONVERTERS]
     if bad:
         raise UnsupportedOpsError(
             f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "
             f"(plus {FOLDED_OPS}, which are folded at compile time)"
         )
-
-
-def _convertible(node: onnx.NodeProto) -> bool:
-    return node.op_type in CONVERTERS and _group(node) == 1
-
-
-def _op_label(node: onnx.NodeProto) -> str:
-    """The op type, with the attribute that makes it unsupported where the op itself is supported."""
-    return f"{node.op_type}[group={_group(node)}]" if node.op_type in CONVERTERS else node.op_type
-
-
-def _group(node: onnx.NodeProto) -> int:
-    """Grouped and depthwise Conv are not supported yet, so they are listed with the other gaps."""
-    if node.op_type != "Conv":
-        return 1
-    return next((a.i for a in node.attribute if a.name == "group"), 1)
 
 
 def _context(model: onnx.ModelProto, folded: Folded) -> Context:

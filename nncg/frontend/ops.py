@@ -7,8 +7,11 @@ from collections.abc import Callable
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_linear import convert_binary, convert_gemm, convert_matmul
 from nncg.frontend.ops_nn import (
+    convert_averagepool,
     convert_batchnorm,
+    convert_clip,
     convert_conv,
+    convert_global_pool,
     convert_leaky_relu,
     convert_maxpool,
     convert_relu,
@@ -29,7 +32,11 @@ Converter = Callable[[OnnxOp, Context], Node]
 CONVERTERS: dict[str, Converter] = {
     "Conv": convert_conv,
     "MaxPool": convert_maxpool,
+    "AveragePool": convert_averagepool,
+    "GlobalAveragePool": convert_global_pool,
+    "GlobalMaxPool": convert_global_pool,
     "Relu": convert_relu,
+    "Clip": convert_clip,
     "LeakyRelu": convert_leaky_relu,
     "BatchNormalization": convert_batchnorm,
     "Softmax": convert_softmax,

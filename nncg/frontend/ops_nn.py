@@ -1,8 +1,10 @@
-"""ONNX front end (ONNX -> graph IR), step 3: convert the CNN layers (Conv, MaxPool, activations,
+"""ONNX front end (ONNX -> graph IR), step 3: convert the CNN layers (Conv, pools, activations,
 BatchNormalization, Softmax) into graph IR nodes with fully resolved attribute records.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.windows import pool_attrs, pool_output_shape, resolve_pads, window_steps
@@ -11,13 +13,21 @@ from nncg.ir.graph import (
     BatchNormAttrs,
     ConvAttrs,
     Node,
+    PoolAttrs,
     SoftmaxAttrs,
 )
 
 
 def convert_conv(op: OnnxOp, ctx: Context) -> Node:
-    x = op.input(0)  # group != 1 was refused with the unsupported operators (importer.check_supported)
+    x = op.input(0)
     weight = ctx.constant_input(op, 1, "weight")
+    group = int(op.attr("group", 1))
+    c_in, c_out = ctx.shape(x)[1], weight.shape[0]
+    if group < 1 or c_in % group or c_out % group or weight.shape[1] * group != c_in:
+        raise op.error(
+            f"has group={group} with {c_in} input channels and weight {list(weight.shape)}; "
+            "channels must split evenly into the groups"
+        )
     inputs = [x, op.input(1)]
     if op.input(2):
         ctx.constant_input(op, 2, "bias")
@@ -28,7 +38,7 @@ def convert_conv(op: OnnxOp, ctx: Context) -> Node:
         raise op.error(f"has kernel_shape {list(declared)} but its weight has kernel {list(kernel)}; fix the model")
     strides, dilations = window_steps(op, len(kernel))
     begin, end = resolve_pads(op, ctx.shape(x)[2:], kernel, strides, dilations)
-    return op.ir_node("Conv", inputs, ConvAttrs(kernel, strides, dilations, begin, end))
+    return op.ir_node("Conv", inputs, ConvAttrs(kernel, strides, dilations, begin, end, group))
 
 
 def convert_maxpool(op: OnnxOp, ctx: Context) -> Node:
@@ -44,6 +54,37 @@ def convert_maxpool(op: OnnxOp, ctx: Context) -> Node:
     attrs = pool_attrs(op, in_shape)
     ctx.set_shape(op, op.node.output[0], pool_output_shape(attrs, in_shape))
     return op.ir_node("MaxPool", [x], attrs)
+
+
+def convert_averagepool(op: OnnxOp, ctx: Context) -> Node:
+    x = op.input(0)
+    in_shape = ctx.shape(x)
+    attrs = replace(pool_attrs(op, in_shape), count_include_pad=bool(op.attr("count_include_pad", 0)))
+    ctx.set_shape(op, op.node.output[0], pool_output_shape(attrs, in_shape))
+    return op.ir_node("AveragePool", [x], attrs)
+
+
+def convert_global_pool(op: OnnxOp, ctx: Context) -> Node:
+    """GlobalAveragePool / GlobalMaxPool: a pool whose window is the whole spatial extent."""
+    x = op.input(0)
+    in_shape = ctx.shape(x)
+    n = len(in_shape) - 2
+    attrs = PoolAttrs(tuple(in_shape[2:]), (1,) * n, (1,) * n, (0,) * n, (0,) * n)
+    ctx.set_shape(op, op.node.output[0], tuple(in_shape[:2]) + (1,) * n)
+    return op.ir_node(op.node.op_type.removeprefix("Global"), [x], attrs)
+
+
+def convert_clip(op: OnnxOp, ctx: Context) -> Node:
+    """Clip's bounds: attributes before opset 11, optional constant inputs from 11 on."""
+    if ctx.opset < 11:
+        low, high = float(op.attr("min", float("-inf"))), float(op.attr("max", float("inf")))
+    else:
+        bounds = [ctx.constant_input(op, i, name) if op.input(i) else None for i, name in ((1, "min"), (2, "max"))]
+        if any(b is not None and b.size != 1 for b in bounds):
+            raise op.error("has a min or max that is not a scalar; only scalar bounds are supported")
+        low = float(bounds[0].reshape(())) if bounds[0] is not None else float("-inf")
+        high = float(bounds[1].reshape(())) if bounds[1] is not None else float("inf")
+    return op.ir_node("Clip", [op.input(0)], Activation("clip", low=low, high=high))
 
 
 def convert_relu(op: OnnxOp, ctx: Context) -> Node:

@@ -17,12 +17,17 @@ Shape = tuple[int, ...]
 
 @dataclass(frozen=True)
 class Activation:
-    """An activation that a producer applies at its store: relu, or leaky_relu with slope alpha."""
+    """An activation that a producer applies at its store: relu, leaky_relu with slope alpha, or
+    clip to [low, high] (ReLU6 is clip(0, 6))."""
 
-    kind: str  # "relu" | "leaky_relu"
+    kind: str  # "relu" | "leaky_relu" | "clip"
     alpha: float = 0.0
+    low: float = float("-inf")
+    high: float = float("inf")
 
     def __str__(self) -> str:
+        if self.kind == "clip":
+            return f"clip({self.low:g}, {self.high:g})"
         return "relu" if self.kind == "relu" else f"leaky_relu(alpha={self.alpha:g})"
 
 
@@ -41,7 +46,8 @@ class ConvAttrs:
 
 @dataclass(frozen=True)
 class PoolAttrs:
-    """MaxPool; the output shape (ceil_mode included) is recorded in Graph.shapes."""
+    """MaxPool and AveragePool (also their Global forms); the output shape (ceil_mode included) is
+    recorded in Graph.shapes. count_include_pad: AveragePool divides by the padded window size."""
 
     kernel: Shape
     strides: Shape
@@ -49,6 +55,7 @@ class PoolAttrs:
     pads_begin: Shape
     pads_end: Shape
     ceil_mode: bool = False
+    count_include_pad: bool = False
 
 
 @dataclass(frozen=True)
@@ -95,7 +102,9 @@ class ReshapeAttrs:
 OPS: dict[str, type | None] = {
     "Conv": ConvAttrs,
     "MaxPool": PoolAttrs,
+    "AveragePool": PoolAttrs,
     "Relu": Activation,
+    "Clip": Activation,
     "LeakyRelu": Activation,
     "BatchNormalization": BatchNormAttrs,
     "ScaleShift": ScaleShiftAttrs,

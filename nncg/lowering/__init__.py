@@ -12,14 +12,16 @@ from .context import LoweringContext, row_major
 from .conv import lower_conv
 from .dense import lower_dense
 from .elementwise import lower_activation, lower_batchnorm, lower_binary, lower_scale_shift
-from .pool import lower_maxpool
+from .pool import lower_averagepool, lower_maxpool
 from .reshape import copy_nest, lower_reshape
 from .softmax import lower_softmax
 
 LOWERINGS = {
     "Conv": lower_conv,
     "MaxPool": lower_maxpool,
+    "AveragePool": lower_averagepool,
     "Relu": lower_activation,
+    "Clip": lower_activation,
     "LeakyRelu": lower_activation,
     "BatchNormalization": lower_batchnorm,
     "ScaleShift": lower_scale_shift,

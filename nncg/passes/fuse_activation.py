@@ -1,5 +1,5 @@
-"""Graph pass `fuse-activation`: a Relu or LeakyRelu is applied by its producer at the store, so the
-activation costs no extra pass over memory."""
+"""Graph pass `fuse-activation`: a Relu, LeakyRelu or Clip (ReLU6) is applied by its producer at the
+store, so the activation costs no extra pass over memory."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ PRODUCERS = ("Conv", "Dense", "ScaleShift")
 
 def fuse_activation(graph: Graph) -> Graph:
     for act in graph.nodes:
-        if act.op not in ("Relu", "LeakyRelu"):
+        if act.op not in ("Relu", "LeakyRelu", "Clip"):
             continue
         producer = graph.producer(act.inputs[0])
         if (
