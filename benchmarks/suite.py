@@ -71,7 +71,7 @@ def run_suite(
 
 def short_problem(message: str) -> str:
     """An unsupported-operators error as `Clip x27, AveragePool x1`; other errors' first line."""
-    ops = re.findall(r"([\w\[\]=]+) \(node '", message.split("; NNCG supports")[0])
+    ops = re.findall(r"(\w+) \(node '", message.split("; NNCG supports")[0])
     if not ops:
         return message.splitlines()[0]
     return ", ".join(f"{op} x{n}" for op, n in Counter(ops).items())
