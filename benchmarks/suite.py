@@ -99,25 +99,27 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
         "  batch 1, one intra-op thread, all graph optimisations; `ORT µs` with IOBinding, `ORT run µs` through",
         "  `InferenceSession.run`. Medians of 15 batches of >= 20 ms each, NNCG and onnxruntime interleaved.",
         "- speed-up = ORT µs / NNCG µs; GFLOP/s = 2 x MACs / NNCG time; % peak of the ISA the target uses.",
-        "- text + rodata go to flash, bss (the static activation buffers) to RAM; gen s / cc s: C generation and",
+        "- text + rodata go to flash; RAM is bss, which holds the static arena (arena B: activations placed by",
+        "  the memory plan; activations B: all activation buffers without reuse); gen s / cc s: C generation and",
         "  compile time.",
         "",
         "| model | target | unroll | NNCG µs | ORT µs | ORT run µs | speed-up | MACs | GFLOP/s | % peak | max abs err "
-        "| max rel err | text B | rodata B | bss B | gen s | cc s |",
-        "|" + "---|" * 17,
+        "| max rel err | text B | rodata B | bss B | arena B | activations B | gen s | cc s |",
+        "|" + "---|" * 19,
     ]
     for row in rows:
         r = row.result
         if r is None:
             head = f"| {row.model} | {row.target} | {row.unroll} |"
-            lines.append(f"{head} {row.problem} |" + " |" * 13)
+            lines.append(f"{head} {row.problem} |" + " |" * 15)
             continue
         pct = f"{r.percent_of_peak:.1f} ({r.peak_isa})" if r.percent_of_peak is not None else "n/a"
         lines.append(
             f"| {row.model} | {row.target} | {row.unroll} | {r.nncg_us:.2f} | {r.ort_bound_us:.2f} "
             f"| {r.ort_run_us:.2f} "
             f"| {r.speedup:.2f}x | {r.macs:,} | {r.gflops:.2f} | {pct} | {r.max_abs_err:.1e} | {r.max_rel_err:.1e} "
-            f"| {r.sizes.text:,} | {r.sizes.rodata:,} | {r.sizes.bss:,} | {r.generate_seconds:.2f} "
+            f"| {r.sizes.text:,} | {r.sizes.rodata:,} | {r.sizes.bss:,} | {r.arena_bytes:,} | {r.activation_bytes:,} "
+            f"| {r.generate_seconds:.2f} "
             f"| {r.compile_seconds:.2f} |"
         )
     return "\n".join(lines) + "\n"

@@ -9,6 +9,7 @@ import sys
 from . import __version__
 from .backends import BACKENDS
 from .errors import NncgError
+from .passes.unroll import CODE_BUDGET
 
 
 def parse_input_shape(text: str) -> tuple[str, tuple[int, ...]]:
@@ -44,6 +45,21 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="NAME=DIMS",
         help="fix a dynamic input shape, e.g. image=1x3x60x80 (repeatable)",
+    )
+    p.add_argument(
+        "--code-budget",
+        type=int,
+        default=CODE_BUDGET,
+        metavar="N",
+        help=f"statements per unrolled loop nest; a loop that would exceed it stays a loop (default {CODE_BUDGET}; "
+        "0: no cap, the paper's levels exactly)",
+    )
+    p.add_argument(
+        "--weights",
+        choices=("auto", "embed", "bin"),
+        default="auto",
+        help="embed: weights as static const arrays in the C file; bin: in NAME.weights, which the caller "
+        "passes by pointer; auto (default): bin above 4 MiB of weights",
     )
     p.add_argument("--pipeline", help="run this pass pipeline instead of the default (see --list-passes)")
     p.add_argument("--print-ir-after-all", action="store_true", help="print the IR after every pass to stderr")
@@ -107,9 +123,11 @@ def run(args: argparse.Namespace) -> int:
         input_shapes=dict(args.input_shape) or None,
         pipeline=args.pipeline,
         print_ir_after_all=sys.stderr if args.print_ir_after_all else None,
+        weights=args.weights,
+        code_budget=args.code_budget or None,
     )
-    c_path, h_path = compiled.write(args.output_dir)
-    print(f"wrote {c_path} ({len(compiled.source.encode())} bytes) and {h_path}")
+    paths = compiled.write(args.output_dir)
+    print(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}")
     status = verify_command(args, compiled) if args.verify else 0
     if args.benchmark or args.profile:
         measure_command(args)
@@ -131,7 +149,8 @@ def measure_command(args: argparse.Namespace) -> None:
 
     options = dict(
         target=args.target, unroll=args.unroll, cc=args.cc, cpu=args.cpu,
-        input_shapes=dict(args.input_shape) or None, name=args.name,
+        input_shapes=dict(args.input_shape) or None, name=args.name, weights=args.weights,
+        code_budget=args.code_budget or None,
     )  # fmt: skip
     if args.benchmark:
         print(format_results([benchmark(args.model, **options)]))

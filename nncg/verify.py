@@ -122,13 +122,47 @@ def harness_source(compiled: Any) -> str:
     writes = [
         f"    if (!nncg_write(argv[{1 + n_in + i}], nncg_out{i}, {n}UL)) return 1;" for i, n in enumerate(out_sizes)
     ]
+    loader, weights_arg = weights_loader(compiled)
+    if loader:
+        buffers.append(loader)
+        reads.insert(0, "    nncg_weights = nncg_load_weights();")
+        buffers.append("static const void *nncg_weights;")
+    call = f"    {compiled.name}({', '.join(args + weights_arg)});"
     return _HARNESS_TEMPLATE.format(
         name=compiled.name,
         buffers="\n".join(buffers),
         argc=1 + n_in + n_out,
         usage=usage,
-        body="\n".join(reads + fills + [f"    {compiled.name}({', '.join(args)});"] + writes),
+        body="\n".join(reads + fills + [call] + writes),
     )
+
+
+# Loads NAME.weights (a model compiled with weights in a file) and checks its CRC-32.
+WEIGHTS_LOADER = """
+#include <stdlib.h>
+static const void *nncg_load_weights(void)
+{{
+    FILE *f = fopen("{name}.weights", "rb");
+    void *data = malloc({macro}_WEIGHTS_BYTES);
+    if (f == NULL || data == NULL || fread(data, 1, {macro}_WEIGHTS_BYTES, f) != {macro}_WEIGHTS_BYTES) {{
+        fprintf(stderr, "harness: cannot read {name}.weights\\n");
+        exit(1);
+    }}
+    fclose(f);
+    if (!{name}_weights_ok(data)) {{
+        fprintf(stderr, "harness: {name}.weights fails its CRC-32 check\\n");
+        exit(1);
+    }}
+    return data;
+}}
+"""
+
+
+def weights_loader(compiled: Any) -> tuple[str, list[str]]:
+    """C for loading the weights file, and the extra call argument; nothing when weights are embedded."""
+    if getattr(compiled, "weights", None) is None:
+        return "", []
+    return WEIGHTS_LOADER.format(name=compiled.name, macro=compiled.name.upper()), ["nncg_weights"]
 
 
 _HARNESS_TEMPLATE = """\
@@ -217,14 +251,32 @@ def _check_inputs(compiled: Any, inputs: Sequence[np.ndarray]) -> None:
             )
 
 
-def _build(compiled: Any, workdir: Path, cc: str, opt: str, flags: Sequence[str], sanitize: bool) -> Path:
-    """Write the model and harness into workdir, compile both and link; returns the program path."""
-    c_path, h_path = compiled.write(workdir)
+def _build(
+    compiled: Any,
+    workdir: Path,
+    cc: str,
+    opt: str,
+    flags: Sequence[str],
+    sanitize: bool,
+    single_invocation: bool = False,
+) -> Path:
+    """Write the model and harness into workdir, compile both and link; returns the program path.
+
+    `single_invocation` compiles and links both files with one compiler call (faster for many
+    tiny models); the default compiles each file on its own, so a failure names the file."""
+    c_path, h_path = compiled.write(workdir)[:2]
     (workdir / "harness.c").write_text(harness_source(compiled))
     compile_flags = [opt, *compiled.strict_cflags, *compiled.cflags, *flags]
     if sanitize:
         compile_flags += SANITIZE_FLAGS
     include = f"-I{Path(h_path).parent}"
+    if single_invocation:
+        _run_tool(
+            [cc, *compile_flags, include, str(c_path), "harness.c", "-o", "harness", "-lm"],
+            workdir,
+            f"building {Path(c_path).name} with harness.c",
+        )
+        return workdir / "harness"
     obj = f"{compiled.name}.o"
     _run_tool(
         [cc, *compile_flags, "-c", str(c_path), "-o", obj],
@@ -294,6 +346,51 @@ def run_compiled(
     return _build_and_run(compiled, inputs, Path(workdir).resolve(), cc, opt, extra_cflags, sanitize)
 
 
+class BuiltModel:
+    """A compiled model built into the test program once, to be run on many inputs.
+
+    Files live in `workdir`, which the caller owns; `run` is not reentrant (it reuses the files).
+    """
+
+    def __init__(self, compiled: Any, program: Path, workdir: Path, sanitize: bool = False) -> None:
+        self.compiled = compiled
+        self.program = program
+        self.workdir = workdir
+        self.sanitize = sanitize
+
+    def run(self, inputs: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Run the program once on `inputs` (in the model's input order); returns the outputs."""
+        _check_inputs(self.compiled, inputs)
+        in_files = [f"input{i}.bin" for i in range(len(inputs))]
+        out_files = [f"output{i}.bin" for i in range(len(self.compiled.outputs))]
+        for name, array in zip(in_files, inputs):
+            np.ascontiguousarray(array, dtype="<f4").tofile(self.workdir / name)
+        _execute(self.program, in_files + out_files, self.workdir, self.sanitize)
+        return [_read_output(self.workdir / name, spec) for name, spec in zip(out_files, self.compiled.outputs)]
+
+
+def build_model(
+    compiled: Any,
+    workdir: str | os.PathLike[str],
+    *,
+    cc: str | None = None,
+    opt: str = "-O2",
+    extra_cflags: Sequence[str] = (),
+    sanitize: bool = False,
+    single_invocation: bool = False,
+) -> BuiltModel:
+    """Build the model with the test harness in `workdir` (created if needed) for repeated runs.
+
+    `cc`, `opt`, `extra_cflags` and `sanitize` are as for run_compiled; `single_invocation`
+    compiles and links with one compiler call."""
+    cc = find_c_compiler(cc)
+    path = Path(workdir)
+    path.mkdir(parents=True, exist_ok=True)
+    path = path.resolve()
+    program = _build(compiled, path, cc, opt, extra_cflags, sanitize, single_invocation)
+    return BuiltModel(compiled, program, path, sanitize)
+
+
 def _build_and_run(
     compiled: Any,
     inputs: Sequence[np.ndarray],
@@ -304,12 +401,7 @@ def _build_and_run(
     sanitize: bool,
 ) -> list[np.ndarray]:
     program = _build(compiled, workdir, cc, opt, flags, sanitize)
-    in_files = [f"input{i}.bin" for i in range(len(inputs))]
-    out_files = [f"output{i}.bin" for i in range(len(compiled.outputs))]
-    for name, array in zip(in_files, inputs):
-        np.ascontiguousarray(array, dtype="<f4").tofile(workdir / name)
-    _execute(program, in_files + out_files, workdir, sanitize)
-    return [_read_output(workdir / name, spec) for name, spec in zip(out_files, compiled.outputs)]
+    return BuiltModel(compiled, program, workdir, sanitize).run(inputs)
 
 
 def _read_output(path: Path, spec: Any) -> np.ndarray:

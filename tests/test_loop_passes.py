@@ -81,6 +81,15 @@ def test_unroll_levels_count_loops_through_lets_and_ifs():
     assert marked[0].body[0].body[0].body[0].kind == "unrolled"
 
 
+def test_unroll_budget_keeps_loops_whose_expansion_is_too_big():
+    # o (4) x k (3) stores: the o loop would expand to 12 statements, the k loop to 3
+    body = (Loop("o", 4, (Loop("k", 3, (Store("y", A("o") * 3 + A("k"), Load("x", A("k"))),)),)),)
+    assert mark_unroll(body, 0, budget=12)[0].kind == "unrolled"
+    capped = mark_unroll(body, 0, budget=11)
+    assert capped[0].kind == "serial" and capped[0].body[0].kind == "unrolled"
+    assert mark_unroll(body, 0, budget=2)[0].body[0].kind == "serial"
+
+
 def test_unrolling_resolves_border_checks_statically():
     # for k in 0..3: if 0 <= k - 1: y[k] = x[k - 1]   -> only k = 1, 2 survive, unguarded
     guarded = If((Bound(A("k") - 1, 0, None),), (Store("y", A("k"), Load("x", A("k") - 1)),))
@@ -130,7 +139,7 @@ def test_vectorize_makes_reduction_locals_vectors():
     [
         Loop("c", 8, (Store("y", A("c") * 2, Load("x", A("c"))),), parallel=True),  # strided store
         Loop("c", 8, (Store("y", A("c"), Load("x", A("c"))),), parallel=False),  # a reduction axis
-        Loop("c", 8, (Store("y", A("c"), Call("exp", Load("x", A("c")))),), parallel=True),  # no vector exp
+        Loop("c", 8, (Store("y", A("c"), Call("exp", Load("x", A("c") * 2))),), parallel=True),  # strided, in a call
         Loop("c", 2, (Store("y", A("c"), Load("x", A("c"))),), parallel=True),  # shorter than a vector
     ],
 )

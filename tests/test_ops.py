@@ -304,3 +304,12 @@ def test_reshape_between_layouts(target):
 
 def test_identity_model_copies_input_to_output():
     compile_and_check(model([helper.make_node("Identity", ["x"], ["y"])], {"x": (1, 3)}, None), "ansi-c")
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_tensors_named_like_loop_variables_and_locals(target):
+    """Inputs called `w` and `acc` and an output `oh` must not clash with the C function's locals."""
+    node = helper.make_node("Conv", ["w", "acc"], ["oh"], pads=[1, 1, 1, 1])
+    m = model([node], {"w": (1, 3, 5, 5), "acc": (4, 3, 3, 3)}, (1, 4, 5, 5), output="oh")
+    for unroll in (None, 2):
+        compile_and_check(m, target, unroll=unroll)

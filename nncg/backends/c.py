@@ -3,6 +3,10 @@ and override only the vector hooks (type, load, store, broadcast, arithmetic, se
 
 from __future__ import annotations
 
+import re
+import zlib
+from dataclasses import replace
+
 import numpy as np
 
 from ..errors import NncgError
@@ -27,8 +31,24 @@ from ..ir.loops import (
     walk_exprs,
     walk_stmts,
 )
+from ..passes.substitute import rename_variables
 
 INDENT = "    "
+
+# Alignment of weight arrays and the static arena, and restrict for the layer functions' pointers:
+# GNU spellings where the compiler has them, nothing (still correct C89) elsewhere.
+PORTABILITY_MACROS = (
+    "#if defined(__GNUC__) || defined(__clang__)",
+    "#define NNCG_ALIGNED __attribute__((aligned(64)))",
+    "#define NNCG_RESTRICT __restrict__",
+    "#elif defined(_MSC_VER)",
+    "#define NNCG_ALIGNED __declspec(align(64))",
+    "#define NNCG_RESTRICT __restrict",
+    "#else",
+    "#define NNCG_ALIGNED",
+    "#define NNCG_RESTRICT",
+    "#endif",
+)
 VALUES_PER_LINE = 8
 
 
@@ -64,6 +84,34 @@ def unparen(text: str) -> str:
     return text[1:-1]
 
 
+def _without_clashes(kernel, program: Program):
+    """The kernel with loop variables and locals renamed where a buffer has their name (a model
+    input called `w` or `acc`), so the C function's locals do not shadow its pointers."""
+    taken = {b.name for b in program.buffers}
+    local = {s.var for s in walk_stmts(kernel.body) if isinstance(s, Loop)}
+    local |= {s.name for s in walk_stmts(kernel.body) if isinstance(s, Let)}
+    names = {}
+    for name in sorted(local & taken):
+        new = name + "_"
+        while new in taken or new in local:
+            new += "_"
+        names[name] = new
+    return replace(kernel, body=rename_variables(kernel.body, names)) if names else kernel
+
+
+def external_weights(program: Program) -> bool:
+    """Whether plan-memory moved the constant arrays into a weights blob the caller passes."""
+    return bool(program.arena and program.arena.weights_floats)
+
+
+def weights_blob(program: Program) -> bytes:
+    """The NAME.weights file: each constant array at its offset, little-endian float32, zero gaps."""
+    blob = np.zeros(program.arena.weights_floats, dtype="<f4")
+    for buf in program.role("constant"):
+        blob[buf.offset : buf.offset + buf.size] = program.constants[buf.name].ravel()
+    return blob.tobytes()
+
+
 class AnsiC:
     """Strict C89 plus math.h: scalar code, conditional moves for max/min/select."""
 
@@ -78,24 +126,63 @@ class AnsiC:
 
     def source(self, program: Program, first_line: str, header_name: str, profile: bool = False) -> str:
         """The .c file. `profile` adds per-layer timers (POSIX clock_gettime; for --profile only)."""
+        if program.arena is None:
+            raise NncgError("the program has no memory plan: run the plan-memory pass last")
         lines = [first_line]
         if profile:
             lines.append("#define _POSIX_C_SOURCE 199309L")
         lines.append(f'#include "{header_name}"')
         lines += [f"#include {inc}" for inc in (*self.includes, *(["<time.h>"] if profile else []))]
-        lines.append("")
+        lines += ["", *PORTABILITY_MACROS, ""]
         lines += self._constants(program)
-        lines += self._internal_buffers(program)
         calls = []
         for kernel in program.kernels:
             params = self._kernel_params(program, kernel)
-            lines += self._kernel(program.name, kernel, params)
+            lines += self._kernel(program.name, _without_clashes(kernel, program), params)
             calls.append(f"{program.name}_{kernel.name}({', '.join(b.name for b in params)});")
         if profile:
             lines += self._profile_globals(program)
-            calls = self._timed(program, calls)
-        lines += [self.signature(program), "{", *(INDENT + c for c in calls), "}"]
+        lines += self._run_function(program, calls, profile)
+        lines += self._static_arena_function(program)
         return "\n".join(lines) + "\n"
+
+    def _run_function(self, program: Program, calls: list[str], profile: bool) -> list[str]:
+        """NAME_run: points each internal buffer into the caller's arena, then runs the layers."""
+        decls = [
+            f"const float *const {b.name} = (const float *)weights + {b.offset};"
+            for b in program.role("constant")
+            if external_weights(program)
+        ]
+        decls += [
+            f"float *const {b.name} = (float *)arena + {b.offset}; /* {'x'.join(map(str, b.shape))} {b.layout} */"
+            for b in self._planned(program)
+        ]
+        if profile:
+            decls.append("double start = nncg_now(), end;")
+            calls = self._timed(program, calls)
+        used = {name for line in (*decls, *calls) for name in re.findall(r"\w+", line)}
+        params = [b.name for b in (*program.role("input"), *program.role("output"))]
+        params += ["weights"] if external_weights(program) else []
+        unused = [f"(void){name};" for name in params if name not in used]  # e.g. an input no node reads
+        unused += [] if self._planned(program) else ["(void)arena;"]
+        body = [*decls, *unused, *calls]
+        return [self.run_signature(program), "{", *(INDENT + line for line in body), "}", ""]
+
+    def _static_arena_function(self, program: Program) -> list[str]:
+        """NAME: NAME_run with an arena of static storage, for callers that run one inference at a time."""
+        args = [b.name for b in (*program.role("input"), *program.role("output"))]
+        args += ["weights"] if external_weights(program) else []
+        lines = []
+        if program.arena.floats:
+            lines += [f"static NNCG_ALIGNED float {program.name}_arena[{program.arena.floats}];", ""]
+            args.append(f"{program.name}_arena")
+        else:
+            args.append("(void *)0")
+        return lines + [self.signature(program), "{", f"{INDENT}{program.name}_run({', '.join(args)});", "}"]
+
+    @staticmethod
+    def _planned(program: Program) -> tuple:
+        return tuple(b for b in program.role("internal") if b.offset is not None)
 
     @staticmethod
     def _profile_globals(program: Program) -> list[str]:
@@ -118,13 +205,15 @@ class AnsiC:
     @staticmethod
     def _timed(program: Program, calls: list[str]) -> list[str]:
         """Each layer's call followed by adding its time to NAME_profile_seconds[i]."""
-        out = ["double start = nncg_now(), end;"]
+        out = []
         for i, call in enumerate(calls):
             out += [call, "end = nncg_now();", f"{program.name}_profile_seconds[{i}] += end - start;", "start = end;"]
         return out
 
     def header(self, program: Program, first_line: str) -> str:
         guard = f"{program.name.upper()}_H"
+        macro = program.name.upper()
+        arena = program.arena
         lines = [
             first_line,
             f"#ifndef {guard}",
@@ -138,12 +227,22 @@ class AnsiC:
         for buf in (*program.role("input"), *program.role("output")):
             shape = ",".join(map(str, buf.shape))
             lines.append(f"/* {buf.role} '{buf.onnx_name}': float32[{shape}], row-major as in ONNX */")
-            lines.append(f"#define {program.name.upper()}_{buf.name.upper()}_SIZE {buf.size}")
+            lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
         lines += [
             "",
-            "/* Runs one inference: inputs, then outputs. Activations live in static buffers,",
-            "   so calls must not overlap (not reentrant). */",
+            f"/* Activation memory: one arena of {macro}_ARENA_BYTES (the memory plan reuses space: without",
+            f"   reuse the activations would take {arena.activation_floats * 4} bytes). Any float-aligned block",
+            f"   works; {macro}_ARENA_ALIGN-byte alignment is fastest. */",
+            f"#define {macro}_ARENA_BYTES {arena.floats * 4}",
+            f"#define {macro}_ARENA_ALIGN {arena.align_floats * 4}",
+            "",
+            *self._weights_header(program),
+            "/* Runs one inference: inputs, then outputs. Uses a static arena, so calls must not overlap. */",
             self.signature(program) + ";",
+            "",
+            f"/* Reentrant form: activations live in `arena` ({macro}_ARENA_BYTES bytes, owned by the caller),",
+            "   so calls with distinct arenas may run at the same time. No buffer may overlap another. */",
+            self.run_signature(program) + ";",
             "",
             "#ifdef __cplusplus",
             "}",
@@ -153,31 +252,67 @@ class AnsiC:
         ]
         return "\n".join(lines) + "\n"
 
-    def signature(self, program: Program) -> str:
+    def _io_params(self, program: Program) -> list[str]:
         params = [f"const float *{b.name}" for b in program.role("input")]
         params += [f"float *{b.name}" for b in program.role("output")]
-        return f"void {program.name}({', '.join(params)})"
+        return params + (["const void *weights"] if external_weights(program) else [])
+
+    def signature(self, program: Program) -> str:
+        return f"void {program.name}({', '.join(self._io_params(program))})"
+
+    def run_signature(self, program: Program) -> str:
+        return f"void {program.name}_run({', '.join([*self._io_params(program), 'void *arena'])})"
+
+    def _weights_header(self, program: Program) -> list[str]:
+        if not external_weights(program):
+            return []
+        macro, blob = program.name.upper(), weights_blob(program)
+        return [
+            f"/* Weights: the file {program.name}.weights, little-endian float32, passed as `weights` (its address",
+            f"   in flash, or the file loaded or mapped into memory; {macro}_ARENA_ALIGN-byte alignment is fastest).",
+            f"   {program.name}_weights_ok(weights) checks its CRC-32. */",
+            f"#define {macro}_WEIGHTS_BYTES {len(blob)}",
+            f"#define {macro}_WEIGHTS_CRC32 0x{zlib.crc32(blob):08x}UL",
+            f"int {program.name}_weights_ok(const void *weights);",
+            "",
+        ]
+
+    @staticmethod
+    def _weights_check(program: Program) -> list[str]:
+        """NAME_weights_ok: 1 when the blob has the expected CRC-32 (bitwise, table-free: runs once)."""
+        macro = program.name.upper()
+        return [
+            f"int {program.name}_weights_ok(const void *weights)",
+            "{",
+            f"{INDENT}const unsigned char *p = (const unsigned char *)weights;",
+            f"{INDENT}unsigned long crc = 0xffffffffUL, i;",
+            f"{INDENT}int bit;",
+            f"{INDENT}for (i = 0; i < {macro}_WEIGHTS_BYTES; ++i) {{",
+            f"{INDENT * 2}crc ^= p[i];",
+            f"{INDENT * 2}for (bit = 0; bit < 8; ++bit) {{",
+            f"{INDENT * 3}crc = (crc >> 1) ^ (0xedb88320UL & (0UL - (crc & 1UL)));",
+            f"{INDENT * 2}}}",
+            f"{INDENT}}}",
+            f"{INDENT}return ((crc ^ 0xffffffffUL) & 0xffffffffUL) == {macro}_WEIGHTS_CRC32;",
+            "}",
+            "",
+        ]
 
     def _constants(self, program: Program) -> list[str]:
+        if external_weights(program):
+            return self._weights_check(program)
         lines = []
         for buf in program.role("constant"):
             values = [c_float(v) for v in program.constants[buf.name].ravel()]
-            lines.append(f"static const float {buf.name}[{buf.size}] = {{")
+            lines.append(f"static NNCG_ALIGNED const float {buf.name}[{buf.size}] = {{")
             for i in range(0, len(values), VALUES_PER_LINE):
                 lines.append(INDENT + ", ".join(values[i : i + VALUES_PER_LINE]) + ",")
             lines.append("};")
         return lines + ([""] if lines else [])
 
-    def _internal_buffers(self, program: Program) -> list[str]:
-        lines = [
-            f"static float {b.name}[{b.size}]; /* {'x'.join(map(str, b.shape))} {b.layout} */"
-            for b in program.role("internal")
-        ]
-        return lines + ([""] if lines else [])
-
     @staticmethod
     def _kernel_params(program: Program, kernel) -> list:
-        """The function parameters (inputs, outputs) a kernel touches, in signature order."""
+        """The buffers a kernel touches that are not constant arrays of the file, in program order."""
         used = {s.buffer for s in walk_stmts(kernel.body) if isinstance(s, Store)}
         used |= {
             e.buffer
@@ -186,12 +321,16 @@ class AnsiC:
             for e in walk_exprs(top)
             if isinstance(e, Load)
         }
-        return [b for b in (*program.role("input"), *program.role("output")) if b.name in used]
+        return [b for b in program.buffers if b.name in used and (b.role != "constant" or external_weights(program))]
 
     def _kernel(self, prefix: str, kernel, params) -> list[str]:
         """One static function per layer: compilers optimise several medium functions much faster
-        than one huge one, and it inlines them back into the single entry point anyway."""
-        args = ", ".join(f"{'const ' if b.role == 'input' else ''}float *{b.name}" for b in params) or "void"
+        than one huge one, and it inlines them back into the single entry point anyway. The memory
+        plan never gives one layer overlapping buffers, so its pointers are restrict."""
+        written = {s.buffer for s in walk_stmts(kernel.body) if isinstance(s, Store)}
+        args = (
+            ", ".join(f"{'' if b.name in written else 'const '}float *NNCG_RESTRICT {b.name}" for b in params) or "void"
+        )
         loop_vars = sorted({s.var for s in walk_stmts(kernel.body) if isinstance(s, Loop)})
         lines = [f"/* {kernel.name}: {kernel.op} */", f"static void {prefix}_{kernel.name}({args})", "{"]
         if loop_vars:

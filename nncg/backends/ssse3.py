@@ -1,9 +1,23 @@
 """Backend: x86 SSE/SSSE3 intrinsics, 4 float lanes. Overrides only the vector hooks of the C printer;
-max/min (ReLU, leaky ReLU, max-pool) are single _mm_max_ps/_mm_min_ps instructions."""
+max/min (ReLU, leaky ReLU, max-pool) are single _mm_max_ps/_mm_min_ps instructions. SSE has no exp,
+log or tanh: a vector call goes through a small helper that calls math.h once per lane."""
 
 from __future__ import annotations
 
-from ..ir.loops import Affine, Binary, Broadcast, Const, Expr, Load, Select
+from ..ir.loops import (
+    Affine,
+    Binary,
+    Broadcast,
+    Call,
+    Const,
+    Expr,
+    Load,
+    Program,
+    Select,
+    stmt_exprs,
+    walk_exprs,
+    walk_stmts,
+)
 from .c import AnsiC, c_affine, c_float
 
 ARITH = {"+": "add", "-": "sub", "*": "mul", "/": "div", "max": "max", "min": "min"}
@@ -16,6 +30,16 @@ class Ssse3(AnsiC):
     cflags = ("-mssse3",)
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<tmmintrin.h>")
+
+    def source(self, program: Program, first_line: str, header_name: str, profile: bool = False) -> str:
+        """The C file, with the lane-wise helper of every function the program calls on vectors
+        defined right after the includes."""
+        text = super().source(program, first_line, header_name, profile)
+        fns = sorted({e.fn for e in _exprs(program) if isinstance(e, Call) and e.lanes == 4})
+        if not fns:
+            return text
+        anchor = f"#include {self.includes[-1]}\n"
+        return text.replace(anchor, anchor + "".join(_lane_wise_helper(fn) for fn in fns), 1)
 
     def type_of(self, lanes: int) -> str:
         return "__m128" if lanes == 4 else super().type_of(lanes)
@@ -59,3 +83,25 @@ class Ssse3(AnsiC):
         mask = f"_mm_{COMPARE[e.cmp]}_ps({self.expr(e.lhs)}, {self.expr(e.rhs)})"
         then, other = self.expr(e.then), self.expr(e.otherwise)
         return f"_mm_or_ps(_mm_and_ps({mask}, {then}), _mm_andnot_ps({mask}, {other}))"
+
+    def _expr_Call(self, e: Call) -> str:
+        if e.lanes == 4:
+            return f"nncg_{e.fn}_ps({self.expr(e.arg)})"
+        return super()._expr_Call(e)
+
+
+def _exprs(program: Program):
+    """Every expression of every kernel, sub-expressions included."""
+    for kernel in program.kernels:
+        for stmt in walk_stmts(kernel.body):
+            for top in stmt_exprs(stmt):
+                yield from walk_exprs(top)
+
+
+def _lane_wise_helper(fn: str) -> str:
+    """nncg_FN_ps(x): FN of each lane of x through the double-precision C89 function."""
+    lanes = ", ".join(f"(float){fn}(v[{i}])" for i in range(4))
+    return (
+        f"\n/* {fn} of each lane: SSE has no vector {fn} */\nstatic __m128 nncg_{fn}_ps(__m128 x)\n{{\n"
+        f"    float v[4];\n    _mm_storeu_ps(v, x);\n    return _mm_setr_ps({lanes});\n}}\n"
+    )

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from ..compiler import compile as compile_model
 from ..frontend import load_model
+from ..passes.unroll import CODE_BUDGET
 from ..verify import compare, find_c_compiler, random_inputs
 from .harness import CompiledHarness, ObjectSizes
 from .onnxruntime_timer import OnnxruntimeTimer
@@ -34,6 +35,8 @@ class BenchResult:
     peak_gflops: float | None
     generate_seconds: float
     compile_seconds: float
+    arena_bytes: int = 0  # the planned activation memory (NAME_ARENA_BYTES)
+    activation_bytes: int = 0  # all activations side by side, without reuse
 
     @property
     def speedup(self) -> float:
@@ -78,6 +81,8 @@ def benchmark(
     peaks: dict[str, float | None] | None = None,
     input_shapes=None,
     name: str | None = None,
+    weights: str = "auto",
+    code_budget: int | None = CODE_BUDGET,
 ) -> BenchResult:
     """Compiles `model`, then times it and onnxruntime side by side. `peaks` (GFLOP/s per ISA, from
     nncg.bench.peak.measure_peaks) is measured here when not given."""
@@ -86,7 +91,15 @@ def benchmark(
     cc = find_c_compiler(cc)
     proto = load_model(model, input_shapes)
     start = time.perf_counter()
-    compiled = compile_model(model, target=target, unroll=unroll, name=name, input_shapes=input_shapes)
+    compiled = compile_model(
+        model,
+        target=target,
+        unroll=unroll,
+        name=name,
+        input_shapes=input_shapes,
+        weights=weights,
+        code_budget=code_budget,
+    )
     generate_seconds = time.perf_counter() - start
     inputs = random_inputs(compiled.inputs, seed=0)
     isa = TARGET_ISA[target]
@@ -114,6 +127,8 @@ def benchmark(
         peak_gflops=peak,
         generate_seconds=generate_seconds,
         compile_seconds=harness.compile_seconds,
+        arena_bytes=compiled.arena_bytes,
+        activation_bytes=compiled.activation_bytes,
     )
 
 
@@ -139,10 +154,21 @@ def profile(
     cpu: int | None = None,
     input_shapes=None,
     name: str | None = None,
+    weights: str = "auto",
+    code_budget: int | None = CODE_BUDGET,
 ) -> list[LayerTime]:
     """Time per layer, from timers the profile build puts around each layer's function."""
     cc = find_c_compiler(cc)
-    compiled = compile_model(model, target=target, unroll=unroll, name=name, input_shapes=input_shapes, profile=True)
+    compiled = compile_model(
+        model,
+        target=target,
+        unroll=unroll,
+        name=name,
+        input_shapes=input_shapes,
+        profile=True,
+        weights=weights,
+        code_budget=code_budget,
+    )
     macs = dict(compiled.layer_macs)
     inputs = random_inputs(compiled.inputs, seed=0)
     with pinned(cpu), tempfile.TemporaryDirectory(prefix="nncg-profile-") as tmp:
@@ -188,6 +214,8 @@ def format_results(results: list[BenchResult]) -> str:
         "text B",
         "rodata B",
         "bss B",
+        "arena B",
+        "activations B",
     )
     rows = [header]
     for r in results:
@@ -195,7 +223,7 @@ def format_results(results: list[BenchResult]) -> str:
         rows.append((
             r.model, r.target, f"{r.nncg_us:.2f}", f"{r.ort_bound_us:.2f}", f"{r.ort_run_us:.2f}",
             f"{r.speedup:.2f}x", f"{r.gflops:.2f}", pct, f"{r.max_rel_err:.1e}",
-            str(r.sizes.text), str(r.sizes.rodata), str(r.sizes.bss),
+            str(r.sizes.text), str(r.sizes.rodata), str(r.sizes.bss), str(r.arena_bytes), str(r.activation_bytes),
         ))  # fmt: skip
     return _table(rows)
 

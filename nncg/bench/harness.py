@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import NncgError
+from ..verify import weights_loader
 
 # Commands on stdin, one per line: "run N" times N calls and answers the nanoseconds; "profile"
 # answers the seconds accumulated per layer (profile builds); "outputs" writes the outputs; "quit".
@@ -114,6 +115,10 @@ def harness_source(compiled, profile: bool) -> str:
             "            }\n"
             '            printf("end\\n");'
         )
+    loader, weights_arg = weights_loader(compiled)
+    if loader:
+        buffers += "\nstatic const void *nncg_weights;\n" + loader
+        read_inputs = "    nncg_weights = nncg_load_weights();\n" + read_inputs
     return HARNESS.format(
         name=name,
         profile_decls=profile_decls,
@@ -121,7 +126,7 @@ def harness_source(compiled, profile: bool) -> str:
         argc=len(params) + 1,
         argc_minus_one=len(params),
         read_inputs=read_inputs,
-        call=f"{name}({', '.join(p.c_name for p in params)});",
+        call=f"{name}({', '.join([*(p.c_name for p in params), *weights_arg])});",
         print_profile=print_profile,
         write_outputs=write_outputs,
     )

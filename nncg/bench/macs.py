@@ -9,14 +9,18 @@ from ..lowering.context import c_identifier
 
 
 def node_macs(graph: Graph, node: Node) -> int:
-    """Conv: outputs x c_in/group x kernel taps; Dense: rows x K x N; other ops do no MACs."""
+    """Conv: outputs x c_in/group x kernel taps; ConvTranspose: inputs x c_out/group x kernel taps;
+    Dense: outputs x K; other ops do no MACs. Weights may be constant or runtime: shapes suffice."""
     if node.op == "Conv":
-        weight = graph.constants[node.inputs[1]]  # [c_out, c_in/group, k...]
-        return int(np.prod(graph.shape(node.outputs[0]))) * int(np.prod(weight.shape[1:]))
+        weight = graph.shape(node.inputs[1])  # [c_out, c_in/group, k...]
+        return int(np.prod(graph.shape(node.outputs[0]))) * int(np.prod(weight[1:]))
+    if node.op == "ConvTranspose":
+        weight = graph.shape(node.inputs[1])  # [c_in, c_out/group, k...]
+        return int(np.prod(graph.shape(node.inputs[0]))) * int(np.prod(weight[1:]))
     if node.op == "Dense":
-        k, n = graph.constants[node.inputs[1]].shape
-        rows = int(np.prod(graph.shape(node.outputs[0])[:-1]))
-        return rows * k * n
+        weight = graph.shape(node.inputs[1])  # [..., K, N], or [..., N, K] with trans_w
+        k = weight[-1] if node.attrs.trans_w else weight[-2]
+        return int(np.prod(graph.shape(node.outputs[0]))) * k
     return 0
 
 

@@ -5,6 +5,24 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from nncg.frontend.context import Context, OnnxOp
+from nncg.frontend.ops_conv import convert_conv_transpose
+from nncg.frontend.ops_data import (
+    convert_concat,
+    convert_pad,
+    convert_resize,
+    convert_slice,
+    convert_split,
+    convert_transpose,
+    convert_upsample,
+)
+from nncg.frontend.ops_elementwise import (
+    convert_activation,
+    convert_log_softmax,
+    convert_lrn,
+    convert_prelu,
+    convert_reduce_mean,
+    convert_variadic,
+)
 from nncg.frontend.ops_linear import convert_binary, convert_gemm, convert_matmul
 from nncg.frontend.ops_nn import (
     convert_averagepool,
@@ -31,6 +49,7 @@ Converter = Callable[[OnnxOp, Context], Node]
 
 CONVERTERS: dict[str, Converter] = {
     "Conv": convert_conv,
+    "ConvTranspose": convert_conv_transpose,
     "MaxPool": convert_maxpool,
     "AveragePool": convert_averagepool,
     "GlobalAveragePool": convert_global_pool,
@@ -52,6 +71,25 @@ CONVERTERS: dict[str, Converter] = {
     "Sub": convert_binary,
     "Mul": convert_binary,
     "Div": convert_binary,
+    "Concat": convert_concat,
+    "Split": convert_split,
+    "Slice": convert_slice,
+    "Transpose": convert_transpose,
+    "Pad": convert_pad,
+    "Resize": convert_resize,
+    "Upsample": convert_upsample,
+    "Sigmoid": convert_activation,
+    "Tanh": convert_activation,
+    "HardSigmoid": convert_activation,
+    "HardSwish": convert_activation,
+    "Elu": convert_activation,
+    "PRelu": convert_prelu,
+    "Max": convert_variadic,
+    "Min": convert_variadic,
+    "Sum": convert_variadic,
+    "LogSoftmax": convert_log_softmax,
+    "LRN": convert_lrn,
+    "ReduceMean": convert_reduce_mean,
 }
 
 SUPPORTED_OPS: tuple[str, ...] = tuple(sorted(CONVERTERS))

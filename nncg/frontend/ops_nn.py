@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from nncg.frontend.context import Context, OnnxOp
+from nncg.frontend.ops_conv import bias_input, check_groups, weight_kernel
 from nncg.frontend.windows import pool_attrs, pool_output_shape, resolve_pads, window_steps
 from nncg.ir.graph import (
     Activation,
@@ -19,26 +20,15 @@ from nncg.ir.graph import (
 
 
 def convert_conv(op: OnnxOp, ctx: Context) -> Node:
-    x = op.input(0)
-    weight = ctx.constant_input(op, 1, "weight")
+    x, w = op.input(0), op.input(1)
+    x_shape, w_shape = ctx.shape(x), ctx.shape(w)  # w: [C_out, C_in/group, k...]
     group = int(op.attr("group", 1))
-    c_in, c_out = ctx.shape(x)[1], weight.shape[0]
-    if group < 1 or c_in % group or c_out % group or weight.shape[1] * group != c_in:
-        raise op.error(
-            f"has group={group} with {c_in} input channels and weight {list(weight.shape)}; "
-            "channels must split evenly into the groups"
-        )
-    inputs = [x, op.input(1)]
-    if op.input(2):
-        ctx.constant_input(op, 2, "bias")
-        inputs.append(op.input(2))
-    kernel = tuple(int(k) for k in weight.shape[2:])
-    declared = op.attr("kernel_shape")
-    if declared is not None and tuple(declared) != kernel:
-        raise op.error(f"has kernel_shape {list(declared)} but its weight has kernel {list(kernel)}; fix the model")
+    check_groups(op, group, x_shape[1], w_shape[0], w_shape, w_shape[1] * group == x_shape[1])
+    kernel = weight_kernel(op, w_shape)
     strides, dilations = window_steps(op, len(kernel))
-    begin, end = resolve_pads(op, ctx.shape(x)[2:], kernel, strides, dilations)
-    return op.ir_node("Conv", inputs, ConvAttrs(kernel, strides, dilations, begin, end, group))
+    begin, end = resolve_pads(op, x_shape[2:], kernel, strides, dilations)
+    attrs = ConvAttrs(kernel, strides, dilations, begin, end, group)
+    return op.ir_node("Conv", [x, w, *bias_input(op, ctx, w_shape[0])], attrs)
 
 
 def convert_maxpool(op: OnnxOp, ctx: Context) -> Node:
@@ -109,10 +99,10 @@ def convert_batchnorm(op: OnnxOp, ctx: Context) -> Node:
     if op.attr("spatial", 1) == 0 and len(shape) > 2:
         raise op.error("has spatial=0 (per-position statistics); only per-channel BatchNormalization is supported")
     roles = ("scale", "bias", "mean", "variance")
-    for index, role in enumerate(roles, start=1):
-        param = ctx.constant_input(op, index, role)
-        if param.shape != (shape[1],):
-            raise op.error(f"has {role} of shape {list(param.shape)}; expected [{shape[1]}] (one per channel)")
+    for index, role in enumerate(roles, start=1):  # constant or computed at runtime
+        param = ctx.shape(op.input(index))
+        if param != (shape[1],):
+            raise op.error(f"has {role} of shape {list(param)}; expected [{shape[1]}] (one per channel)")
     return op.ir_node("BatchNormalization", [x, *(op.input(i) for i in range(1, 5))], BatchNormAttrs(_epsilon(op)))
 
 

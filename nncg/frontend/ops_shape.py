@@ -48,7 +48,7 @@ def convert_squeeze(op: OnnxOp, ctx: Context) -> Node:
     axes = _axes(op, ctx, required=False)
     if axes is None:
         return _reshape(op, ctx, tuple(d for d in in_shape if d != 1))
-    axes = {_axis(op, a, len(in_shape)) for a in axes}
+    axes = {axis_index(op, a, len(in_shape)) for a in axes}
     if any(in_shape[a] != 1 for a in axes):
         raise op.error(f"squeezes axes {sorted(axes)} of shape {list(in_shape)}, but only size-1 dims can be squeezed")
     return _reshape(op, ctx, tuple(d for i, d in enumerate(in_shape) if i not in axes))
@@ -58,7 +58,7 @@ def convert_unsqueeze(op: OnnxOp, ctx: Context) -> Node:
     in_shape = ctx.shape(op.input(0))
     raw = _axes(op, ctx, required=True)
     rank = len(in_shape) + len(raw)
-    axes = {_axis(op, a, rank) for a in raw}  # axes index the output
+    axes = {axis_index(op, a, rank) for a in raw}  # axes index the output
     if len(axes) != len(raw):
         raise op.error(f"has repeated axes {list(raw)}")
     rest = iter(in_shape)
@@ -106,7 +106,8 @@ def _axes(op: OnnxOp, ctx: Context, required: bool) -> list[int] | None:
     return None if axes is None else [int(a) for a in axes]
 
 
-def _axis(op: OnnxOp, axis: int, rank: int) -> int:
+def axis_index(op: OnnxOp, axis: int, rank: int) -> int:
+    """A possibly negative ONNX axis as an index in [0, rank)."""
     if not -rank <= axis < rank:
         raise op.error(f"has axis {axis}, out of range for rank {rank}")
     return axis % rank

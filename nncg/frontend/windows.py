@@ -1,5 +1,6 @@
-"""ONNX front end (ONNX -> graph IR): sliding-window arithmetic shared by Conv and MaxPool
-(strides, dilations, pads from `pads` or auto_pad, pooled output sizes with ceil_mode).
+"""ONNX front end (ONNX -> graph IR): sliding-window arithmetic shared by Conv, ConvTranspose and
+MaxPool (strides, dilations, pads from `pads` or auto_pad, pooled output sizes with ceil_mode,
+transposed output sizes with output_padding and output_shape).
 """
 
 from __future__ import annotations
@@ -22,25 +23,77 @@ def window_steps(op: OnnxOp, n: int) -> tuple[Shape, Shape]:
 def resolve_pads(op: OnnxOp, in_spatial: Shape, kernel: Shape, strides: Shape, dilations: Shape) -> tuple[Shape, Shape]:
     """pads_begin, pads_end from explicit `pads` or from auto_pad."""
     n = len(kernel)
-    auto_pad = op.attr("auto_pad", "NOTSET")
+    auto_pad = _auto_pad(op)
     if auto_pad == "NOTSET":
-        pads = tuple(int(p) for p in op.attr("pads", [0] * 2 * n))
-        if len(pads) != 2 * n or min(pads, default=0) < 0:
-            raise op.error(f"has pads {list(pads)}; expected {2 * n} non-negative values")
-        return pads[:n], pads[n:]
+        return explicit_pads(op, n)
     if auto_pad == "VALID":
         return (0,) * n, (0,) * n
-    if auto_pad not in ("SAME_UPPER", "SAME_LOWER"):
-        raise op.error(f"has unknown auto_pad '{auto_pad}'; expected NOTSET, VALID, SAME_UPPER or SAME_LOWER")
     totals = [same_total_pad(*dims) for dims in zip(in_spatial, kernel, strides, dilations, strict=True)]
+    return split_pads(totals, auto_pad == "SAME_UPPER")
+
+
+def _auto_pad(op: OnnxOp) -> str:
+    auto_pad = op.attr("auto_pad", "NOTSET")
+    if auto_pad not in ("NOTSET", "VALID", "SAME_UPPER", "SAME_LOWER"):
+        raise op.error(f"has unknown auto_pad '{auto_pad}'; expected NOTSET, VALID, SAME_UPPER or SAME_LOWER")
+    return auto_pad
+
+
+def explicit_pads(op: OnnxOp, n: int) -> tuple[Shape, Shape]:
+    pads = tuple(int(p) for p in op.attr("pads", [0] * 2 * n))
+    if len(pads) != 2 * n or min(pads, default=0) < 0:
+        raise op.error(f"has pads {list(pads)}; expected {2 * n} non-negative values")
+    return pads[:n], pads[n:]
+
+
+def split_pads(totals, odd_at_end: bool) -> tuple[Shape, Shape]:
+    """Total pads split evenly between begin and end; an odd one goes to the end or the begin."""
     small = tuple(t // 2 for t in totals)
     big = tuple(t - t // 2 for t in totals)
-    return (small, big) if auto_pad == "SAME_UPPER" else (big, small)
+    return (small, big) if odd_at_end else (big, small)
 
 
 def same_total_pad(size: int, kernel: int, stride: int, dilation: int) -> int:
     """Total padding that makes a SAME window produce ceil(size / stride) outputs."""
     return max((math.ceil(size / stride) - 1) * stride + (kernel - 1) * dilation + 1 - size, 0)
+
+
+def conv_transpose_geometry(
+    op: OnnxOp, in_spatial: Shape, kernel: Shape, strides: Shape, dilations: Shape
+) -> tuple[Shape, Shape, Shape]:
+    """pads_begin, pads_end and the output's spatial shape of a ConvTranspose.
+
+    The full output is (in - 1)*stride + output_padding + (kernel - 1)*dilation + 1 and the pads crop
+    it. With output_shape, or auto_pad SAME (output in*stride), the total crop is the difference,
+    split as onnxruntime and the spec do: an odd one at the end for SAME_UPPER, else at the begin.
+    Explicit pads are then ignored. An output_shape beyond the full output makes negative pads:
+    outputs no input reaches, which get the bias."""
+    n = len(kernel)
+    output_padding = tuple(int(p) for p in op.attr("output_padding", [0] * n))
+    if len(output_padding) != n or min(output_padding, default=0) < 0:
+        raise op.error(f"has output_padding {list(output_padding)}; expected {n} non-negative values")
+    dims = zip(in_spatial, strides, output_padding, kernel, dilations, strict=True)
+    full = tuple((i - 1) * s + extra + (k - 1) * d + 1 for i, s, extra, k, d in dims)
+    auto_pad = _auto_pad(op)
+    if op.attr("output_shape") is not None:
+        targets = tuple(int(t) for t in op.attr("output_shape"))
+        if len(targets) != n or min(targets, default=1) < 1:
+            raise op.error(f"has output_shape {list(targets)}; expected {n} positive spatial sizes")
+    elif auto_pad in ("SAME_UPPER", "SAME_LOWER"):
+        targets = tuple(i * s for i, s in zip(in_spatial, strides))
+        if any(t > f for t, f in zip(targets, full)):  # onnxruntime then returns the full output
+            raise op.error(
+                f"has auto_pad {auto_pad} asking for output {list(targets)}, beyond the full transposed "
+                f"convolution {list(full)}; onnxruntime and the ONNX spec disagree here: give output_shape"
+            )
+    else:
+        begin, end = explicit_pads(op, n) if auto_pad == "NOTSET" else ((0,) * n, (0,) * n)
+        out = tuple(f - b - e for f, b, e in zip(full, begin, end))
+        if min(out) < 1:
+            raise op.error(f"has pads {[*begin, *end]} that crop away its whole output {list(full)}")
+        return begin, end, out
+    begin, end = split_pads([f - t for f, t in zip(full, targets)], auto_pad == "SAME_UPPER")
+    return begin, end, targets
 
 
 def pool_attrs(op: OnnxOp, in_shape: Shape) -> PoolAttrs:

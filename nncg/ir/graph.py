@@ -17,23 +17,34 @@ Shape = tuple[int, ...]
 
 @dataclass(frozen=True)
 class Activation:
-    """An activation that a producer applies at its store: relu, leaky_relu with slope alpha, or
-    clip to [low, high] (ReLU6 is clip(0, 6))."""
+    """A pointwise activation that a producer applies at its store: relu, leaky_relu with slope
+    alpha, clip to [low, high] (ReLU6 is clip(0, 6)), sigmoid, tanh, hard_sigmoid
+    max(0, min(1, alpha*x + beta)), hard_swish x * hard_sigmoid(x) with alpha 1/6 and beta 0.5, and
+    elu with scale alpha."""
 
-    kind: str  # "relu" | "leaky_relu" | "clip"
+    kind: str  # "relu" | "leaky_relu" | "clip" | "sigmoid" | "tanh" | "hard_sigmoid" | "hard_swish" | "elu"
     alpha: float = 0.0
     low: float = float("-inf")
     high: float = float("inf")
+    beta: float = 0.0
 
     def __str__(self) -> str:
         if self.kind == "clip":
             return f"clip({self.low:g}, {self.high:g})"
-        return "relu" if self.kind == "relu" else f"leaky_relu(alpha={self.alpha:g})"
+        if self.kind == "hard_sigmoid":
+            return f"hard_sigmoid(alpha={self.alpha:g}, beta={self.beta:g})"
+        if self.kind in ("leaky_relu", "elu"):
+            return f"{self.kind}(alpha={self.alpha:g})"
+        return self.kind
 
 
 @dataclass(frozen=True)
 class ConvAttrs:
-    """Conv over len(kernel) spatial dims; pads already resolved from auto_pad, begin and end apart."""
+    """Conv over len(kernel) spatial dims; pads already resolved from auto_pad, begin and end apart.
+
+    Inputs x, w [C_out, C_in/group, k...], optionally b [C_out], then with `residual` a tensor of
+    the output's shape added at the store before the activation (a fused ResNet shortcut). w and b
+    are constant or computed at runtime."""
 
     kernel: Shape
     strides: Shape
@@ -42,6 +53,21 @@ class ConvAttrs:
     pads_end: Shape
     group: int = 1
     activation: Activation | None = None
+    residual: bool = False
+
+
+@dataclass(frozen=True)
+class ConvTransposeAttrs:
+    """ConvTranspose: inputs x, w [C_in, C_out/group, k...] and optionally b [C_out], constant or
+    runtime. Output o reads input i where o = i*stride + k*dilation - pad_begin; output_padding and
+    output_shape are resolved into the pads and the output shape in Graph.shapes."""
+
+    kernel: Shape
+    strides: Shape
+    dilations: Shape
+    pads_begin: Shape
+    pads_end: Shape
+    group: int = 1
 
 
 @dataclass(frozen=True)
@@ -60,7 +86,8 @@ class PoolAttrs:
 
 @dataclass(frozen=True)
 class BatchNormAttrs:
-    """Inference BatchNormalization: inputs are x, scale, bias, mean, var (the last four constant)."""
+    """Inference BatchNormalization: inputs are x, scale, bias, mean, var; statistics that are
+    computed at runtime keep the node to the lowering, constant ones are folded."""
 
     epsilon: float = 1e-5
 
@@ -74,13 +101,20 @@ class ScaleShiftAttrs:
 
 @dataclass(frozen=True)
 class DenseAttrs:
-    """y[m, n] = sum_k x[m, k] * w[k, n] + b[n]; inputs x, w (constant [K, N]) and optionally b ([N]).
+    """y[m, n] = alpha * sum_k x[m, k] * w[k, n] + beta * b[m, n]; inputs x, w and optionally b.
 
     x may have rank > 2: all leading dims are rows. trans_x reads x as [K, M] (Gemm transA=1).
+    w is [K, N] ([N, K] with trans_w) or batched [..., K, N] (MatMul), its batch dims broadcast
+    against x's leading dims. b broadcasts to the output (NumPy rules). The front end folds
+    alpha, beta and transB into constant operands, so they differ from their defaults only when
+    the operand they apply to is computed at runtime.
     """
 
     trans_x: bool = False
     activation: Activation | None = None
+    trans_w: bool = False
+    alpha: float = 1.0
+    beta: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -92,15 +126,91 @@ class SoftmaxAttrs:
 
 
 @dataclass(frozen=True)
+class LrnAttrs:
+    """Local response normalisation across channels (axis 1):
+    y = x / (bias + alpha / size * sum of x^2 over the `size` channels around c) ** beta."""
+
+    size: int
+    alpha: float = 1e-4
+    beta: float = 0.75
+    bias: float = 1.0
+
+
+@dataclass(frozen=True)
+class ReduceAttrs:
+    """A reduction over `axes` (sorted, non-negative, at least one); keepdims keeps them as size 1."""
+
+    axes: Shape
+    keepdims: bool = True
+
+
+@dataclass(frozen=True)
 class ReshapeAttrs:
     """Reshape, Flatten, Squeeze, Unsqueeze: the row-major element order is kept, shape changes."""
 
     shape: Shape
 
 
+@dataclass(frozen=True)
+class ConcatAttrs:
+    """Concat along `axis` (non-negative); any input may be a constant."""
+
+    axis: int
+
+
+@dataclass(frozen=True)
+class SliceAttrs:
+    """y[i] = x[starts + steps * i] per dim, every dim listed (steps may be negative); the output
+    shape in Graph.shapes gives the count per dim, so starts are already clamped."""
+
+    starts: Shape
+    steps: Shape
+
+
+@dataclass(frozen=True)
+class SplitAttrs:
+    """Split along `axis`: output k (only the used outputs are listed) is x[starts[k]:] on that axis,
+    as long as its shape in Graph.shapes says."""
+
+    axis: int
+    starts: Shape
+
+
+@dataclass(frozen=True)
+class TransposeAttrs:
+    """y's dim k is x's dim perm[k]."""
+
+    perm: Shape
+
+
+@dataclass(frozen=True)
+class PadAttrs:
+    """Pad each dim by pads_begin/pads_end (negative: crop). mode: constant (with `value`), reflect
+    (mirror without repeating the border), edge (repeat the border) or wrap (periodic)."""
+
+    pads_begin: Shape
+    pads_end: Shape
+    mode: str = "constant"
+    value: float = 0.0
+
+
+@dataclass(frozen=True)
+class ResizeAttrs:
+    """Resize and Upsample: output coordinate o of dim d maps to input coordinate
+    transform(o, scales[d]) (coordinate_transformation_mode as in ONNX Resize); mode nearest picks one
+    input by nearest_mode ("simple" is Resize-10/Upsample: floor when enlarging, ceil when shrinking),
+    linear interpolates between the two neighbours. Output shape in Graph.shapes."""
+
+    scales: tuple[float, ...]
+    mode: str = "nearest"
+    coordinate_transformation_mode: str = "half_pixel"
+    nearest_mode: str = "round_prefer_floor"
+
+
 # Canonical op names of the graph IR and their attribute record type (None: no attributes).
 OPS: dict[str, type | None] = {
     "Conv": ConvAttrs,
+    "ConvTranspose": ConvTransposeAttrs,
     "MaxPool": PoolAttrs,
     "AveragePool": PoolAttrs,
     "Relu": Activation,
@@ -116,6 +226,24 @@ OPS: dict[str, type | None] = {
     "Sub": None,
     "Mul": None,
     "Div": None,
+    "Concat": ConcatAttrs,
+    "Slice": SliceAttrs,
+    "Split": SplitAttrs,
+    "Transpose": TransposeAttrs,
+    "Pad": PadAttrs,
+    "Resize": ResizeAttrs,
+    "Sigmoid": Activation,
+    "Tanh": Activation,
+    "HardSigmoid": Activation,
+    "HardSwish": Activation,
+    "Elu": Activation,
+    "PRelu": None,
+    "Max": None,
+    "Min": None,
+    "Sum": None,
+    "LogSoftmax": SoftmaxAttrs,
+    "LRN": LrnAttrs,
+    "ReduceMean": ReduceAttrs,
 }
 
 

@@ -155,7 +155,9 @@ class Select:
 
 @dataclass(frozen=True)
 class Call:
-    fn: str  # "exp"
+    """fn(arg) per lane, fn one of FUNCTIONS (the math.h functions of C89, in float)."""
+
+    fn: str
     arg: Expr
 
     @property
@@ -167,7 +169,7 @@ Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call]
 
 BINARY_OPS = ("+", "-", "*", "/", "max", "min")
 COMPARISONS = (">", ">=", "<", "<=")
-FUNCTIONS = ("exp",)
+FUNCTIONS = ("exp", "log", "tanh")
 
 # ---------------------------------------------------------------------------- statements
 
@@ -250,6 +252,7 @@ class Buffer:
     shape: tuple[int, ...] = ()
     layout: str = ""
     onnx_name: str = ""
+    offset: int | None = None  # floats into the arena (internal) or the weights blob (constant), by plan-memory
 
 
 @dataclass(frozen=True)
@@ -262,6 +265,21 @@ class Kernel:
 
 
 @dataclass(frozen=True)
+class ArenaPlan:
+    """One block of memory holds every internal buffer, each at its Buffer.offset.
+
+    `floats` is the arena size; `activation_floats` the sum of the activation buffers the plan
+    started from (the memory they would take without reuse); offsets are multiples of `align_floats`.
+    When `weights_floats` > 0 the constant buffers live in a weights blob of that size (offsets in
+    Buffer.offset too) that the caller passes, instead of in the C file."""
+
+    floats: int
+    activation_floats: int
+    align_floats: int
+    weights_floats: int = 0
+
+
+@dataclass(frozen=True)
 class Program:
     """Buffers (inputs and outputs in ONNX graph order) and kernels run in order.
     `constants` holds the data of the constant buffers, keyed by buffer name."""
@@ -270,6 +288,7 @@ class Program:
     buffers: tuple[Buffer, ...]
     kernels: tuple[Kernel, ...]
     constants: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
+    arena: ArenaPlan | None = None  # set by the plan-memory pass
 
     def buffer(self, name: str) -> Buffer:
         for buf in self.buffers:

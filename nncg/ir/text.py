@@ -56,9 +56,15 @@ def attrs_to_text(attrs) -> str:
 
 def program_to_text(program: Program) -> str:
     lines = [f"program {program.name} {{"]
+    if program.arena:
+        arena = program.arena
+        lines.append(
+            f"  arena {arena.floats} floats  # activations {arena.activation_floats}, align {arena.align_floats}"
+        )
     for buf in program.buffers:
         shape = "x".join(map(str, buf.shape))
-        lines.append(f"  {buf.role} {buf.name}[{buf.size}]  # {shape} {buf.layout}".rstrip())
+        place = f" @ arena+{buf.offset}" if buf.offset is not None else ""
+        lines.append(f"  {buf.role} {buf.name}[{buf.size}]{place}  # {shape} {buf.layout}".rstrip())
     for kernel in program.kernels:
         lines.append(f"  kernel {kernel.name} ({kernel.op}) {{")
         lines.extend(_stmts(kernel.body, 2))

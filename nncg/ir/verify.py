@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from ..ir.graph import OPS, Graph
 from ..ir.loops import (
+    FUNCTIONS,
     Assign,
     Binary,
     Broadcast,
+    Call,
     Expr,
     If,
     Let,
@@ -95,6 +97,8 @@ def _check_expr(expr: Expr, buffers, loop_vars, locals_, problems, where):
             problems.append(f"{where}: select operands differ in lanes")
         elif isinstance(e, Broadcast) and e.value.lanes != 1:
             problems.append(f"{where}: broadcast of a vector")
+        elif isinstance(e, Call) and e.fn not in FUNCTIONS:
+            problems.append(f"{where}: call of unknown function {e.fn}")
 
 
 def _check_vars(vars_, loop_vars, problems, where):

@@ -8,16 +8,25 @@ from __future__ import annotations
 from ..errors import NncgError
 from ..ir.graph import Graph, Node
 from ..ir.loops import Program
+from .concat import lower_concat
 from .context import LoweringContext, row_major
 from .conv import lower_conv
+from .conv_transpose import lower_conv_transpose
 from .dense import lower_dense
-from .elementwise import lower_activation, lower_batchnorm, lower_binary, lower_scale_shift
+from .elementwise import lower_activation, lower_batchnorm, lower_binary, lower_prelu, lower_scale_shift
+from .lrn import lower_lrn
+from .pad import lower_pad
 from .pool import lower_averagepool, lower_maxpool
+from .reduce import lower_reduce_mean
 from .reshape import copy_nest, lower_reshape
-from .softmax import lower_softmax
+from .resize import lower_resize
+from .slice import lower_slice, lower_split
+from .softmax import lower_log_softmax, lower_softmax
+from .transpose import lower_transpose
 
 LOWERINGS = {
     "Conv": lower_conv,
+    "ConvTranspose": lower_conv_transpose,
     "MaxPool": lower_maxpool,
     "AveragePool": lower_averagepool,
     "Relu": lower_activation,
@@ -33,6 +42,24 @@ LOWERINGS = {
     "Sub": lower_binary,
     "Mul": lower_binary,
     "Div": lower_binary,
+    "Concat": lower_concat,
+    "Slice": lower_slice,
+    "Split": lower_split,
+    "Transpose": lower_transpose,
+    "Pad": lower_pad,
+    "Resize": lower_resize,
+    "Sigmoid": lower_activation,
+    "Tanh": lower_activation,
+    "HardSigmoid": lower_activation,
+    "HardSwish": lower_activation,
+    "Elu": lower_activation,
+    "PRelu": lower_prelu,
+    "Max": lower_binary,
+    "Min": lower_binary,
+    "Sum": lower_binary,
+    "LogSoftmax": lower_log_softmax,
+    "LRN": lower_lrn,
+    "ReduceMean": lower_reduce_mean,
 }
 
 

@@ -1,29 +1,77 @@
 """Activations applied where a value is stored: a max for ReLU, a max or conditional move for leaky,
-max and min for Clip (ReLU6)."""
+max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, tanh and ELU through math.h calls."""
 
 from __future__ import annotations
 
 from ..ir.graph import Activation
-from ..ir.loops import Binary, Const, Expr, Select
+from ..ir.loops import Binary, Call, Const, Expr, Select
 
 
 def apply_activation(value: Expr, act: Activation | None) -> Expr:
     if act is None:
         return value
-    zero = Const.splat(0.0, value.lanes)
-    if act.kind == "relu":
-        return Binary("max", value, zero)
-    if act.kind == "clip":  # an infinite bound clips nothing
-        if act.low != float("-inf"):
-            value = Binary("max", value, Const.splat(act.low, value.lanes))
-        if act.high != float("inf"):
-            value = Binary("min", value, Const.splat(act.high, value.lanes))
-        return value
-    scaled = Binary("*", value, Const.splat(act.alpha, value.lanes))
+    return ACTIVATIONS[act.kind](value, act)
+
+
+def _splat(x: float, like: Expr) -> Const:
+    return Const.splat(x, like.lanes)
+
+
+def _relu(value: Expr, _act: Activation) -> Expr:
+    return Binary("max", value, _splat(0.0, value))
+
+
+def _clip(value: Expr, act: Activation) -> Expr:
+    if act.low != float("-inf"):  # an infinite bound clips nothing
+        value = Binary("max", value, _splat(act.low, value))
+    if act.high != float("inf"):
+        value = Binary("min", value, _splat(act.high, value))
+    return value
+
+
+def _leaky_relu(value: Expr, act: Activation) -> Expr:
+    scaled = Binary("*", value, _splat(act.alpha, value))
     # For 0 <= alpha <= 1, leaky(x) = max(x, alpha*x): one max instruction on SIMD targets; for
     # alpha > 1 it is the min. Other slopes need the conditional move.
     if 0.0 <= act.alpha <= 1.0:
         return Binary("max", value, scaled)
     if act.alpha > 1.0:
         return Binary("min", value, scaled)
-    return Select(">", value, zero, value, scaled)
+    return Select(">", value, _splat(0.0, value), value, scaled)
+
+
+def _sigmoid(value: Expr, _act: Activation) -> Expr:
+    # 1 / (1 + exp(-x)): for very negative x, exp overflows to inf and the quotient is the exact 0.
+    e = Call("exp", Binary("-", _splat(0.0, value), value))
+    return Binary("/", _splat(1.0, value), Binary("+", _splat(1.0, value), e))
+
+
+def _tanh(value: Expr, _act: Activation) -> Expr:
+    return Call("tanh", value)
+
+
+def _hard_sigmoid(value: Expr, act: Activation) -> Expr:
+    line = Binary("+", Binary("*", value, _splat(act.alpha, value)), _splat(act.beta, value))
+    return Binary("max", Binary("min", line, _splat(1.0, value)), _splat(0.0, value))
+
+
+def _hard_swish(value: Expr, act: Activation) -> Expr:
+    return Binary("*", value, _hard_sigmoid(value, act))
+
+
+def _elu(value: Expr, act: Activation) -> Expr:
+    # Both sides are computed (a conditional move); exp of a large positive x is inf, never chosen.
+    negative = Binary("*", Binary("-", Call("exp", value), _splat(1.0, value)), _splat(act.alpha, value))
+    return Select(">", value, _splat(0.0, value), value, negative)
+
+
+ACTIVATIONS = {
+    "relu": _relu,
+    "clip": _clip,
+    "leaky_relu": _leaky_relu,
+    "sigmoid": _sigmoid,
+    "tanh": _tanh,
+    "hard_sigmoid": _hard_sigmoid,
+    "hard_swish": _hard_swish,
+    "elu": _elu,
+}

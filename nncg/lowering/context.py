@@ -15,7 +15,7 @@ from ..ir.loops import Affine, Buffer, Kernel, Loop, Stmt
 C_KEYWORDS = frozenset(
     """auto break case char const continue default do double else enum extern float for goto if
     inline int long register restrict return short signed sizeof static struct switch typedef union
-    unsigned void volatile while main exp""".split()
+    unsigned void volatile while main exp log tanh""".split()
 )
 
 

@@ -1,31 +1,37 @@
 """Conv lowering: direct convolution with output channels innermost, so they vectorise.
 
-Weights are packed [k_1..k_d][c_in/group][c_out], the order in which the loop nest reads them. With
-groups, output channel g*C_out_g + co reads input channels g*C_in_g + ci; a depthwise conv has one
-channel per group, so the group loop is the contiguous one and vectorises."""
+Weights are read as [k_1..k_d][c_in/group][c_out], packed in that order when constant (a runtime
+weight is read in place through a strided view, see weights.py). With groups, output channel
+g*C_out_g + co reads input channels g*C_in_g + ci; a depthwise conv has one channel per group, so
+the group loop is the contiguous one and vectorises. A fused residual is added at the store."""
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..ir.graph import ConvAttrs, Node
-from ..ir.loops import Affine, Assign, Binary, Const, Let, Load, LocalRef, Loop, Stmt, Store
+from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
 from .activation import apply_activation
 from .context import LoweringContext, channels_last, nest
+from .weights import permuted, weight_operand
 from .window import spatial_names, window_nest
+
+
+def conv_extras(node: Node) -> tuple[str | None, str | None]:
+    """The bias and the residual a Conv node reads, each None when absent."""
+    extras = list(node.inputs[2:])
+    residual = extras.pop() if node.attrs.residual else None
+    return (extras[0] if extras else None), residual
 
 
 def lower_conv(ctx: LoweringContext, node: Node) -> None:
     attrs: ConvAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
-    weight = ctx.graph.constants[node.inputs[1]]  # [c_out, c_in/group, k_1..k_d]
-    groups = attrs.group
-    c_out_g, c_in = weight.shape[0] // groups, weight.shape[1]
-    rank = weight.ndim - 2
-    w = ctx.add_constant(f"w_{node.name}", np.moveaxis(weight, (0, 1), (-1, -2)))
-    bias = None
-    if len(node.inputs) > 2:
-        bias = ctx.add_constant(f"b_{node.name}", ctx.graph.constants[node.inputs[2]])
+    groups, rank = attrs.group, len(attrs.kernel)
+    c_out, c_in = ctx.graph.shape(node.inputs[1])[:2]  # [c_out, c_in/group, k_1..k_d]
+    c_out_g = c_out // groups
+    w = weight_operand(ctx, node.inputs[1], f"w_{node.name}", lambda r: permuted(r, (*range(2, rank + 2), 1, 0)))
+    bias_name, residual_name = conv_extras(node)
+    bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
+    residual = ctx.ref(residual_name) if residual_name else None
     out = ctx.output(node.outputs[0], channels_last(rank + 2))
     names = spatial_names(rank)
     out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]
@@ -43,8 +49,11 @@ def lower_conv(ctx: LoweringContext, node: Node) -> None:
 
         init = Load(bias.buffer, bias.at([co])) if bias else Const.splat(0.0)
         window = window_nest(attrs, env, dict(out_loops), x.shape[2:], tap)
-        value = apply_activation(LocalRef("acc"), attrs.activation)
-        store = Store(out.buffer, out.at([n, co, *(env["o" + s] for s in names)]), value)
+        index = [n, co, *(env["o" + s] for s in names)]
+        value: Expr = LocalRef("acc")
+        if residual:
+            value = Binary("+", value, Load(residual.buffer, residual.at(index)))
+        store = Store(out.buffer, out.at(index), apply_activation(value, attrs.activation))
         return (Let("acc", init, (*window, store)),)
 
     loops = [("n", out.shape[0]), *out_loops, ("g", groups), ("co", c_out_g)]

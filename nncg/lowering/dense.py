@@ -1,21 +1,24 @@
-"""Dense lowering (Gemm, MatMul): y[rows, n] = act(b[n] + sum_k x[rows, k] * w[k, n]), n innermost."""
+"""Dense lowering (Gemm, MatMul): y[rows, n] = act(alpha * sum_k x[rows, k] * w[k, n] + beta * b),
+n innermost. A constant w is packed [K, N] so n is contiguous and vectorises; a runtime w (also
+transposed or batched) is read where it lives."""
 
 from __future__ import annotations
 
 from ..ir.graph import DenseAttrs, Node
-from ..ir.loops import Affine, Assign, Binary, Const, Let, Load, LocalRef, Loop, Stmt, Store
+from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
 from .activation import apply_activation
-from .context import LoweringContext, nest, row_major
+from .context import LoweringContext, TensorRef, nest, row_major
+from .weights import permuted, weight_operand
 
 
 def lower_dense(ctx: LoweringContext, node: Node) -> None:
     attrs: DenseAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
-    w = ctx.add_constant(f"w_{node.name}", ctx.graph.constants[node.inputs[1]])  # [K, N]
-    k_extent, n_extent = w.shape
-    bias = None
-    if len(node.inputs) > 2:
-        bias = ctx.add_constant(f"b_{node.name}", ctx.graph.constants[node.inputs[2]])
+    w_rank = len(ctx.graph.shape(node.inputs[1]))
+    swap = (*range(w_rank - 2), w_rank - 1, w_rank - 2)  # [..., N, K] read as [..., K, N]
+    w = weight_operand(ctx, node.inputs[1], f"w_{node.name}", lambda r: permuted(r, swap) if attrs.trans_w else r)
+    k_extent, n_extent = w.shape[-2:]
+    bias = weight_operand(ctx, node.inputs[2], f"b_{node.name}") if len(node.inputs) > 2 else None
     out_shape = ctx.graph.shape(node.outputs[0])
     out = ctx.output(node.outputs[0], row_major(len(out_shape)))
     # One loop per leading dim rather than one flattened row loop: x may be in any layout.
@@ -25,12 +28,36 @@ def lower_dense(ctx: LoweringContext, node: Node) -> None:
         rows = [env[v] for v, _ in row_loops]
         n = env["n"]
         k = Affine.of("k") if k_extent > 1 else Affine()
-        x_index = x.at([k, *rows]) if attrs.trans_x else x.at([*rows, k])
-        product = Binary("*", Load(x.buffer, x_index), Load(w.buffer, w.at([k, n])))
+        x_index = x.at([k, *rows]) if attrs.trans_x else x.at([*_broadcast(x.shape[:-1], rows), k])
+        w_index = w.at([*_broadcast(w.shape[:-2], rows[:-1]), k, n])
+        product = Binary("*", Load(x.buffer, x_index), Load(w.buffer, w_index))
         update: tuple[Stmt, ...] = (Assign("acc", Binary("+", LocalRef("acc"), product)),)
         reduce = (Loop("k", k_extent, update),) if k_extent > 1 else update
-        init = Load(bias.buffer, bias.at([n])) if bias else Const.splat(0.0)
-        store = Store(out.buffer, out.at([*rows, n]), apply_activation(LocalRef("acc"), attrs.activation))
+        init, value = _scaled(attrs, _bias_term(attrs, bias, [*rows, n]))
+        store = Store(out.buffer, out.at([*rows, n]), apply_activation(value, attrs.activation))
         return (Let("acc", init, (*reduce, store)),)
 
     ctx.emit(node.name, "Dense", nest([*row_loops, ("n", n_extent)], body, parallel=True))
+
+
+def _broadcast(dims: tuple[int, ...], index: list[Affine]) -> list[Affine]:
+    """An output index into a tensor whose dims are `dims`, NumPy-broadcast: aligned right, size-1
+    dims pinned to 0."""
+    index = index[len(index) - len(dims) :]
+    return [i if d != 1 else Affine() for i, d in zip(index, dims)]
+
+
+def _bias_term(attrs: DenseAttrs, bias: TensorRef | None, index: list[Affine]) -> Expr | None:
+    if bias is None:
+        return None
+    term: Expr = Load(bias.buffer, bias.at(_broadcast(bias.shape, index)))
+    return term if attrs.beta == 1.0 else Binary("*", term, Const.splat(attrs.beta))
+
+
+def _scaled(attrs: DenseAttrs, bias: Expr | None) -> tuple[Expr, Expr]:
+    """The accumulator's start and the stored value: the bias starts the sum unless alpha scales the
+    sum alone, then it is added at the store."""
+    if attrs.alpha == 1.0:
+        return (bias or Const.splat(0.0)), LocalRef("acc")
+    value = Binary("*", LocalRef("acc"), Const.splat(attrs.alpha))
+    return Const.splat(0.0), (Binary("+", value, bias) if bias else value)

@@ -1,5 +1,6 @@
-"""Element-wise lowerings: standalone activations, per-channel scale and shift (BatchNorm), and the
-binary arithmetic ops with NumPy broadcasting. Loops run in the output's memory order."""
+"""Element-wise lowerings: standalone activations, per-channel scale and shift (BatchNorm), the
+arithmetic ops (binary Add/Sub/Mul/Div, variadic Max/Min/Sum) and PRelu with NumPy broadcasting.
+Loops run in the output's memory order."""
 
 from __future__ import annotations
 
@@ -8,11 +9,12 @@ from collections.abc import Callable
 import numpy as np
 
 from ..ir.graph import Activation, Node, ScaleShiftAttrs
-from ..ir.loops import Affine, Binary, Expr, Load, Store
+from ..ir.loops import Affine, Binary, Call, Const, Expr, Load, Select, Store
 from .activation import apply_activation
 from .context import LoweringContext, TensorRef, dim_vars, nest, row_major
 
-BINARY = {"Add": "+", "Sub": "-", "Mul": "*", "Div": "/"}
+# Each op folds its operands left to right with one IR operator.
+BINARY = {"Add": "+", "Sub": "-", "Mul": "*", "Div": "/", "Max": "max", "Min": "min", "Sum": "+"}
 
 
 def elementwise(ctx: LoweringContext, node: Node, order, value: Callable[[list[Affine]], Expr]) -> None:
@@ -47,8 +49,30 @@ def lower_scale_shift(ctx: LoweringContext, node: Node) -> None:
 
 
 def lower_batchnorm(ctx: LoweringContext, node: Node) -> None:
-    """A BatchNorm that no pass folded away still compiles: as its scale and shift."""
-    _scale_shift(ctx, node, *scale_shift_of_batchnorm(ctx.graph.constants, node), None)
+    """A BatchNorm that no pass folded away still compiles: as its scale and shift, or from its
+    statistics per element when they are computed at runtime."""
+    if all(ctx.graph.is_constant(name) for name in node.inputs[1:5]):
+        _scale_shift(ctx, node, *scale_shift_of_batchnorm(ctx.graph.constants, node), None)
+    else:
+        _runtime_batchnorm(ctx, node)
+
+
+def _runtime_batchnorm(ctx: LoweringContext, node: Node) -> None:
+    """y = (x - mean) * gamma / sqrt(var + eps) + beta, with 1 / sqrt(v) as exp(-log(v) / 2): the
+    loop-nest IR calls only exp, log and tanh."""
+    x = ctx.ref(node.inputs[0])
+    gamma, beta, mean, var = (ctx.ref(name) for name in node.inputs[1:5])
+
+    def value(idx: list[Affine]) -> Expr:
+        def at_channel(ref: TensorRef) -> Load:
+            return Load(ref.buffer, ref.at([idx[1]]))
+
+        log_var = Call("log", Binary("+", at_channel(var), Const.splat(node.attrs.epsilon)))
+        inv_std = Call("exp", Binary("*", log_var, Const.splat(-0.5)))
+        centred = Binary("-", Load(x.buffer, x.at(idx)), at_channel(mean))
+        return Binary("+", Binary("*", centred, Binary("*", at_channel(gamma), inv_std)), at_channel(beta))
+
+    elementwise(ctx, node, x.order, value)
 
 
 def _scale_shift(ctx: LoweringContext, node: Node, scale, shift, act: Activation | None) -> None:
@@ -65,13 +89,36 @@ def _scale_shift(ctx: LoweringContext, node: Node, scale, shift, act: Activation
 
 
 def lower_binary(ctx: LoweringContext, node: Node) -> None:
-    a, b = (ctx.ref(name) for name in node.inputs)
+    """Add, Sub, Mul, Div and the variadic Max, Min, Sum: ((in0 op in1) op in2) ..."""
+    op = BINARY[node.op]
+
+    def fold(loads: list[Load]) -> Expr:
+        value: Expr = loads[0]
+        for load in loads[1:]:
+            value = Binary(op, value, load)
+        return value
+
+    broadcast(ctx, node, fold)
+
+
+def lower_prelu(ctx: LoweringContext, node: Node) -> None:
+    """y = x > 0 ? x : slope * x, the slope broadcast to x."""
+
+    def prelu(loads: list[Load]) -> Expr:
+        x, slope = loads
+        return Select(">", x, Const.splat(0.0), x, Binary("*", slope, x))
+
+    broadcast(ctx, node, prelu)
+
+
+def broadcast(ctx: LoweringContext, node: Node, combine: Callable[[list[Load]], Expr]) -> None:
+    """out[idx] = combine(the inputs read at idx with NumPy broadcasting)."""
+    refs = [ctx.ref(name) for name in node.inputs]
     out_shape = ctx.graph.shape(node.outputs[0])
     # Follow the layout of a full-size runtime operand so its loads stay contiguous.
-    full = [r for name, r in zip(node.inputs, (a, b)) if not ctx.graph.is_constant(name) and r.shape == out_shape]
+    full = [r for name, r in zip(node.inputs, refs) if not ctx.graph.is_constant(name) and r.shape == out_shape]
     order = full[0].order if full else row_major(len(out_shape))
-    op = BINARY[node.op]
-    elementwise(ctx, node, order, lambda idx: Binary(op, broadcast_load(a, idx), broadcast_load(b, idx)))
+    elementwise(ctx, node, order, lambda idx: combine([broadcast_load(r, idx) for r in refs]))
 
 
 def scale_shift_of_batchnorm(constants: dict[str, np.ndarray], node: Node) -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,5 @@
-"""The spatial-window skeleton shared by Conv and MaxPool: window loops over the kernel, the input
-position each tap reads, and the border checks that padding needs."""
+"""The spatial-window skeleton shared by Conv, MaxPool and ConvTranspose: loops over kernel taps,
+the input position each tap reads, and the border checks that padding needs."""
 
 from __future__ import annotations
 
@@ -8,6 +8,8 @@ from collections.abc import Callable
 from ..ir.loops import Affine, Bound, If, Loop, Stmt
 
 SPATIAL_NAMES = {1: ("w",), 2: ("h", "w"), 3: ("d", "h", "w")}
+
+Tap = Callable[[list[Affine], list[Affine]], tuple[Stmt, ...]]
 
 
 def spatial_names(rank: int) -> tuple[str, ...]:
@@ -19,26 +21,41 @@ def window_nest(
     out_env: dict[str, Affine],
     out_extents: dict[str, int],
     in_spatial: tuple[int, ...],
-    tap: Callable[[list[Affine], list[Affine]], tuple[Stmt, ...]],
+    tap: Tap,
 ) -> tuple[Stmt, ...]:
     """for k_1 { if border_1 { for k_2 { ... tap(positions, k) } } }.
 
-    `attrs` has kernel, strides, dilations and pads_begin. Each border check sits right inside the
-    kernel loop it depends on, so it is evaluated as rarely as possible, and is left out where the
-    position can never leave the input."""
+    `attrs` has kernel, strides, dilations and pads_begin: output o reads input o*stride +
+    k*dilation - pad_begin."""
     names = spatial_names(len(attrs.kernel))
-    k_vars = [Affine.of("k" + s) if attrs.kernel[i] > 1 else Affine() for i, s in enumerate(names)]
+    loops = [("k" + s, attrs.kernel[i]) for i, s in enumerate(names)]
+    k_vars = [Affine.of(var) if extent > 1 else Affine() for var, extent in loops]
     positions = [
         out_env["o" + s] * attrs.strides[i] + k_vars[i] * attrs.dilations[i] - attrs.pads_begin[i]
         for i, s in enumerate(names)
     ]
-    extents = out_extents | {"k" + s: attrs.kernel[i] for i, s in enumerate(names)}
-    body = tap(positions, k_vars)
-    for i in reversed(range(len(names))):
+    return guarded_taps(loops, positions, in_spatial, out_extents, lambda: tap(positions, k_vars))
+
+
+def guarded_taps(
+    loops: list[tuple[str, int]],
+    positions: list[Affine],
+    in_spatial: tuple[int, ...],
+    out_extents: dict[str, int],
+    body: Callable[[], tuple[Stmt, ...]],
+) -> tuple[Stmt, ...]:
+    """One tap loop per spatial dim around body(); positions[i] is the input position along dim
+    i, affine in the output variables and tap variable i. Each border check sits right inside the
+    tap loop it depends on, so it is evaluated as rarely as possible, and is left out where the
+    position can never leave the input. Tap loops of extent 1 are not emitted."""
+    extents = out_extents | dict(loops)
+    stmts = body()
+    for i in reversed(range(len(loops))):
         lo, hi = positions[i].bounds(extents)
         if lo < 0 or hi >= in_spatial[i]:
             bound = Bound(positions[i], 0 if lo < 0 else None, in_spatial[i] if hi >= in_spatial[i] else None)
-            body = (If((bound,), body),)
-        if attrs.kernel[i] > 1:
-            body = (Loop("k" + names[i], attrs.kernel[i], body),)
-    return body
+            stmts = (If((bound,), stmts),)
+        var, extent = loops[i]
+        if extent > 1:
+            stmts = (Loop(var, extent, stmts),)
+    return stmts

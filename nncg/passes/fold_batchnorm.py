@@ -2,7 +2,9 @@
 
 bn(conv(x)) = conv'(x) with w' = w * scale[c] and b' = b * scale + shift, where scale and shift
 come from the BN statistics (the paper's Sec. II-B). A BatchNorm with no producer to fold into
-becomes a per-channel ScaleShift."""
+becomes a per-channel ScaleShift. Only constants fold: a BatchNorm whose statistics are computed at
+runtime stays for the lowering, and a producer with runtime weights, bias or a fused residual
+(see fuse-residual: the BN would scale the residual too) keeps its BatchNorm as a ScaleShift."""
 
 from __future__ import annotations
 
@@ -17,9 +19,13 @@ from .rewrite import fresh_name, merge_into_producer, sole_consumer
 
 def fold_batchnorm(graph: Graph) -> Graph:
     for bn in graph.nodes:
-        if bn.op == "BatchNormalization":
+        if bn.op == "BatchNormalization" and _all_constant(graph, bn.inputs[1:]):
             return fold_batchnorm(_fold_one(graph, bn))
     return graph
+
+
+def _all_constant(graph: Graph, names) -> bool:
+    return all(graph.is_constant(name) for name in names)
 
 
 def _fold_one(graph: Graph, bn: Node) -> Graph:
@@ -30,6 +36,7 @@ def _fold_one(graph: Graph, bn: Node) -> Graph:
         producer is not None
         and producer.op in ("Conv", "Dense")
         and producer.attrs.activation is None
+        and _all_constant(graph, producer.inputs[1:])
         and sole_consumer(graph, bn.inputs[0]) is bn
         and (producer.op == "Conv" or len(graph.shape(bn.inputs[0])) == 2)
     )

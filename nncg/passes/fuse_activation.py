@@ -1,11 +1,12 @@
-"""Graph pass `fuse-activation`: a Relu, LeakyRelu or Clip (ReLU6) is applied by its producer at the
-store, so the activation costs no extra pass over memory."""
+"""Graph pass `fuse-activation`: a pointwise activation node (Relu, LeakyRelu, Clip, Sigmoid, Tanh,
+HardSigmoid, HardSwish, Elu: every node whose attributes are an Activation) is applied by its
+producer at the store, so the activation costs no extra pass over memory."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
-from ..ir.graph import Graph
+from ..ir.graph import Activation, Graph
 from .rewrite import merge_into_producer, sole_consumer
 
 PRODUCERS = ("Conv", "Dense", "ScaleShift")
@@ -13,7 +14,7 @@ PRODUCERS = ("Conv", "Dense", "ScaleShift")
 
 def fuse_activation(graph: Graph) -> Graph:
     for act in graph.nodes:
-        if act.op not in ("Relu", "LeakyRelu", "Clip"):
+        if not isinstance(act.attrs, Activation):
             continue
         producer = graph.producer(act.inputs[0])
         if (

@@ -1,5 +1,6 @@
 """Graph pass `fuse-bias`: MatMul + Add (bias) becomes one Dense with a bias, and a Conv followed by
-a per-channel constant Add takes it as its bias, as exporters split them."""
+a per-channel constant Add takes it as its bias, as exporters split them. A producer whose bias is
+computed at runtime, or that adds a fused residual, is left alone."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ def _try_fuse(graph: Graph, add: Node, data: str, other: str) -> Graph | None:
         or producer.op not in ("Conv", "Dense")
         or not graph.is_constant(other)
         or producer.attrs.activation is not None
+        or not all(graph.is_constant(name) for name in producer.inputs[2:])
         or sole_consumer(graph, data) is not add
         or graph.shape(add.outputs[0]) != graph.shape(data)
     ):

@@ -1,9 +1,10 @@
-"""Loop pass `unroll{level=K}`: the paper's unroll levels (principle 1).
+"""Loop pass `unroll{level=K,budget=N}`: the paper's unroll levels (principle 1).
 
 Level K keeps the K outermost loops of each kernel's nest and unrolls all loops inside them; level 0
-unrolls everything; `none` unrolls nothing. Choice and mechanism are apart: `mark_unroll` decides
-(a tuner may mark loops its own way), `expand_unrolled` materialises whatever is marked. Border
-checks that unrolling made redundant are pruned."""
+unrolls everything; `none` unrolls nothing. With a `budget`, a loop whose expansion would exceed
+that many statements stays a loop (nncg.compile and nncg-onnx default to CODE_BUDGET). Choice and
+mechanism are apart: `mark_unroll` decides (a tuner may mark loops its own way), `expand_unrolled`
+materialises whatever is marked. Border checks that unrolling made redundant are pruned."""
 
 from __future__ import annotations
 
@@ -12,26 +13,47 @@ from dataclasses import replace
 from ..ir.loops import Affine, If, Let, Loop, Program, Stmt
 from .substitute import prune_bounds, substitute_body
 
+CODE_BUDGET = 8192  # statements per unrolled loop nest: keeps wide layers of big models compilable
 
-def unroll(program: Program, level: int | None = 1) -> Program:
-    kernels = tuple(replace(k, body=prune_bounds(expand_unrolled(mark_unroll(k.body, level)))) for k in program.kernels)
+
+def unroll(program: Program, level: int | None = 1, budget: int | None = None) -> Program:
+    kernels = tuple(
+        replace(k, body=prune_bounds(expand_unrolled(mark_unroll(k.body, level, budget)))) for k in program.kernels
+    )
     return replace(program, kernels=kernels)
 
 
-def mark_unroll(body: tuple[Stmt, ...], level: int | None, depth: int = 0) -> tuple[Stmt, ...]:
-    """Marks every loop at nesting depth >= level (counted in loops, from 0) as unrolled."""
+def mark_unroll(
+    body: tuple[Stmt, ...], level: int | None, budget: int | None = None, depth: int = 0
+) -> tuple[Stmt, ...]:
+    """Marks every loop at nesting depth >= level (counted in loops, from 0) as unrolled, unless its
+    expansion would exceed `budget` statements: then it stays a loop and its inner loops are
+    considered instead (so wide layers of big models keep their code size bounded)."""
     if level is None:
         return body
     out: list[Stmt] = []
     for stmt in body:
         if isinstance(stmt, Loop):
-            inner = mark_unroll(stmt.body, level, depth + 1)
-            kind = "unrolled" if depth >= level else stmt.kind
-            stmt = replace(stmt, body=inner, kind=kind)
+            inner = mark_unroll(stmt.body, level, budget, depth + 1)
+            fits = depth >= level and (budget is None or unrolled_size((stmt,)) <= budget)
+            stmt = replace(stmt, body=inner, kind="unrolled" if fits else stmt.kind)
         elif isinstance(stmt, Let | If):
-            stmt = replace(stmt, body=mark_unroll(stmt.body, level, depth))
+            stmt = replace(stmt, body=mark_unroll(stmt.body, level, budget, depth))
         out.append(stmt)
     return tuple(out)
+
+
+def unrolled_size(body: tuple[Stmt, ...]) -> int:
+    """Statements left after unrolling every loop in body."""
+    total = 0
+    for stmt in body:
+        if isinstance(stmt, Loop):
+            total += stmt.extent * unrolled_size(stmt.body)
+        elif isinstance(stmt, Let | If):
+            total += 1 + unrolled_size(stmt.body)
+        else:
+            total += 1
+    return total
 
 
 def expand_unrolled(body: tuple[Stmt, ...]) -> tuple[Stmt, ...]:

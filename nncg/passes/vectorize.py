@@ -2,7 +2,8 @@
 
 Marks, in each kernel, the innermost parallel loop that every store walks contiguously, then
 materialises it: a loop over vector blocks whose expressions have N lanes, plus a scalar tail when
-the extent is not a multiple of N. Loads that do not depend on the loop become broadcasts."""
+the extent is not a multiple of N. Loads that do not depend on the loop become broadcasts. A call
+(exp, ...) becomes a vector call: backends without a vector version call the function per lane."""
 
 from __future__ import annotations
 
@@ -61,7 +62,7 @@ def mark_vector_loop(body: tuple[Stmt, ...], lanes: int) -> tuple[Stmt, ...]:
 
 def vectorizable(loop: Loop, lanes: int) -> bool:
     """Parallel, at least one full vector, stores contiguous along the loop, loads contiguous or
-    invariant, no calls (no vector exp), no branch or outer local that depends on the loop."""
+    invariant, no branch or outer local that depends on the loop."""
     if not loop.parallel or loop.extent < lanes:
         return False
     var = loop.var
@@ -78,7 +79,7 @@ def vectorizable(loop: Loop, lanes: int) -> bool:
             return False
         for expr in stmt_exprs(stmt):
             for e in walk_exprs(expr):
-                if isinstance(e, Call) or (isinstance(e, Load) and e.index.coeff(var) not in (0, 1)):
+                if isinstance(e, Load) and e.index.coeff(var) not in (0, 1):
                     return False
     return stores > 0
 
@@ -137,4 +138,6 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
     if isinstance(e, Select):
         parts = (_vector(x, var, lanes, vector_locals) for x in (e.lhs, e.rhs, e.then, e.otherwise))
         return Select(e.cmp, *parts)
+    if isinstance(e, Call):
+        return Call(e.fn, _vector(e.arg, var, lanes, vector_locals))
     raise TypeError(f"cannot vectorize {e!r}")

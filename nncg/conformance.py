@@ -1,0 +1,181 @@
+"""Which of onnx's backend node tests NNCG runs, which it excludes and why: shared by
+tests/test_onnx_conformance.py and scripts/conformance_report.py.
+
+A node test case (onnx.backend.test.case.node, named test_<op>[_variant]) is "for op X" when the
+nodes of its graph that do not fold to constants are all X; it is selected when X is in
+nncg.frontend.ops.SUPPORTED_OPS, so newly supported operators are picked up automatically.
+Function-expanded cases (test_<case>_expanded[_verN]) count for the op of the case they expand and
+are selected when that op and all their live ops are supported. Every selected case runs unless
+EXCLUDED names it (exact name or regex, matched in full) with a one-line reason.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import unittest
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import onnx
+
+from nncg.frontend.ops import SUPPORTED_OPS
+
+# Ops whose result is known at compile time from static shapes alone.
+_SHAPE_OPS = {"Shape", "Size"}
+# Ops that must not be folded even with constant inputs (as in nncg.frontend.folding).
+_NONDETERMINISTIC = {
+    "RandomNormal",
+    "RandomUniform",
+    "RandomNormalLike",
+    "RandomUniformLike",
+    "Multinomial",
+    "Bernoulli",
+}
+_EXPANDED = re.compile(r"_expanded(_ver\d+)?$")
+
+_F32 = "NNCG compiles float32 models only"
+_RUNTIME = "given as a runtime input; NNCG needs it constant at compile time"
+_INFERENCE = "NNCG compiles inference only"
+_EMPTY = "NNCG needs at least one element"
+_CLIP_BOUNDS = r"test_clip(_default_(min|max)|_example|_inbounds|_outbounds|_splitbounds|_min_greater_than_max)?"
+
+# Node test cases of selected ops that are not run: {exact name or regex (fullmatch): reason}.
+# Exact names are looked up first, then the patterns in this order.
+EXCLUDED: dict[str, str] = {
+    # --- dtypes and types: NNCG's inputs, outputs and arithmetic are float32 tensors ---------------
+    r"test_.*_(double|float64)(_.*)?": f"float64 tensors: {_F32}",
+    r"test_.*_(float16|bfloat16)(_.*)?": f"float16 tensors: {_F32}",
+    r"test_.*_u?int(8|16|32|64)(_.*)?": f"integer tensors: {_F32}",
+    r"test_(edge|reflect|wrap)_pad": f"int32 data (and pads {_RUNTIME}): {_F32}",
+    r"test_identity_(opt|sequence)": "optional / sequence input: NNCG compiles models of tensors only",
+    r"test_dropout_default_mask(_ratio)?": f"bool mask output: {_F32}",
+    r"test_maxpool_with_argmax_.*": f"int64 Indices output: {_F32}",
+    # --- training mode: NNCG compiles inference graphs ------------------------------------------
+    r"test_batchnorm_.*_training_mode": f"training mode (batch statistics, running-mean outputs): {_INFERENCE}",
+    r"test_training_dropout.*": f"training mode (random mask, bool training_mode input): {_INFERENCE}",
+    # --- operator parameters given as graph inputs: NNCG compiles them as constants -----------------
+    _CLIP_BOUNDS: f"min/max {_RUNTIME}",
+    "test_reshape_allowzero_reordered": f"empty tensor (0-sized dim; {_EMPTY}), shape {_RUNTIME}",
+    r"test_reshape_.*": f"target shape {_RUNTIME}",
+    r"test_(un)?squeeze(_.*)?": f"axes {_RUNTIME}",
+    r"test_reduce_mean_.*": f"axes {_RUNTIME}",
+    r"test_slice(_.*)?": f"starts/ends/axes/steps {_RUNTIME}",
+    r"test_split_zero_size_splits_opset\d+": f"empty tensors (zero-size splits): {_EMPTY}",
+    r"test_split_variable_parts_.*": f"split sizes {_RUNTIME}",
+    r"test_constant_pad(_.*)?": f"pads (and axes) {_RUNTIME}",
+    r"test_resize_.*_cubic(_.*)?": f"cubic mode: NNCG's Resize does nearest and linear (and scales/sizes {_RUNTIME})",
+    r"test_resize_.*_antialias": f"antialias: not supported by NNCG's Resize (and scales/sizes {_RUNTIME})",
+    r"test_resize_tf_crop_and_resize(_.*)?": f"roi and sizes {_RUNTIME}",
+    r"test_resize_.*_sizes_.*": f"output sizes {_RUNTIME}",
+    r"test_resize_.*_scales_.*": f"scales {_RUNTIME}",
+    "test_upsample_nearest": f"scales {_RUNTIME}",
+    # --- attribute combinations NNCG refuses with a clear error ------------------------------------
+    r"test_matmul_(1d_1d|1d_3d|4d_1d)": "1-D MatMul operand: NNCG supports inputs of rank >= 2",
+}
+
+# The light_* models of onnx/backend/test/data/light, run as BackendTest's "real" model tests.
+ZOO_MODELS = (
+    "test_bvlc_alexnet",
+    "test_densenet121",
+    "test_inception_v1",
+    "test_inception_v2",
+    "test_resnet50",
+    "test_shufflenet",
+    "test_squeezenet",
+    "test_vgg19",
+    "test_zfnet512",
+)
+
+
+@dataclass(frozen=True)
+class NodeCase:
+    name: str  # the onnx test case name, e.g. test_conv_with_strides_padding
+    op: str  # the operator it is counted for
+    ops: frozenset[str]  # the ops of its graph that do not fold to constants
+
+
+@functools.cache
+def node_test_cases() -> dict[str, Any]:
+    """All of onnx's node test cases (onnx.backend.test TestCase objects) by name; loading runs
+    onnx's case generators once per process (a few seconds, deterministic: onnx seeds them)."""
+    from onnx.backend.test.loader import load_model_tests
+
+    return {case.name: case for case in load_model_tests(kind="node")}
+
+
+def live_ops(model: onnx.ModelProto) -> frozenset[str]:
+    """Op types of the nodes that do not fold to constants (ops of other domains as DOMAIN.Op)."""
+    graph = model.graph
+    constant = {t.name for t in graph.initializer} | {t.values.name for t in graph.sparse_initializer} | {""}
+    ops = set()
+    for node in graph.node:
+        op = node.op_type if node.domain in ("", "ai.onnx") else f"{node.domain}.{node.op_type}"
+        foldable = node.op_type in _SHAPE_OPS or all(i in constant for i in node.input)
+        if foldable and op not in _NONDETERMINISTIC:
+            constant.update(node.output)
+        else:
+            ops.add(op)
+    return frozenset(ops)
+
+
+@functools.cache
+def _all_case_ops() -> dict[str, frozenset[str]]:
+    return {name: live_ops(case.model) for name, case in sorted(node_test_cases().items())}
+
+
+def case_op(name: str) -> str | None:
+    """The op a node test case is for: for an expanded case the op of the case it expands, else
+    its only live op; None when neither exists (several live ops and no base case, or none)."""
+    cases = _all_case_ops()
+    base = _EXPANDED.sub("", name)
+    for ops in (cases.get(base, frozenset()), cases[name]) if base != name else (cases[name],):
+        if len(ops) == 1:
+            return next(iter(ops))
+    return None
+
+
+def select_node_cases(supported: Iterable[str] = SUPPORTED_OPS) -> list[NodeCase]:
+    """The node test cases NNCG runs (excluded ones included), sorted by name."""
+    supported = frozenset(supported)
+    selected = []
+    for name, ops in _all_case_ops().items():
+        op = case_op(name)
+        if op in supported and ops and ops <= supported:
+            selected.append(NodeCase(name, op, ops))
+    return selected
+
+
+def exclusion_reason(name: str) -> str | None:
+    """Why case `name` is not run (the first EXCLUDED entry matching it in full), or None."""
+    if name in EXCLUDED:
+        return EXCLUDED[name]
+    for pattern, reason in EXCLUDED.items():
+        if re.fullmatch(pattern, name):
+            return reason
+    return None
+
+
+def backend_test_cases(backend: type, module: str) -> dict[str, type[unittest.TestCase]]:
+    """onnx's BackendTest for `backend`: its unittest classes by category name (NodeModel for the
+    node cases, RealModel for the light_* models)."""
+    from onnx.backend.test import BackendTest
+
+    return BackendTest(backend, module).test_cases
+
+
+def run_backend_test(test_cases: dict[str, type[unittest.TestCase]], category: str, name: str) -> None:
+    """Runs one BackendTest case on the CPU (e.g. category "OnnxBackendNodeModelTest", name
+    "test_relu"): prepare, run every data set, compare with onnx's stored outputs and tolerances.
+    Raises on failure (AssertionError for wrong numbers, the backend's error if it refuses)."""
+    method = f"{name}_cpu"
+    getattr(test_cases[category](method), method)()
+
+
+def run_node_case(test_cases: dict[str, type[unittest.TestCase]], name: str) -> None:
+    run_backend_test(test_cases, "OnnxBackendNodeModelTest", name)
+
+
+def run_zoo_model(test_cases: dict[str, type[unittest.TestCase]], name: str) -> None:
+    run_backend_test(test_cases, "OnnxBackendRealModelTest", name)

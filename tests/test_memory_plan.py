@@ -1,0 +1,206 @@
+"""The static memory plan: lifetimes, reuse, in-place, and the reentrant NAME_run with a caller's arena."""
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import nncg
+from nncg.frontend import load_model
+from nncg.ir.loops import Affine, Binary, Buffer, Const, Kernel, Load, Loop, Program, Store
+from nncg.passes.plan_memory import kernel_access, lifetimes, plan_memory
+from nncg.verify import find_c_compiler, random_inputs, reference_outputs
+
+EXAMPLES = Path(__file__).parent.parent / "examples"
+MODELS = Path(__file__).parent.parent / "benchmarks" / "models"
+
+
+def copy_kernel(name, src, dst, n, fn=lambda x: x):
+    body = (Loop("i", n, (Store(dst, Affine.of("i"), fn(Load(src, Affine.of("i")))),), parallel=True),)
+    return Kernel(name, "Test", body)
+
+
+def reverse_kernel(name, src, dst, n):
+    """Reads element n-1-i for element i: not elementwise, so never in place."""
+    index = Affine.of("i") * -1 + (n - 1)
+    return Kernel(name, "Test", (Loop("i", n, (Store(dst, Affine.of("i"), Load(src, index)),), parallel=True),))
+
+
+def chain_program(kernels, sizes):
+    buffers = [Buffer("x", 64, "input"), Buffer("y", 64, "output")]
+    buffers += [Buffer(name, size, "internal") for name, size in sizes.items()]
+    return Program("p", tuple(buffers), tuple(kernels))
+
+
+def test_lifetimes_span_first_to_last_touching_kernel():
+    program = chain_program(
+        [copy_kernel("k0", "x", "a", 64), copy_kernel("k1", "a", "b", 64), copy_kernel("k2", "b", "y", 64)],
+        {"a": 64, "b": 64},
+    )
+    assert lifetimes(program) == {"a": (0, 1), "b": (1, 2)}
+    access = kernel_access(program.kernels[1])
+    assert access.reads == {"a"} and access.writes == {"b"}
+
+
+def test_chain_reuses_memory_and_elementwise_runs_in_place():
+    relu = lambda x: Binary("max", x, Const.splat(0.0))  # noqa: E731
+    kernels = [
+        reverse_kernel("k0", "x", "a", 64),
+        copy_kernel("k1", "a", "b", 64, relu),  # elementwise: b takes a's memory (renamed to a)
+        reverse_kernel("k2", "b", "c", 64),
+        reverse_kernel("k3", "c", "d", 64),
+        reverse_kernel("k4", "d", "y", 64),
+    ]
+    planned = plan_memory(chain_program(kernels, {"a": 64, "b": 64, "c": 64, "d": 64}))
+    names = [b.name for b in planned.role("internal")]
+    assert names == ["a", "c", "d"]  # b was merged into a
+    assert kernel_access(planned.kernels[1]).writes == {"a"} and kernel_access(planned.kernels[2]).reads == {"a"}
+    offsets = {b.name: b.offset for b in planned.role("internal")}
+    # a (k0-k2) and c (k2-k3) overlap in time, c and d too; a and d do not: two slots suffice.
+    assert offsets["a"] != offsets["c"] and offsets["c"] != offsets["d"] and offsets["a"] == offsets["d"]
+    assert planned.arena.floats == 128 and planned.arena.activation_floats == 256
+
+
+def test_not_elementwise_is_never_in_place():
+    kernels = [copy_kernel("k0", "x", "a", 64), reverse_kernel("k1", "a", "b", 64), copy_kernel("k2", "b", "y", 64)]
+    planned = plan_memory(chain_program(kernels, {"a": 64, "b": 64}))
+    offsets = {b.name: b.offset for b in planned.role("internal")}
+    assert set(offsets) == {"a", "b"} and offsets["a"] != offsets["b"]
+
+
+def test_offsets_are_aligned_and_no_reuse_lays_out_back_to_back():
+    kernels = [copy_kernel("k0", "x", "a", 5), reverse_kernel("k1", "a", "b", 5), copy_kernel("k2", "b", "y", 5)]
+    program = chain_program(kernels, {"a": 5, "b": 5})
+    planned = plan_memory(program, align=64)
+    assert [b.offset for b in planned.role("internal")] == [0, 16] and planned.arena.floats == 32
+    assert [b.offset for b in plan_memory(program, align=16).role("internal")] == [0, 8]
+    alone = plan_memory(program, reuse=False)
+    assert [b.offset for b in alone.role("internal")] == [0, 16]
+
+
+def program_of(model, target, unroll):
+    from nncg.frontend import import_onnx
+    from nncg.passes import PassManager, default_pipeline
+
+    lanes = nncg.backends.get_backend(target).lanes
+    return PassManager(default_pipeline(lanes, unroll)).run(import_onnx(model))
+
+
+@pytest.mark.parametrize(
+    "model",
+    [EXAMPLES / "ball.onnx", EXAMPLES / "robot.onnx", MODELS / "resnet8.onnx", MODELS / "dscnn.onnx"],
+    ids=lambda p: p.stem,
+)
+def test_no_kernel_sees_overlapping_buffers(model):
+    """The plan's safety property on real networks: buffers one kernel touches never overlap."""
+    program = program_of(model, "ssse3", "none")
+    internal = {b.name: b for b in program.role("internal")}
+    for kernel in program.kernels:
+        spans = sorted(
+            (internal[n].offset, internal[n].offset + internal[n].size)
+            for n in kernel_access(kernel).touched
+            if n in internal
+        )
+        for (_, end), (start, _) in zip(spans, spans[1:]):
+            assert end <= start, f"{kernel.name} sees overlapping buffers"
+    assert all(b.offset + b.size <= program.arena.floats for b in internal.values())
+    assert program.arena.floats < program.arena.activation_floats
+
+
+REENTRANT_MAIN = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include "{name}.h"
+
+/* Runs the model three ways: NAME (static arena), NAME_run with a heap arena that is only
+   float-aligned (offset by 4 bytes), and NAME_run with two arenas interleaved; prints the outputs. */
+int main(void)
+{{
+    static float in[{name_upper}_{input_upper}_SIZE], out[3][{name_upper}_{output_upper}_SIZE];
+    unsigned char *block = malloc({name_upper}_ARENA_BYTES + 68);
+    unsigned char *other = malloc({name_upper}_ARENA_BYTES + 64);
+    size_t i;
+    if (fread(in, sizeof in, 1, stdin) != 1 || !block || !other) return 1;
+    memset(block, 0xff, {name_upper}_ARENA_BYTES + 68); /* NaN garbage: the model must not read it */
+    memset(other, 0xff, {name_upper}_ARENA_BYTES + 64);
+    {name}(in, out[0]);
+    {name}_run(in, out[1], block + 4);
+    {name}_run(in, out[2], other);
+    {name}_run(in, out[2], block + 4);
+    for (i = 0; i < 3; ++i) fwrite(out[i], sizeof out[i], 1, stdout);
+    free(block);
+    free(other);
+    return 0;
+}}
+"""
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
+def test_run_with_callers_arena_matches_onnxruntime(tmp_path, target):
+    model = EXAMPLES / "ball.onnx"
+    compiled = nncg.compile(model, target=target)
+    compiled.write(tmp_path)
+    (inp,), (out,) = compiled.inputs, compiled.outputs
+    main = REENTRANT_MAIN.format(
+        name=compiled.name,
+        name_upper=compiled.name.upper(),
+        input_upper=inp.c_name.upper(),
+        output_upper=out.c_name.upper(),
+    )
+    (tmp_path / "main.c").write_text(main)
+    cc = find_c_compiler()
+    sanitizers = ["-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
+    flags = ["-O1", "-g", *sanitizers, *compiled.cflags, *compiled.strict_cflags]
+    subprocess.run([cc, *flags, "main.c", f"{compiled.name}.c", "-o", "main", "-lm"], cwd=tmp_path, check=True)
+    (x,) = random_inputs(compiled.inputs, seed=3)
+    run = subprocess.run([tmp_path / "main"], input=x.tobytes(), capture_output=True, check=True)
+    outs = np.frombuffer(run.stdout, dtype=np.float32).reshape(3, *out.shape)
+    (ref,) = reference_outputs(load_model(model), compiled.inputs, [x])
+    for result in outs:
+        np.testing.assert_allclose(result, ref, rtol=1e-5, atol=1e-6)
+    assert compiled.arena_bytes < compiled.activation_bytes
+    assert f"#define {compiled.name.upper()}_ARENA_BYTES {compiled.arena_bytes}" in compiled.header
+
+
+def gemm_model(k, n):
+    from onnx import TensorProto, helper, numpy_helper
+
+    w = (np.random.default_rng(0).standard_normal((k, n)) / np.sqrt(k)).astype(np.float32)
+    graph = helper.make_graph(
+        [helper.make_node("Gemm", ["x", "w"], ["y"])],
+        "gemm",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, k])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, n])],
+        [numpy_helper.from_array(w, "w")],
+    )
+    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    m.ir_version = 8
+    return m
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
+def test_weights_in_a_binary_file_match_onnxruntime(target):
+    import zlib
+
+    from helpers import check_against_onnxruntime
+
+    compiled = nncg.compile(EXAMPLES / "robot.onnx", target=target, unroll=None, weights="bin")
+    assert compiled.weights is not None and "static NNCG_ALIGNED const float" not in compiled.source
+    macro = compiled.name.upper()
+    assert f"#define {macro}_WEIGHTS_BYTES {len(compiled.weights)}\n" in compiled.header
+    assert f"#define {macro}_WEIGHTS_CRC32 0x{zlib.crc32(compiled.weights):08x}UL" in compiled.header
+    check_against_onnxruntime(load_model(EXAMPLES / "robot.onnx"), compiled, sanitize=True, opt="-O1")
+
+
+def test_large_weights_go_to_a_file_by_default():
+    """auto: 1024 x 1100 floats (4.3 MiB) exceed the threshold; --weights embed keeps them in the C."""
+    from helpers import check_against_onnxruntime
+
+    m = gemm_model(1024, 1100)
+    compiled = nncg.compile(m, target="ssse3", unroll=None)
+    assert compiled.weights is not None and len(compiled.weights) >= 1024 * 1100 * 4
+    check_against_onnxruntime(m, compiled)
+    small = nncg.compile(gemm_model(64, 10), target="ssse3", unroll=None)
+    assert small.weights is None and "static NNCG_ALIGNED const float" in small.source

@@ -1,0 +1,180 @@
+"""ONNX conformance: onnx's own backend test suite run through NNCG (nncg.onnx_backend).
+
+Node cases: every onnx node test case of an operator in SUPPORTED_OPS (selection and exclusions in
+nncg/conformance.py), compared with onnx's stored outputs at onnx's tolerances. Model cases: the
+light_* models of onnx/backend/test/data/light, marked `zoo` (deselected by default; run them with
+`python3 -m pytest -m zoo tests/test_onnx_conformance.py`). scripts/conformance_report.py writes
+the per-operator table docs/conformance.md from the same selection.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import warnings
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper
+from onnx.backend.test import BackendTest
+
+from nncg import conformance
+from nncg.errors import NncgError
+from nncg.frontend.ops import SUPPORTED_OPS
+from nncg.onnx_backend import BackendError, NncgBackend
+
+needs_cc = pytest.mark.skipif(not any(shutil.which(c) for c in ("cc", "gcc", "clang")), reason="no C compiler on PATH")
+
+# onnx's test classes for NNCG, by category; only the selected cases below are run from them.
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", RuntimeWarning)  # onnx's case generators overflow casts on purpose
+    TEST_CASES = BackendTest(NncgBackend, __name__).test_cases
+NODE_CASES = conformance.select_node_cases()
+
+
+@needs_cc
+@pytest.mark.parametrize("name", [case.name for case in NODE_CASES])
+def test_node(name: str) -> None:
+    reason = conformance.exclusion_reason(name)
+    if reason is not None:
+        pytest.skip(f"excluded: {reason}")
+    conformance.run_node_case(TEST_CASES, name)
+
+
+@needs_cc
+@pytest.mark.zoo
+@pytest.mark.parametrize("name", conformance.ZOO_MODELS)
+def test_zoo_model(name: str, tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    # onnx writes the generated input and expected output under $ONNX_MODELS (default ~/.onnx).
+    monkeypatch.setenv("ONNX_MODELS", str(tmp_path_factory.mktemp("onnx_models")))
+    conformance.run_zoo_model(TEST_CASES, name)
+
+
+# --- the selection ---------------------------------------------------------------------------------
+
+
+def test_selection_follows_supported_ops() -> None:
+    ops = {case.op for case in NODE_CASES}
+    assert ops <= set(SUPPORTED_OPS)
+    assert {"Conv", "MaxPool", "Relu", "Gemm"} <= ops
+    names = [case.name for case in NODE_CASES]
+    assert names == sorted(names) and len(names) == len(set(names))
+    # An op nobody supports yet is picked up as soon as it is in the supported set.
+    sigmoid = [case.name for case in conformance.select_node_cases(["Sigmoid"])]
+    assert "test_sigmoid" in sigmoid and all(n.startswith("test_sigmoid") for n in sigmoid)
+    assert "test_sigmoid" not in names or "Sigmoid" in SUPPORTED_OPS
+
+
+def test_case_ops_come_from_the_graph() -> None:
+    assert conformance.case_op("test_relu") == "Relu"
+    assert conformance.case_op("test_batchnorm_epsilon") == "BatchNormalization"
+    # Expanded cases count for the op they expand, whatever ops the expansion uses.
+    assert conformance.case_op("test_softmax_axis_0_expanded") == "Softmax"
+    assert conformance.case_op("test_clip_default_inbounds_expanded") == "Clip"
+    assert "Softmax" not in conformance.live_ops(conformance.node_test_cases()["test_softmax_axis_0_expanded"].model)
+
+
+def test_live_ops_skip_what_folds_to_constants() -> None:
+    graph = helper.make_graph(
+        [
+            helper.make_node("Shape", ["x"], ["s"]),
+            helper.make_node("Constant", [], ["one"], value=helper.make_tensor("v", TensorProto.INT64, [1], [1])),
+            helper.make_node("Concat", ["one", "s"], ["shape"], axis=0),
+            helper.make_node("Reshape", ["x", "shape"], ["r"]),
+            helper.make_node("Relu", ["r"], ["y"]),
+        ],
+        "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 3])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 2, 3])],
+    )
+    assert conformance.live_ops(helper.make_model(graph)) == {"Reshape", "Relu"}
+
+
+def test_every_exclusion_names_existing_cases() -> None:
+    names = list(conformance.node_test_cases())
+    for pattern, reason in conformance.EXCLUDED.items():
+        assert reason and "\n" not in reason, pattern
+        assert any(re.fullmatch(pattern, n) for n in names), f"{pattern} matches no case"
+
+
+def test_dtype_exclusions_hold_for_the_graph() -> None:
+    """A case excluded for its tensor type (by a name pattern) really has such an input or output."""
+    kinds = {"float64 tensors": {"float64"}, "float16 tensors": {"float16", "bfloat16"}, "integer tensors": None}
+    for case in NODE_CASES:
+        reason = conformance.exclusion_reason(case.name) or ""
+        kind = next((k for k in kinds if reason.startswith(k)), None)
+        if kind is None:
+            continue
+        graph = conformance.node_test_cases()[case.name].model.graph
+        dtypes = {
+            helper.tensor_dtype_to_np_dtype(v.type.tensor_type.elem_type).name
+            for v in (*graph.input, *graph.output)
+            if v.type.HasField("tensor_type")
+        }
+        wanted = kinds[kind] or {d for d in dtypes if re.fullmatch(r"u?int\d+", d)}
+        assert dtypes & wanted, f"{case.name} is excluded for {kind} but has {sorted(dtypes)}"
+
+
+# --- the adapter ------------------------------------------------------------------------------------
+
+
+def _add_relu_model() -> onnx.ModelProto:
+    graph = helper.make_graph(
+        [helper.make_node("Add", ["a", "b"], ["s"]), helper.make_node("Relu", ["s"], ["y"])],
+        "add_relu",
+        [
+            helper.make_tensor_value_info("a", TensorProto.FLOAT, [2, 3]),
+            helper.make_tensor_value_info("b", TensorProto.FLOAT, [3]),
+        ],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [2, 3])],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+
+@needs_cc
+def test_backend_builds_once_and_runs_lists_and_dicts() -> None:
+    rep = NncgBackend.prepare(_add_relu_model(), "CPU")
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        a, b = rng.standard_normal((2, 3), np.float32), rng.standard_normal(3, np.float32)
+        (y,) = rep.run([a, b])
+        assert y.dtype == np.float32 and y.shape == (2, 3)
+        np.testing.assert_allclose(y, np.maximum(a + b, 0), rtol=1e-6)
+        (y2,) = rep.run({"b": b, "a": a})
+        np.testing.assert_array_equal(y, y2)
+
+
+@needs_cc
+def test_backend_rejects_bad_inputs() -> None:
+    rep = NncgBackend.prepare(_add_relu_model(), target="ansi-c", unroll="none")
+    a, b = np.zeros((2, 3), np.float32), np.zeros(3, np.float32)
+    with pytest.raises(BackendError, match="float32"):
+        rep.run([a.astype(np.float64), b])
+    with pytest.raises(BackendError, match="shape"):
+        rep.run([a, np.zeros(2, np.float32)])
+    with pytest.raises(BackendError, match="takes 2 inputs"):
+        rep.run([a])
+    with pytest.raises(BackendError, match="missing"):
+        rep.run({"a": a})
+
+
+def test_backend_refuses_what_nncg_cannot_compile() -> None:
+    graph = helper.make_graph(
+        [helper.make_node("Relu", ["x"], ["y"])],
+        "g",
+        [helper.make_tensor_value_info("x", TensorProto.DOUBLE, [2])],
+        [helper.make_tensor_value_info("y", TensorProto.DOUBLE, [2])],
+    )
+    with pytest.raises(NncgError, match="float32"):
+        NncgBackend.prepare(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]))
+    with pytest.raises(BackendError, match="CPU"):
+        NncgBackend.prepare(_add_relu_model(), "CUDA")
+    assert NncgBackend.supports_device("CPU") and not NncgBackend.supports_device("CUDA")
+
+
+@needs_cc
+def test_run_node() -> None:
+    x = np.array([[-1.0, 2.0]], np.float32)
+    (y,) = NncgBackend.run_node(helper.make_node("Relu", ["x"], ["y"]), [x])
+    np.testing.assert_array_equal(y, [[0.0, 2.0]])
