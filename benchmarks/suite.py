@@ -24,11 +24,6 @@ from nncg.errors import NncgError
 ROOT = Path(__file__).resolve().parent.parent
 PAPER = ["ball", "pedestrian", "robot"]
 MLPERF_TINY = ["resnet8", "dscnn", "mobilenet_v1_025", "autoencoder"]
-# The default unroll level (2) unrolls MobileNet's 1x1 convs over c_out x c_in: 9.6 MB of C. Until
-# unrolling is chosen under a code budget, it keeps its loops.
-UNROLL = {"mobilenet_v1_025": None}
-# Listed, not measured: gcc -O3 spends more than 10 minutes on it (at -O1 it builds in seconds).
-SKIP = {"mobilenet_v1_025": "not benchmarked: gcc -O3 takes over 10 minutes on its C (builds at -O1 in 4 s)"}
 
 
 def model_path(name: str) -> Path:
@@ -53,14 +48,10 @@ def run_suite(
     for model in models:
         for target in targets:
             progress(f"{model} / {target} ...")
-            unroll = UNROLL.get(model, 2)
-            level = "none" if unroll is None else str(unroll)
-            if model in SKIP:
-                rows.append(Row(model, target, None, SKIP[model], unroll=level))
-                continue
+            level = "2"  # the defaults: level 2 under the code budget
             try:
                 result = benchmark(
-                    model_path(model), target, unroll, cpu=cpu, batches=batches, min_batch_seconds=min_batch_seconds,
+                    model_path(model), target, 2, cpu=cpu, batches=batches, min_batch_seconds=min_batch_seconds,
                     peaks=peaks,
                 )  # fmt: skip
                 rows.append(Row(model, target, result, unroll=level))

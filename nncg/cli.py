@@ -51,8 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=CODE_BUDGET,
         metavar="N",
-        help=f"statements per unrolled loop nest; a loop that would exceed it stays a loop (default {CODE_BUDGET}; "
-        "0: no cap, the paper's levels exactly)",
+        help=f"statements of unrolled code in the whole model: loops whose unrolling would exceed it stay loops "
+        f"(default {CODE_BUDGET}; 0: no cap, the paper's levels exactly)",
     )
     p.add_argument(
         "--weights",

@@ -97,7 +97,7 @@ def compile(
     unrolling; `pipeline` replaces the default pass pipeline entirely; `profile` adds per-layer
     timers to the generated code (for `--profile`; they need POSIX clock_gettime); `weights` is
     embed (static const arrays), bin (NAME.weights, passed by pointer) or auto (bin when large);
-    `code_budget` caps the statements of each unrolled loop nest (None: the paper's levels exactly)."""
+    `code_budget` caps the statements of the unrolled program (None: the paper's levels exactly)."""
     backend = get_backend(target)
     graph = import_onnx(model, input_shapes)
     level = "none" if unroll is None else str(unroll)

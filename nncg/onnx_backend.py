@@ -7,22 +7,36 @@
 program in a private temporary directory; every `run` feeds the inputs through files and reads the
 outputs back, shaped as the ONNX outputs. NNCG compiles float32 models with static shapes only:
 anything else is refused with an NncgError (a BackendError for what is wrong with the inputs).
+
+Parameter inputs. NNCG needs operator parameters (Reshape's shape, Slice's starts/ends/axes/steps,
+Pad's pads, Resize's scales, Clip's bounds, ...) as compile-time constants, while onnx's test cases
+often feed them as graph inputs. As an ahead-of-time backend would, this adapter specialises on
+them: a graph input is a parameter input when every node reading it reads it in a slot listed in
+PARAMETER_INPUTS (and the graph does not return it), or when it is not float32. For a model with
+parameter inputs, `prepare` only checks the model and the first `run` binds the values given for
+those inputs as initializers (they are no longer graph inputs), compiles and builds; the build is
+cached by the bound values, so a later run with the same values reuses it and one with other values
+compiles again. The other (data) inputs are passed to the C program as usual. This is the adapter's
+behaviour only: nncg.compile and `nncg-onnx` still refuse parameters that are not constants.
 """
 
 from __future__ import annotations
 
 import tempfile
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import onnx
+from onnx import helper, numpy_helper
 from onnx.backend.base import Backend, BackendRep, Device, DeviceType
 
 from nncg.compiler import CompiledModel
 from nncg.compiler import compile as nncg_compile
 from nncg.errors import NncgError
+from nncg.frontend.shapes import dtype_name
 from nncg.verify import BuiltModel, build_model
 
 # Keyword arguments of prepare; onnx's test runner also passes its comparison tolerances through.
@@ -30,43 +44,126 @@ _COMPILE_KWARGS = ("target", "unroll", "input_shapes", "pipeline", "weights", "c
 _BUILD_KWARGS = ("cc", "opt", "extra_cflags")
 _IGNORED_KWARGS = ("rtol", "atol")
 
+# {op_type: indices of the inputs that are operator parameters}: values NNCG compiles as constants.
+_REDUCE_AXES = (1,)  # Reduce* from opset 18 (13 for ReduceSum): axes
+PARAMETER_INPUTS: dict[str, tuple[int, ...]] = {
+    "Clip": (1, 2),  # min, max (opset 11+)
+    "ConstantOfShape": (0,),  # shape
+    "Dropout": (1, 2),  # ratio, training_mode (opset 12+)
+    "Expand": (1,),  # shape
+    "Pad": (1, 2, 3),  # pads, constant_value, axes (opset 11+)
+    "ReduceL1": _REDUCE_AXES,
+    "ReduceL2": _REDUCE_AXES,
+    "ReduceLogSum": _REDUCE_AXES,
+    "ReduceLogSumExp": _REDUCE_AXES,
+    "ReduceMax": _REDUCE_AXES,
+    "ReduceMean": _REDUCE_AXES,
+    "ReduceMin": _REDUCE_AXES,
+    "ReduceProd": _REDUCE_AXES,
+    "ReduceSum": _REDUCE_AXES,
+    "ReduceSumSquare": _REDUCE_AXES,
+    "Reshape": (1,),  # shape
+    "Resize": (1, 2, 3),  # roi, scales, sizes (opset 11+; scales alone in opset 10)
+    "Slice": (1, 2, 3, 4),  # starts, ends, axes, steps (opset 10+)
+    "Split": (1,),  # split (opset 13+)
+    "Squeeze": (1,),  # axes (opset 13+)
+    "Tile": (1,),  # repeats
+    "Unsqueeze": (1,),  # axes (opset 13+)
+    "Upsample": (1,),  # scales (opset 9)
+}
+
 
 class BackendError(NncgError):
     """The backend cannot run this model or these inputs (wrong device, dtype, shape or count)."""
 
 
-class NncgBackendRep(BackendRep):
-    """A model compiled and built by NNCG; `run` may be called many times (not concurrently)."""
+@dataclass(frozen=True)
+class _Build:
+    compiled: CompiledModel
+    built: BuiltModel
+    workdir: tempfile.TemporaryDirectory  # removed when the build is garbage collected
 
-    def __init__(self, compiled: CompiledModel, built: BuiltModel, workdir: tempfile.TemporaryDirectory) -> None:
-        self.compiled = compiled
-        self._built = built
-        self._workdir = workdir  # removed when this object is garbage collected
+
+class NncgBackendRep(BackendRep):
+    """A model compiled and built by NNCG; `run` may be called many times (not concurrently).
+
+    With parameter inputs (see the module docstring) the model is compiled at the first run and
+    again for every new set of parameter values; `builds` counts the builds cached so far."""
+
+    def __init__(
+        self,
+        input_names: Sequence[str],
+        output_names: Sequence[str],
+        name: str,
+        *,
+        build: _Build | None = None,
+        model: onnx.ModelProto | None = None,
+        parameters: Sequence[onnx.ValueInfoProto] = (),
+        options: Mapping[str, Any] | None = None,
+        build_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        self._input_names = tuple(input_names)
+        self._output_names = tuple(output_names)
+        self._name = name
+        self._model = model  # kept only when compilation waits for the parameter values
+        self._parameters = {p.name: p for p in parameters}
+        self._options = dict(options or {})
+        self._build_options = dict(build_options or {})
+        self._builds: dict[tuple, _Build] = {} if build is None else {(): build}
+        self._last = build
 
     @property
     def input_names(self) -> tuple[str, ...]:
-        return tuple(p.name for p in self.compiled.inputs)
+        """All inputs `run` takes, parameter inputs included, in graph order."""
+        return self._input_names
 
     @property
     def output_names(self) -> tuple[str, ...]:
-        return tuple(p.name for p in self.compiled.outputs)
+        return self._output_names
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """The inputs whose values are bound as constants at compile time (empty: compiled at prepare)."""
+        return tuple(n for n in self._input_names if n in self._parameters)
+
+    @property
+    def compiled(self) -> CompiledModel | None:
+        """The model compiled for the latest run (None before the first run of a deferred model)."""
+        return None if self._last is None else self._last.compiled
+
+    @property
+    def builds(self) -> int:
+        return len(self._builds)
 
     def run(self, inputs: Any, **kwargs: Any) -> tuple[np.ndarray, ...]:
         """Inputs as a list in graph order, a dict by name, or one array for a one-input model;
         returns the outputs as float32 arrays with the ONNX output shapes, in graph order."""
         if kwargs:
             raise TypeError(f"NncgBackendRep.run() got unexpected keyword arguments {sorted(kwargs)}")
-        arrays = [self._checked(spec, array) for spec, array in zip(self.compiled.inputs, self._ordered(inputs))]
-        return tuple(self._built.run(arrays))
+        given = dict(zip(self._input_names, self._ordered(inputs)))
+        bound = {n: self._checked_parameter(self._parameters[n], given[n]) for n in self.parameter_names}
+        build = self._build_for(bound)
+        arrays = [self._checked(spec, given[spec.name]) for spec in build.compiled.inputs]
+        return tuple(build.built.run(arrays))
+
+    def _build_for(self, bound: dict[str, np.ndarray]) -> _Build:
+        key = tuple((n, a.dtype.str, a.shape, a.tobytes()) for n, a in bound.items())
+        build = self._builds.get(key)
+        if build is None:
+            assert self._model is not None, "a model compiled at prepare has no parameter inputs"
+            build = _compile_and_build(_bind(self._model, bound), self._options, self._build_options)
+            self._builds[key] = build
+        self._last = build
+        return build
 
     def _ordered(self, inputs: Any) -> list[Any]:
-        names = self.input_names
+        names = self._input_names
         if isinstance(inputs, Mapping):
             missing = [n for n in names if n not in inputs]
             extra = [n for n in inputs if n not in names]
             if missing or extra:
                 raise BackendError(
-                    f"model {self.compiled.name!r} takes inputs {list(names)}; missing {missing}, unknown {extra}"
+                    f"model {self._name!r} takes inputs {list(names)}; missing {missing}, unknown {extra}"
                 )
             return [inputs[n] for n in names]
         if isinstance(inputs, np.ndarray):
@@ -74,9 +171,7 @@ class NncgBackendRep(BackendRep):
         if not isinstance(inputs, Sequence) or isinstance(inputs, (str, bytes)):
             raise BackendError(f"inputs must be a list or a dict of numpy arrays, not {type(inputs).__name__}")
         if len(inputs) != len(names):
-            raise BackendError(
-                f"model {self.compiled.name!r} takes {len(names)} inputs {list(names)}, got {len(inputs)}"
-            )
+            raise BackendError(f"model {self._name!r} takes {len(names)} inputs {list(names)}, got {len(inputs)}")
         return list(inputs)
 
     @staticmethod
@@ -92,13 +187,33 @@ class NncgBackendRep(BackendRep):
             )
         return array
 
+    @staticmethod
+    def _checked_parameter(value_info: onnx.ValueInfoProto, value: Any) -> np.ndarray:
+        """The value of a parameter input, of the type the graph declares (it becomes an initializer)."""
+        array = np.asarray(value)
+        tensor = value_info.type.tensor_type
+        want = helper.tensor_dtype_to_np_dtype(tensor.elem_type)
+        if array.dtype != want:
+            raise BackendError(f"parameter input {value_info.name!r} is {array.dtype}; the model declares {want}")
+        dims = tensor.shape.dim if tensor.HasField("shape") else None
+        if dims is not None and (
+            len(dims) != array.ndim
+            or any(d.HasField("dim_value") and d.dim_value != n for d, n in zip(dims, array.shape))
+        ):
+            declared = [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in dims]
+            raise BackendError(
+                f"parameter input {value_info.name!r} has shape {list(array.shape)}; the model declares {declared}"
+            )
+        return array
+
 
 class NncgBackend(Backend):
     """prepare(model, device="CPU", target="ansi-c", unroll=2, opt="-O0", ...) -> NncgBackendRep.
 
     Compile options: target, unroll, input_shapes, pipeline, weights, code_budget (as for nncg.compile). Build options:
     cc (default: the first of cc, gcc, clang), opt (default -O0: fast builds), extra_cflags. The C is compiled
-    with the target's strict flags in one compiler call; a warning fails the build.
+    with the target's strict flags in one compiler call; a warning fails the build. A model with
+    parameter inputs (see the module docstring) is compiled at its first run instead.
     """
 
     default_target = "ansi-c"
@@ -114,21 +229,37 @@ class NncgBackend(Backend):
             raise TypeError(f"NncgBackend.prepare() got unexpected keyword arguments {unknown}")
         options = {"target": cls.default_target, "unroll": cls.default_unroll}
         options.update({k: kwargs[k] for k in _COMPILE_KWARGS if k in kwargs})
-        compiled = nncg_compile(model if isinstance(model, onnx.ModelProto) else _load(model), **options)
-        workdir = tempfile.TemporaryDirectory(prefix="nncg-backend-")
-        try:
-            built = build_model(
-                compiled,
-                Path(workdir.name),
-                cc=kwargs.get("cc"),
-                opt=kwargs.get("opt", cls.default_opt),
-                extra_cflags=tuple(kwargs.get("extra_cflags", ())),
-                single_invocation=True,
-            )
-        except BaseException:
-            workdir.cleanup()
-            raise
-        return NncgBackendRep(compiled, built, workdir)
+        build_options = {
+            "cc": kwargs.get("cc"),
+            "opt": kwargs.get("opt", cls.default_opt),
+            "extra_cflags": tuple(kwargs.get("extra_cflags", ())),
+        }
+        source = model if isinstance(model, onnx.ModelProto) else _load(model)
+        proto = _parsed(source)
+        parameters = parameter_inputs(proto.graph) if proto is not None else []
+        if not parameters:  # compiled now; nncg.compile reports whatever is wrong with the model
+            build = _compile_and_build(source, options, build_options)
+            inputs, outputs = build.compiled.inputs, build.compiled.outputs
+            return NncgBackendRep([p.name for p in inputs], [p.name for p in outputs], build.compiled.name, build=build)
+        for value in proto.graph.output:  # refused now rather than at the first run
+            elem = value.type.tensor_type.elem_type if value.type.HasField("tensor_type") else None
+            if elem != onnx.TensorProto.FLOAT:
+                what = dtype_name(elem) if elem is not None else "not a tensor"
+                raise BackendError(f"NNCG compiles float32 models; output {value.name!r} is {what}")
+        if isinstance(source, onnx.ModelProto):  # a snapshot: the caller may change theirs
+            proto = onnx.ModelProto()
+            proto.CopyFrom(source)
+        else:  # read again with its external data, if any
+            proto = onnx.load(source) if isinstance(source, str) else onnx.load_model_from_string(source)
+        return NncgBackendRep(
+            [v.name for v in _real_inputs(proto.graph)],
+            [v.name for v in proto.graph.output],
+            proto.graph.name,
+            model=proto,
+            parameters=parameters,
+            options=options,
+            build_options=build_options,
+        )
 
     @classmethod
     def run_model(cls, model: Any, inputs: Any, device: str = "CPU", **kwargs: Any) -> tuple[np.ndarray, ...]:
@@ -149,7 +280,6 @@ class NncgBackend(Backend):
         if len(names) != len(arrays):
             raise BackendError(f"node {node.op_type} has {len(names)} inputs, got {len(arrays)} arrays")
         opset = kwargs.pop("opset_version", onnx.defs.onnx_opset_version())
-        helper = onnx.helper
         graph = helper.make_graph(
             [node],
             node.name or node.op_type.lower(),
@@ -168,6 +298,67 @@ class NncgBackend(Backend):
             return Device(device).type == DeviceType.CPU
         except (AttributeError, ValueError):
             return False
+
+
+def parameter_inputs(graph: onnx.GraphProto) -> list[onnx.ValueInfoProto]:
+    """The graph inputs (without an initializer) the adapter binds at the first run: those not
+    float32 and those read only in PARAMETER_INPUTS slots of the graph's nodes (not returned)."""
+    slots: dict[str, set[bool]] = {}  # input name -> {read as a parameter?} over its readers
+    for node in graph.node:
+        params = PARAMETER_INPUTS.get(node.op_type, ()) if node.domain in ("", "ai.onnx") else ()
+        for index, name in enumerate(node.input):
+            if name:
+                slots.setdefault(name, set()).add(index in params)
+    returned = {v.name for v in graph.output}
+    found = []
+    for value in _real_inputs(graph):
+        tensor = value.type.tensor_type if value.type.HasField("tensor_type") else None
+        if tensor is not None and tensor.elem_type != onnx.TensorProto.FLOAT:
+            found.append(value)
+        elif tensor is not None and slots.get(value.name) == {True} and value.name not in returned:
+            found.append(value)
+    return found
+
+
+def _real_inputs(graph: onnx.GraphProto) -> list[onnx.ValueInfoProto]:
+    constants = {t.name for t in graph.initializer} | {t.values.name for t in graph.sparse_initializer}
+    return [v for v in graph.input if v.name not in constants]
+
+
+def _bind(model: onnx.ModelProto, values: Mapping[str, np.ndarray]) -> onnx.ModelProto:
+    """A copy of `model` with the inputs in `values` turned into initializers of those values."""
+    bound = onnx.ModelProto()
+    bound.CopyFrom(model)
+    graph = bound.graph
+    kept = [v for v in graph.input if v.name not in values]
+    del graph.input[:]
+    graph.input.extend(kept)
+    graph.initializer.extend(numpy_helper.from_array(np.asarray(a), n) for n, a in values.items())
+    return bound
+
+
+def _compile_and_build(model: Any, options: Mapping[str, Any], build_options: Mapping[str, Any]) -> _Build:
+    compiled = nncg_compile(model, **options)
+    workdir = tempfile.TemporaryDirectory(prefix="nncg-backend-")
+    try:
+        built = build_model(compiled, Path(workdir.name), single_invocation=True, **build_options)
+    except BaseException:
+        workdir.cleanup()
+        raise
+    return _Build(compiled, built, workdir)
+
+
+def _parsed(source: onnx.ModelProto | bytes | str) -> onnx.ModelProto | None:
+    """The model to look for parameter inputs in (without external data), or None when it cannot
+    be read (nncg.compile then says why)."""
+    if isinstance(source, onnx.ModelProto):
+        return source
+    try:
+        if isinstance(source, str):
+            return onnx.load(source, load_external_data=False)
+        return onnx.load_model_from_string(source)
+    except Exception:  # noqa: BLE001 - any unreadable model is nncg.compile's to report
+        return None
 
 
 def _load(model: Any) -> onnx.ModelProto | bytes | str:

@@ -24,7 +24,7 @@ from nncg.ir.loops import (
 )
 from nncg.ir.verify import verify_program
 from nncg.passes.inline_constants import inline_constants
-from nncg.passes.unroll import mark_unroll, unroll
+from nncg.passes.unroll import emitted_size, mark_unroll, unroll
 from nncg.passes.vectorize import vectorize
 
 A = Affine.of
@@ -88,6 +88,14 @@ def test_unroll_budget_keeps_loops_whose_expansion_is_too_big():
     capped = mark_unroll(body, 0, budget=11)
     assert capped[0].kind == "serial" and capped[0].body[0].kind == "unrolled"
     assert mark_unroll(body, 0, budget=2)[0].body[0].kind == "serial"
+
+
+def test_unroll_total_budget_shrinks_the_nest_budget_until_the_program_fits():
+    # scale_nest(4, 8): unrolling everything gives 32 stores; unrolling c only, 1 loop + 8 stores
+    assert emitted_size(unroll(program(scale_nest(4, 8)), level=0).kernels[0].body) == 32
+    capped = unroll(program(scale_nest(4, 8)), level=0, total=16)
+    assert emitted_size(capped.kernels[0].body) == 9
+    assert [s.var for s in walk_stmts(capped.kernels[0].body) if isinstance(s, Loop)] == ["i"]
 
 
 def test_unrolling_resolves_border_checks_statically():

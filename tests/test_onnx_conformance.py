@@ -19,10 +19,11 @@ import pytest
 from onnx import TensorProto, helper
 from onnx.backend.test import BackendTest
 
+import nncg.onnx_backend
 from nncg import conformance
 from nncg.errors import NncgError
 from nncg.frontend.ops import SUPPORTED_OPS
-from nncg.onnx_backend import BackendError, NncgBackend
+from nncg.onnx_backend import BackendError, NncgBackend, parameter_inputs
 
 needs_cc = pytest.mark.skipif(not any(shutil.which(c) for c in ("cc", "gcc", "clang")), reason="no C compiler on PATH")
 
@@ -178,3 +179,112 @@ def test_run_node() -> None:
     x = np.array([[-1.0, 2.0]], np.float32)
     (y,) = NncgBackend.run_node(helper.make_node("Relu", ["x"], ["y"]), [x])
     np.testing.assert_array_equal(y, [[0.0, 2.0]])
+
+
+# --- parameter inputs: bound as constants at the first run ----------------------------------------
+
+
+def _reshape_clip_model() -> onnx.ModelProto:
+    """y = Clip(Reshape(x, shape), lo, hi): shape (int64) and lo/hi (float32 Clip bounds) are parameters."""
+    graph = helper.make_graph(
+        [helper.make_node("Reshape", ["x", "shape"], ["r"]), helper.make_node("Clip", ["r", "lo", "hi"], ["y"])],
+        "reshape_clip",
+        [
+            helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 3]),
+            helper.make_tensor_value_info("shape", TensorProto.INT64, [2]),
+            helper.make_tensor_value_info("lo", TensorProto.FLOAT, []),
+            helper.make_tensor_value_info("hi", TensorProto.FLOAT, []),
+        ],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+
+@pytest.fixture
+def compiles(monkeypatch: pytest.MonkeyPatch) -> list[onnx.ModelProto]:
+    """The models nncg.compile was called with by the adapter, in order."""
+    calls: list[onnx.ModelProto] = []
+    real = nncg.onnx_backend.nncg_compile
+
+    def counting(model: onnx.ModelProto, **kwargs: object) -> object:
+        calls.append(model)
+        return real(model, **kwargs)
+
+    monkeypatch.setattr(nncg.onnx_backend, "nncg_compile", counting)
+    return calls
+
+
+def test_parameter_inputs_are_found_by_slot_and_dtype() -> None:
+    assert [v.name for v in parameter_inputs(_reshape_clip_model().graph)] == ["shape", "lo", "hi"]
+    assert parameter_inputs(_add_relu_model().graph) == []
+    # A float input read in a data slot anywhere is data, even if a parameter slot also reads it.
+    graph = helper.make_graph(
+        [helper.make_node("Clip", ["x", "m"], ["c"]), helper.make_node("Add", ["c", "m"], ["y"])],
+        "g",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, [2]) for n in ("x", "m")],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [2])],
+    )
+    assert parameter_inputs(graph) == []
+
+
+@needs_cc
+def test_parameter_inputs_compile_at_first_run_and_cache_by_value(compiles: list) -> None:
+    rep = NncgBackend.prepare(_reshape_clip_model())
+    assert compiles == [] and rep.compiled is None and rep.builds == 0
+    assert rep.input_names == ("x", "shape", "lo", "hi") and rep.parameter_names == ("shape", "lo", "hi")
+    rng = np.random.default_rng(1)
+    shape, lo, hi = np.array([3, 2], np.int64), np.float32(-0.5), np.float32(0.5)
+
+    def run(x, shape, lo, hi):
+        (y,) = rep.run([x, shape, lo, hi])
+        np.testing.assert_array_equal(y, np.clip(x.reshape(shape), lo, hi))
+        return y
+
+    # First run: binds shape/lo/hi as initializers (no longer graph inputs), compiles, builds.
+    run(rng.standard_normal((2, 3), np.float32), shape, lo, hi)
+    assert len(compiles) == 1 and rep.builds == 1
+    bound = compiles[0].graph
+    assert [v.name for v in bound.input] == ["x"]
+    assert sorted(t.name for t in bound.initializer) == ["hi", "lo", "shape"]
+    assert [p.name for p in rep.compiled.inputs] == ["x"]
+    # Same parameter values, new data (also by name): the build is reused, x stays a runtime input.
+    for _ in range(2):
+        x = rng.standard_normal((2, 3), np.float32)
+        run(x, shape.copy(), np.float32(-0.5), hi)
+        (y,) = rep.run({"hi": hi, "x": x, "lo": lo, "shape": shape})
+        np.testing.assert_array_equal(y, np.clip(x.reshape(3, 2), lo, hi))
+    assert len(compiles) == 1 and rep.builds == 1
+    # Other values compile again; each set of values keeps its build.
+    x = rng.standard_normal((2, 3), np.float32)
+    assert run(x, np.array([6, 1], np.int64), lo, hi).shape == (6, 1)
+    assert run(x, shape, np.float32(0.0), hi).shape == (3, 2)
+    assert len(compiles) == 3 and rep.builds == 3
+    run(x, shape, lo, hi)
+    assert len(compiles) == 3 and rep.compiled.outputs[0].shape == (3, 2)
+
+
+@needs_cc
+def test_parameter_inputs_are_checked(compiles: list) -> None:
+    rep = NncgBackend.prepare(_reshape_clip_model())
+    x, lo, hi = np.zeros((2, 3), np.float32), np.float32(0), np.float32(1)
+    with pytest.raises(BackendError, match="'shape' is int32; the model declares int64"):
+        rep.run([x, np.array([3, 2], np.int32), lo, hi])
+    with pytest.raises(BackendError, match=r"'shape' has shape \[3\]"):
+        rep.run([x, np.array([3, 2, 1], np.int64), lo, hi])
+    with pytest.raises(BackendError, match="takes 4 inputs"):
+        rep.run([x])
+    assert compiles == []
+    with pytest.raises(BackendError, match="float32"):  # data inputs: checked against the build
+        rep.run([x.astype(np.float64), np.array([3, 2], np.int64), lo, hi])
+
+
+def test_nncg_compile_still_needs_constant_parameters() -> None:
+    graph = helper.make_graph(
+        [helper.make_node("Clip", ["x", "lo", "hi"], ["y"])],
+        "g",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in (("x", [2]), ("lo", []), ("hi", []))],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [2])],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    with pytest.raises(NncgError, match="computed at runtime"):
+        nncg.compile(model)

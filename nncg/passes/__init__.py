@@ -15,7 +15,7 @@ from .fuse_residual import fuse_residual
 from .inline_constants import inline_constants
 from .manager import REGISTRY, PassManager, PassSpec, format_pipeline, parse_pipeline, register
 from .plan_memory import parse_align, parse_reuse, parse_weights, plan_memory
-from .unroll import unroll
+from .unroll import NEST_BUDGET, unroll
 from .vectorize import vectorize
 
 
@@ -43,7 +43,7 @@ register("fuse-residual", "graph", fuse_residual)
 register("fuse-activation", "graph", fuse_activation)
 register("lower", "lower", lower)
 register("vectorize", "loop", vectorize, lanes=parse_lanes)
-register("unroll", "loop", unroll, level=parse_unroll_level, budget=int)
+register("unroll", "loop", unroll, level=parse_unroll_level, budget=int, total=int)
 register("inline-constants", "loop", inline_constants)
 register("plan-memory", "loop", plan_memory, align=parse_align, reuse=parse_reuse, weights=parse_weights)
 
@@ -53,14 +53,14 @@ GRAPH_PIPELINE = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-acti
 def default_pipeline(lanes: int, unroll_level: str = "2", weights: str = "auto", budget: int | None = None) -> str:
     """The pipeline `nncg-onnx` runs for a target with `lanes` SIMD lanes at an unroll level;
     `weights` (auto, embed, bin) says where plan-memory puts the weights; `budget` caps the
-    statements of each unrolled loop nest (None: no cap)."""
+    statements of the unrolled program (None: no cap)."""
     vector = f",vectorize{{lanes={lanes}}}" if lanes > 1 else ""
     try:
         parse_unroll_level(unroll_level)
     except ValueError:
         raise NncgError(f"unroll level '{unroll_level}' is not a depth >= 0 or none") from None
     plan = "plan-memory" if weights == "auto" else f"plan-memory{{weights={weights}}}"
-    cap = f",budget={budget}" if budget is not None and unroll_level != "none" else ""
+    cap = f",budget={min(NEST_BUDGET, budget)},total={budget}" if budget and unroll_level != "none" else ""
     return f"{GRAPH_PIPELINE}{vector},unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
 
 
