@@ -22,19 +22,11 @@ from typing import Any
 
 import onnx
 
+from nncg.frontend.folding import NONDETERMINISTIC
 from nncg.frontend.ops import SUPPORTED_OPS
 
 # Ops whose result is known at compile time from static shapes alone.
 _SHAPE_OPS = {"Shape", "Size"}
-# Ops that must not be folded even with constant inputs (as in nncg.frontend.folding).
-_NONDETERMINISTIC = {
-    "RandomNormal",
-    "RandomUniform",
-    "RandomNormalLike",
-    "RandomUniformLike",
-    "Multinomial",
-    "Bernoulli",
-}
 _EXPANDED = re.compile(r"_expanded(_ver\d+)?$")
 
 _F32 = "NNCG compiles float32 models only"
@@ -110,7 +102,7 @@ def live_ops(model: onnx.ModelProto) -> frozenset[str]:
     for node in graph.node:
         op = node.op_type if node.domain in ("", "ai.onnx") else f"{node.domain}.{node.op_type}"
         foldable = node.op_type in _SHAPE_OPS or all(i in constant for i in node.input)
-        if foldable and op not in _NONDETERMINISTIC:
+        if foldable and op not in NONDETERMINISTIC:
             constant.update(node.output)
         else:
             ops.add(op)

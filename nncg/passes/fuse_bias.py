@@ -9,18 +9,11 @@ from dataclasses import replace
 import numpy as np
 
 from ..ir.graph import Graph, Node
-from .rewrite import fresh_name, merge_into_producer, sole_consumer
+from .rewrite import fresh_name, fuse_adds, merge_into_producer, sole_consumer
 
 
 def fuse_bias(graph: Graph) -> Graph:
-    for add in graph.nodes:
-        if add.op != "Add":
-            continue
-        for data, other in (add.inputs, add.inputs[::-1]):
-            fused = _try_fuse(graph, add, data, other)
-            if fused is not None:
-                return fuse_bias(fused)
-    return graph
+    return fuse_adds(graph, _try_fuse)
 
 
 def _try_fuse(graph: Graph, add: Node, data: str, other: str) -> Graph | None:

@@ -7,18 +7,11 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..ir.graph import Graph, Node
-from .rewrite import sole_consumer
+from .rewrite import fuse_adds, sole_consumer
 
 
 def fuse_residual(graph: Graph) -> Graph:
-    for add in graph.nodes:
-        if add.op != "Add":
-            continue
-        for data, other in (add.inputs, add.inputs[::-1]):
-            fused = _try_fuse(graph, add, data, other)
-            if fused is not None:
-                return fuse_residual(fused)
-    return graph
+    return fuse_adds(graph, _try_fuse)
 
 
 def _try_fuse(graph: Graph, add: Node, data: str, other: str) -> Graph | None:

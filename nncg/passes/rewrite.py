@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 from ..ir.graph import Graph, Node
@@ -31,3 +32,15 @@ def fresh_name(graph: Graph, base: str, taken: dict) -> str:
     while name in graph.constants or name in graph.shapes or name in taken:
         name, i = f"{base}_{i}", i + 1
     return name
+
+
+def fuse_adds(graph: Graph, try_fuse: Callable[[Graph, Node, str, str], Graph | None]) -> Graph:
+    """Applies try_fuse(graph, add, data, other) to every Add, both operand orders, until none fuses."""
+    for add in graph.nodes:
+        if add.op != "Add":
+            continue
+        for data, other in (add.inputs, add.inputs[::-1]):
+            fused = try_fuse(graph, add, data, other)
+            if fused is not None:
+                return fuse_adds(fused, try_fuse)
+    return graph
