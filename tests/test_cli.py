@@ -53,6 +53,15 @@ def test_verify_prints_errors_and_passes(tmp_path):
     assert re.search(r"probabilities\s+\(1, 2\)\s+\S+\s+\S+", result.stdout) and "PASS" in result.stdout
 
 
+def test_same_model_and_options_give_byte_identical_files(tmp_path):
+    runs = []
+    for out in ("a", "b"):
+        options = ("--target", "ssse3", "--unroll", "none", "--weights", "bin")
+        assert nncg_onnx(EXAMPLES / "robot.onnx", *options, "-o", tmp_path / out).returncode == 0
+        runs.append({p.name: p.read_bytes() for p in sorted((tmp_path / out).iterdir())})
+    assert set(runs[0]) == {"robot.c", "robot.h", "robot.weights"} and runs[0] == runs[1]
+
+
 def test_print_ir_after_all_and_custom_pipeline(tmp_path):
     result = nncg_onnx(
         EXAMPLES / "ball.onnx", "-o", tmp_path, "--print-ir-after-all", "--pipeline", "lower,unroll{level=1}"
