@@ -3,7 +3,6 @@ and override only the vector hooks (type, load, store, broadcast, arithmetic, se
 
 from __future__ import annotations
 
-import re
 import zlib
 from dataclasses import replace
 
@@ -135,19 +134,21 @@ class AnsiC:
         lines += [f"#include {inc}" for inc in (*self.includes, *(["<time.h>"] if profile else []))]
         lines += ["", *PORTABILITY_MACROS, ""]
         lines += self._constants(program)
-        calls = []
+        calls, passed = [], set()
         for kernel in program.kernels:
             params = self._kernel_params(program, kernel)
             lines += self._kernel(program.name, _without_clashes(kernel, program), params)
             calls.append(f"{program.name}_{kernel.name}({', '.join(b.name for b in params)});")
+            passed |= {b.name for b in params}
         if profile:
             lines += self._profile_globals(program)
-        lines += self._run_function(program, calls, profile)
+        lines += self._run_function(program, calls, passed, profile)
         lines += self._static_arena_function(program)
         return "\n".join(lines) + "\n"
 
-    def _run_function(self, program: Program, calls: list[str], profile: bool) -> list[str]:
-        """NAME_run: points each internal buffer into the caller's arena, then runs the layers."""
+    def _run_function(self, program: Program, calls: list[str], passed: set[str], profile: bool) -> list[str]:
+        """NAME_run: points each internal buffer into the caller's arena, then runs the layers.
+        `passed` names the buffers some layer takes; an input no layer reads is cast to void."""
         decls = [
             f"const float *const {b.name} = (const float *)weights + {b.offset};"
             for b in program.role("constant")
@@ -160,10 +161,8 @@ class AnsiC:
         if profile:
             decls.append("double start = nncg_now(), end;")
             calls = self._timed(program, calls)
-        used = {name for line in (*decls, *calls) for name in re.findall(r"\w+", line)}
         params = [b.name for b in (*program.role("input"), *program.role("output"))]
-        params += ["weights"] if external_weights(program) else []
-        unused = [f"(void){name};" for name in params if name not in used]  # e.g. an input no node reads
+        unused = [f"(void){name};" for name in params if name not in passed]
         unused += [] if self._planned(program) else ["(void)arena;"]
         body = [*decls, *unused, *calls]
         return [self.run_signature(program), "{", *(INDENT + line for line in body), "}", ""]

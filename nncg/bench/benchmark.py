@@ -14,7 +14,6 @@ from pathlib import Path
 
 from ..compiler import compile as compile_model
 from ..frontend import load_model
-from ..passes.unroll import CODE_BUDGET
 from ..verify import compare, find_c_compiler, random_inputs
 from .harness import CompiledHarness, ObjectSizes
 from .onnxruntime_timer import OnnxruntimeTimer
@@ -80,26 +79,16 @@ def benchmark(
     cpu: int | None = None,
     peaks: dict[str, float | None] | None = None,
     input_shapes=None,
-    name: str | None = None,
-    weights: str = "auto",
-    code_budget: int | None = CODE_BUDGET,
+    **compile_options,
 ) -> BenchResult:
-    """Compiles `model`, then times it and onnxruntime side by side. `peaks` (GFLOP/s per ISA, from
-    nncg.bench.peak.measure_peaks) is measured here when not given."""
+    """Compiles `model` (compile_options go to nncg.compile), then times it and onnxruntime side by
+    side. `peaks` (GFLOP/s per ISA, from nncg.bench.peak.measure_peaks) is measured here when not given."""
     from .peak import TARGET_ISA, measure_peak
 
     cc = find_c_compiler(cc)
     proto = load_model(model, input_shapes)
     start = time.perf_counter()
-    compiled = compile_model(
-        model,
-        target=target,
-        unroll=unroll,
-        name=name,
-        input_shapes=input_shapes,
-        weights=weights,
-        code_budget=code_budget,
-    )
+    compiled = compile_model(model, target=target, unroll=unroll, input_shapes=input_shapes, **compile_options)
     generate_seconds = time.perf_counter() - start
     inputs = random_inputs(compiled.inputs, seed=0)
     isa = TARGET_ISA[target]
@@ -152,23 +141,12 @@ def profile(
     min_seconds: float = 0.2,
     cc: str | None = None,
     cpu: int | None = None,
-    input_shapes=None,
-    name: str | None = None,
-    weights: str = "auto",
-    code_budget: int | None = CODE_BUDGET,
+    **compile_options,
 ) -> list[LayerTime]:
-    """Time per layer, from timers the profile build puts around each layer's function."""
+    """Time per layer, from timers the profile build puts around each layer's function
+    (compile_options go to nncg.compile)."""
     cc = find_c_compiler(cc)
-    compiled = compile_model(
-        model,
-        target=target,
-        unroll=unroll,
-        name=name,
-        input_shapes=input_shapes,
-        profile=True,
-        weights=weights,
-        code_budget=code_budget,
-    )
+    compiled = compile_model(model, target=target, unroll=unroll, profile=True, **compile_options)
     macs = dict(compiled.layer_macs)
     inputs = random_inputs(compiled.inputs, seed=0)
     with pinned(cpu), tempfile.TemporaryDirectory(prefix="nncg-profile-") as tmp:
