@@ -37,7 +37,7 @@ class Row:
     target: str
     result: BenchResult | None
     problem: str = ""  # why there is no result (an unsupported operator, ...)
-    unroll: str = "2"
+    unroll: str = "auto"
 
 
 def run_suite(
@@ -48,10 +48,10 @@ def run_suite(
     for model in models:
         for target in targets:
             progress(f"{model} / {target} ...")
-            level = "2"  # the defaults: level 2 under the code budget
+            level = "auto"  # the defaults
             try:
                 result = benchmark(
-                    model_path(model), target, 2, cpu=cpu, batches=batches, min_batch_seconds=min_batch_seconds,
+                    model_path(model), target, level, cpu=cpu, batches=batches, min_batch_seconds=min_batch_seconds,
                     peaks=peaks,
                 )  # fmt: skip
                 rows.append(Row(model, target, result, unroll=level))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shlex
 import sys
 
 from . import __version__
@@ -32,11 +33,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output-dir", default=".", help="where NAME.c and NAME.h go (default: .)")
     p.add_argument("--name", help="C function and file name (default: the model file's stem)")
     p.add_argument(
+        "--cmake",
+        action="store_true",
+        help="also write a CMakeLists.txt defining the static library NAME (add_subdirectory() the folder, "
+        "then target_link_libraries(app PRIVATE NAME))",
+    )
+    p.add_argument(
         "--unroll",
-        default="2",
-        metavar="LEVEL|none",
-        help="unroll level: keep the LEVEL outermost loops of each layer, unroll the rest; "
-        "0 unrolls everything, none nothing (default: 2)",
+        default="auto",
+        metavar="auto|LEVEL|none",
+        help="auto: unroll each loop that expands to at most 64 statements (register-blocked layers keep "
+        "their reduction loops); LEVEL: keep the LEVEL outermost loops of each layer, unroll the rest "
+        "(the paper's levels; 0 unrolls everything); none: nothing (default: auto)",
     )
     p.add_argument(
         "--input-shape",
@@ -62,6 +70,18 @@ def build_parser() -> argparse.ArgumentParser:
         "passes by pointer; auto (default): bin above 4 MiB of weights",
     )
     p.add_argument("--pipeline", help="run this pass pipeline instead of the default (see --list-passes)")
+    p.add_argument(
+        "--tune",
+        action="store_true",
+        help="time variants of every register-blocked layer (block shape, unroll budget) with --cc on this "
+        "machine and keep each layer's fastest; choices are cached by layer and target (~/.cache/nncg/tune.json)",
+    )
+    p.add_argument(
+        "--tune-runner",
+        metavar="CMD",
+        help="with --tune: run the timing programs through CMD, e.g. 'qemu-aarch64 -L /usr/aarch64-linux-gnu' "
+        "or a script that runs them on a board (with --cc a cross compiler)",
+    )
     p.add_argument("--print-ir-after-all", action="store_true", help="print the IR after every pass to stderr")
     p.add_argument(
         "--verify",
@@ -111,10 +131,11 @@ def run(args: argparse.Namespace) -> int:
         for info in REGISTRY.values():
             params = f"{{{','.join(f'{k}=...' for k in info.params)}}}" if info.params else ""
             print(f"{info.name + params:28} {info.stage:6} {info.doc}")
-        print(f"\ndefault pipeline (ssse3, unroll 2): {default_pipeline(4, '2')}")
+        print(f"\ndefault pipeline (ssse3): {default_pipeline(4)}")
         return 0
     if not args.model:
         raise NncgError("no model given: nncg-onnx MODEL.onnx --target ssse3 -o build/")
+    args.pipeline = tune_command(args) if args.tune or args.tune_runner else args.pipeline
     compiled = compile(
         args.model,
         target=args.target,
@@ -126,12 +147,26 @@ def run(args: argparse.Namespace) -> int:
         weights=args.weights,
         code_budget=args.code_budget or None,
     )
-    paths = compiled.write(args.output_dir)
+    paths = compiled.write(args.output_dir, cmake=args.cmake)
     print(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}")
     status = verify_command(args, compiled) if args.verify else 0
     if args.benchmark or args.profile:
         measure_command(args)
     return status
+
+
+def tune_command(args: argparse.Namespace) -> str:
+    from .tune import tune
+
+    if args.pipeline:
+        raise NncgError("--tune builds its own pipeline: give --tune or --pipeline, not both")
+    if args.unroll != "auto":
+        raise NncgError("--tune chooses unroll budgets per layer: leave --unroll at auto")
+    return tune(
+        args.model, args.target, cc=args.cc, runner=shlex.split(args.tune_runner or ""),
+        input_shapes=dict(args.input_shape) or None, weights=args.weights, code_budget=args.code_budget or None,
+        cpu=args.cpu,
+    )  # fmt: skip
 
 
 def verify_command(args: argparse.Namespace, compiled) -> int:
@@ -150,7 +185,7 @@ def measure_command(args: argparse.Namespace) -> None:
     options = dict(
         target=args.target, unroll=args.unroll, cc=args.cc, cpu=args.cpu,
         input_shapes=dict(args.input_shape) or None, name=args.name, weights=args.weights,
-        code_budget=args.code_budget or None,
+        code_budget=args.code_budget or None, pipeline=args.pipeline,
     )  # fmt: skip
     if args.benchmark:
         print(format_results([benchmark(args.model, **options)]))

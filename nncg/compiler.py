@@ -19,6 +19,7 @@ from . import __version__
 from .backends import get_backend
 from .backends.c import external_weights, weights_blob
 from .bench.macs import macs_by_layer
+from .cmake import CMAKE_LISTS, cmake_file
 from .frontend import import_onnx
 from .ir.loops import Program
 from .lowering.context import c_identifier
@@ -56,13 +57,16 @@ class CompiledModel:
     def macs(self) -> int:
         return sum(m for _, m in self.layer_macs)
 
-    def write(self, directory: str | os.PathLike) -> tuple[Path, ...]:
-        """Writes NAME.c, NAME.h (and NAME.weights); on any failure none is left behind half-written."""
+    def write(self, directory: str | os.PathLike, cmake: bool = False) -> tuple[Path, ...]:
+        """Writes NAME.c, NAME.h (and NAME.weights; with `cmake`, a CMakeLists.txt defining the static
+        library NAME, see nncg/cmake.py); on any failure none is left behind half-written."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         files = {f"{self.name}.c": self.source.encode(), f"{self.name}.h": self.header.encode()}
         if self.weights is not None:
             files[f"{self.name}.weights"] = self.weights
+        if cmake:
+            files[CMAKE_LISTS] = cmake_file(self, out)
         paths = tuple(out / name for name in files)
         temps = []
         try:
@@ -83,7 +87,7 @@ class CompiledModel:
 def compile(
     model: str | os.PathLike | bytes | onnx.ModelProto,
     target: str = "ansi-c",
-    unroll: str | int | None = 2,
+    unroll: str | int | None = "auto",
     name: str | None = None,
     input_shapes: dict[str, tuple[int, ...]] | None = None,
     pipeline: str | None = None,
@@ -93,16 +97,17 @@ def compile(
     weights: str = "auto",
     code_budget: int | None = CODE_BUDGET,
 ) -> CompiledModel:
-    """Compiles an ONNX model to C for `target`. `unroll` is a level (int) or None/"none" for no
-    unrolling; `pipeline` replaces the default pass pipeline entirely; `profile` adds per-layer
-    timers to the generated code (for `--profile`; they need POSIX clock_gettime); `weights` is
-    embed (static const arrays), bin (NAME.weights, passed by pointer) or auto (bin when large);
-    `code_budget` caps the statements of the unrolled program (None: the paper's levels exactly)."""
+    """Compiles an ONNX model to C for `target`. `unroll` is "auto" (small loops unrolled, see the
+    unroll pass), a level (int: the paper's levels) or None/"none" for no unrolling; `pipeline`
+    replaces the default pass pipeline entirely; `profile` adds per-layer timers to the generated
+    code (for `--profile`; they need POSIX clock_gettime); `weights` is embed (static const arrays),
+    bin (NAME.weights, passed by pointer) or auto (bin when large); `code_budget` caps the
+    statements of the unrolled program (None: the paper's levels exactly)."""
     backend = get_backend(target)
     graph = import_onnx(model, input_shapes)
     level = "none" if unroll is None else str(unroll)
     if pipeline is None:
-        pipeline = default_pipeline(backend.lanes, level, weights, code_budget)
+        pipeline = default_pipeline(backend.vector_widths, level, weights, code_budget, backend.registers)
     manager = PassManager(pipeline, verify=verify_ir, print_ir_after_all=print_ir_after_all)
     name = c_identifier(name or _default_name(model, graph.name))
     program = manager.run(_with_name(graph, name))

@@ -293,14 +293,15 @@ def _build(
     return workdir / "harness"
 
 
-def _execute(program: Path, args: list[str], workdir: Path, sanitize: bool) -> None:
-    """Run the test program; a crash, nonzero exit or any sanitizer report raises."""
+def _execute(program: Path, args: list[str], workdir: Path, sanitize: bool, runner: Sequence[str] = ()) -> None:
+    """Run the test program (under `runner`, e.g. an emulator, when given); a crash, nonzero exit or
+    any sanitizer report raises."""
     env = dict(os.environ)
     env.setdefault("ASAN_OPTIONS", "abort_on_error=0:detect_leaks=1")
     env.setdefault("UBSAN_OPTIONS", "print_stacktrace=1:halt_on_error=1")
     try:
         proc = subprocess.run(
-            [str(program), *args],
+            [*runner, str(program), *args],
             check=False,
             cwd=workdir,
             capture_output=True,
@@ -330,20 +331,23 @@ def run_compiled(
     extra_cflags: Sequence[str] = (),
     sanitize: bool = False,
     workdir: str | os.PathLike[str] | None = None,
+    runner: Sequence[str] = (),
 ) -> list[np.ndarray]:
     """Compile the model with a test harness, run it once on `inputs`; returns the outputs.
 
-    `cc=None` picks the first of cc, gcc, clang on PATH. The generated file is compiled with the
+    `cc=None` picks the first of cc, gcc, clang on PATH (a cross compiler works too: `runner` is
+    the command that runs its program, e.g. ("qemu-arm",)). The generated file is compiled with the
     target's strict flags; `sanitize` builds with ASan+UBSan and fails on any report. Files are
     kept in `workdir` when given, else in a temporary directory that is removed afterwards.
     """
     _check_inputs(compiled, inputs)
     cc = find_c_compiler(cc)
+    build = (cc, opt, extra_cflags, sanitize, runner)
     if workdir is None:
         with tempfile.TemporaryDirectory(prefix="nncg-verify-") as tmp:
-            return _build_and_run(compiled, inputs, Path(tmp), cc, opt, extra_cflags, sanitize)
+            return _build_and_run(compiled, inputs, Path(tmp), *build)
     Path(workdir).mkdir(parents=True, exist_ok=True)
-    return _build_and_run(compiled, inputs, Path(workdir).resolve(), cc, opt, extra_cflags, sanitize)
+    return _build_and_run(compiled, inputs, Path(workdir).resolve(), *build)
 
 
 class BuiltModel:
@@ -352,11 +356,14 @@ class BuiltModel:
     Files live in `workdir`, which the caller owns; `run` is not reentrant (it reuses the files).
     """
 
-    def __init__(self, compiled: Any, program: Path, workdir: Path, sanitize: bool = False) -> None:
+    def __init__(
+        self, compiled: Any, program: Path, workdir: Path, sanitize: bool = False, runner: Sequence[str] = ()
+    ) -> None:
         self.compiled = compiled
         self.program = program
         self.workdir = workdir
         self.sanitize = sanitize
+        self.runner = tuple(runner)
 
     def run(self, inputs: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Run the program once on `inputs` (in the model's input order); returns the outputs."""
@@ -365,7 +372,7 @@ class BuiltModel:
         out_files = [f"output{i}.bin" for i in range(len(self.compiled.outputs))]
         for name, array in zip(in_files, inputs):
             np.ascontiguousarray(array, dtype="<f4").tofile(self.workdir / name)
-        _execute(self.program, in_files + out_files, self.workdir, self.sanitize)
+        _execute(self.program, in_files + out_files, self.workdir, self.sanitize, self.runner)
         return [_read_output(self.workdir / name, spec) for name, spec in zip(out_files, self.compiled.outputs)]
 
 
@@ -378,17 +385,18 @@ def build_model(
     extra_cflags: Sequence[str] = (),
     sanitize: bool = False,
     single_invocation: bool = False,
+    runner: Sequence[str] = (),
 ) -> BuiltModel:
     """Build the model with the test harness in `workdir` (created if needed) for repeated runs.
 
-    `cc`, `opt`, `extra_cflags` and `sanitize` are as for run_compiled; `single_invocation`
+    `cc`, `opt`, `extra_cflags`, `sanitize` and `runner` are as for run_compiled; `single_invocation`
     compiles and links with one compiler call."""
     cc = find_c_compiler(cc)
     path = Path(workdir)
     path.mkdir(parents=True, exist_ok=True)
     path = path.resolve()
     program = _build(compiled, path, cc, opt, extra_cflags, sanitize, single_invocation)
-    return BuiltModel(compiled, program, path, sanitize)
+    return BuiltModel(compiled, program, path, sanitize, runner)
 
 
 def _build_and_run(
@@ -399,9 +407,10 @@ def _build_and_run(
     opt: str,
     flags: Sequence[str],
     sanitize: bool,
+    runner: Sequence[str],
 ) -> list[np.ndarray]:
     program = _build(compiled, workdir, cc, opt, flags, sanitize)
-    return BuiltModel(compiled, program, workdir, sanitize).run(inputs)
+    return BuiltModel(compiled, program, workdir, sanitize, runner).run(inputs)
 
 
 def _read_output(path: Path, spec: Any) -> np.ndarray:
@@ -485,11 +494,17 @@ def verify(
     cc: str | None = None,
     sanitize: bool = False,
     opt: str = "-O2",
+    extra_cflags: Sequence[str] = (),
+    runner: Sequence[str] = (),
 ) -> VerifyReport:
-    """Run the compiled C and onnxruntime on the same fixed-seed inputs and compare every output."""
+    """Run the compiled C and onnxruntime on the same fixed-seed inputs and compare every output.
+
+    `cc`, `extra_cflags` and `runner` build and run it elsewhere, e.g. a cross compiler under qemu."""
     _check_interface(model, compiled)
     inputs = random_inputs(compiled.inputs, seed)
-    outputs = run_compiled(compiled, inputs, cc=cc, sanitize=sanitize, opt=opt)
+    outputs = run_compiled(
+        compiled, inputs, cc=cc, sanitize=sanitize, opt=opt, extra_cflags=extra_cflags, runner=runner
+    )
     references = reference_outputs(model, compiled.inputs, inputs)
     stats = compare(outputs, references, [spec.name for spec in compiled.outputs])
     return VerifyReport(compiled.name, compiled.target, tuple(stats), tolerance, seed)

@@ -1,14 +1,26 @@
 #!/usr/bin/env bash
 # Installs what the test suite needs: the Python package with its test extra, and the C compilers
-# the tests build generated code with (Debian packages; needs root or sudo for those).
+# the tests build generated code with, cross compilers and emulators (Debian packages; needs root or
+# sudo for those).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-DEBIAN_PACKAGES=(gcc clang)
+# gcc and clang build generated code on the host; tcc, the cross compilers and qemu run the
+# portability tests (tests/test_cross_targets.py, issue 6); cmake builds the --cmake output.
+# Not gcc-multilib: it conflicts with the ARM cross compilers (gcc-i686-linux-gnu builds 32-bit x86).
+# The cross libc's are only recommended by the cross gcc's, and recommends are not installed.
+DEBIAN_PACKAGES=(
+    gcc clang tcc cmake
+    gcc-i686-linux-gnu gcc-arm-linux-gnueabihf gcc-aarch64-linux-gnu gcc-riscv64-linux-gnu
+    libc6-dev-i386-cross libc6-dev-armhf-cross libc6-dev-arm64-cross libc6-dev-riscv64-cross
+    gcc-arm-none-eabi libnewlib-arm-none-eabi
+    qemu-user qemu-system-arm
+)
 
 missing=()
 for pkg in "${DEBIAN_PACKAGES[@]}"; do
-    dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
+    # "install ok installed": a removed package whose config files remain still answers dpkg -s.
+    [ "$(dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null)" = "install ok installed" ] || missing+=("$pkg")
 done
 if [ ${#missing[@]} -gt 0 ]; then
     if ! command -v apt-get >/dev/null; then

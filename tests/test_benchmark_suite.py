@@ -27,7 +27,7 @@ def test_suite_report_lists_results_and_unsupported_models(tmp_path, monkeypatch
     table = [line for line in text.splitlines() if line.startswith("| ")]
     assert table[0].startswith("| model | target | unroll | NNCG µs") and len(table) == 1 + len(rows)
     assert all(line.count("|") == table[0].count("|") for line in table)
-    assert "| broken | ssse3 | 2 | not supported yet: " in text and "pinned to core 0" in text and "2026-01-01" in text
+    assert "| broken | ssse3 | auto | not supported yet: " in text and "pinned to core 0" in text and "2026-01-01" in text
     chart = tmp_path / "results.png"
     write_chart(rows, chart)
     assert chart.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and chart.stat().st_size > 5000

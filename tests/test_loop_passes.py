@@ -2,7 +2,10 @@
 
 import numpy as np
 import pytest
+from test_ops import conv_model
 
+import nncg
+from nncg.errors import NncgError
 from nncg.ir.loops import (
     Affine,
     Assign,
@@ -23,6 +26,7 @@ from nncg.ir.loops import (
     walk_stmts,
 )
 from nncg.ir.verify import verify_program
+from nncg.passes import PassManager, default_pipeline, parse_lanes
 from nncg.passes.inline_constants import inline_constants
 from nncg.passes.unroll import emitted_size, mark_unroll, unroll
 from nncg.passes.vectorize import vectorize
@@ -140,6 +144,74 @@ def test_vectorize_makes_reduction_locals_vectors():
     assert let_v.body[1] == Store("y", A(0), LocalRef("acc", 4))
     assert let_v.body[0].body[0].value.b.a == Broadcast(Load("x", A("k")), 4)
     assert verify_program(out) == []
+
+
+def channel_nest(channels):
+    """y[i*C + c] = x[i] * w[c] + x[i]: a broadcast, a contiguous load, a store along c."""
+    x = Load("x", A("i"))
+    store = Store("y", A("i") * channels + "c", Binary("+", Binary("*", x, Load("w", A("c"))), x))
+    return (Loop("i", 2, (Loop("c", channels, (store,), parallel=True),), parallel=True),)
+
+
+def vector_blocks(body):
+    """(first channel, lanes, iterations) of each store along c in the i loop; lanes 1: scalar."""
+    out = []
+    for stmt in body[0].body:
+        store = stmt.body[0] if isinstance(stmt, Loop) else stmt
+        start = store.index.substitute({"i": 0, "c": 0}).const
+        out.append((start, store.value.lanes, stmt.extent if isinstance(stmt, Loop) else 1))
+    return out
+
+
+@pytest.mark.parametrize(
+    "channels, blocks",
+    [
+        (12, [(0, 8, 1), (8, 4, 1)]),  # one 8-lane and one 4-lane block, no scalar loop
+        (20, [(0, 16, 1), (16, 4, 1)]),
+        (8, [(0, 8, 1)]),
+        (44, [(0, 16, 2), (32, 8, 1), (40, 4, 1)]),
+        (14, [(0, 8, 1), (8, 4, 1), (12, 1, 2)]),  # 2 channels left: a scalar tail loop
+        (3, None),  # narrower than every width: left scalar
+    ],
+)
+def test_vectorize_splits_channels_into_several_widths(channels, blocks):
+    p = program(channel_nest(channels), {"w": np.arange(channels, dtype=np.float32)}, size=2 * channels)
+    out = vectorize(p, lanes=(16, 8, 4))
+    assert verify_program(out) == []
+    if blocks is None:
+        assert out == p
+    else:
+        assert vector_blocks(out.kernels[0].body) == blocks
+
+
+def test_vectorize_widths_print_each_block_with_its_own_width():
+    # 12 channels: 8 lanes at c = 0, 4 lanes at c = 8; w is loaded, x broadcast, at each block's width
+    out = vectorize(program(channel_nest(12), {"w": np.arange(12, dtype=np.float32)}, size=24), lanes=(16, 8, 4))
+    eight, four = out.kernels[0].body[0].body
+    x = Load("x", A("i"))
+    assert eight == Store(
+        "y", A("i") * 12, Binary("+", Binary("*", Broadcast(x, 8), Load("w", A(0), 8)), Broadcast(x, 8))
+    )
+    assert four == Store(
+        "y", A("i") * 12 + 8, Binary("+", Binary("*", Broadcast(x, 4), Load("w", A(8), 4)), Broadcast(x, 4))
+    )
+    assert vectorize(program(channel_nest(12)), lanes=(4,)) == vectorize(program(channel_nest(12)), lanes=4)
+
+
+def test_vectorize_widths_in_pipelines():
+    assert PassManager("lower,vectorize{lanes=16/8/4}").pipeline == "lower,vectorize{lanes=16/8/4}"
+    assert parse_lanes("4") == (4,) and parse_lanes("8/4") == (8, 4)
+    for bad in ("3", "4/8", "8/8", "16/1", "0"):
+        with pytest.raises(NncgError, match="bad value"):
+            PassManager(f"lower,vectorize{{lanes={bad}}}")
+    assert "vectorize{lanes=16/8/4}," in default_pipeline((16, 8, 4))
+    assert "vectorize" not in default_pipeline(())
+
+
+def test_backends_reject_widths_they_cannot_print():
+    m = conv_model((1, 3, 6, 7), 12, (3, 3), pads=[1, 1, 1, 1])
+    with pytest.raises(NncgError, match="ssse3 cannot print 8-lane vectors; run vectorize with lanes=4"):
+        nncg.compile(m, target="ssse3", pipeline="lower,vectorize{lanes=8/4},plan-memory")
 
 
 @pytest.mark.parametrize(

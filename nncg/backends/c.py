@@ -115,7 +115,9 @@ class AnsiC:
     """Strict C89 plus math.h: scalar code, conditional moves for max/min/select."""
 
     name = "ansi-c"
-    lanes = 1
+    lanes = 1  # the widest vector width
+    vector_widths: tuple[int, ...] = ()  # the vector widths the printer has, widest first
+    registers = 16  # vector (or float) registers, for register blocking: x86-64 has 16 xmm/ymm
     cflags: tuple[str, ...] = ()
     strict_cflags: tuple[str, ...] = ("-std=c89", "-pedantic", "-Wall", "-Wextra", "-Werror")
     includes: tuple[str, ...] = ("<math.h>",)
@@ -430,4 +432,5 @@ class AnsiC:
 
     def _scalar_only(self, lanes: int) -> None:
         if lanes != 1:
-            raise NncgError(f"target {self.name} prints scalar code only; run vectorize with lanes=1 (or not at all)")
+            widths = "/".join(map(str, self.vector_widths)) or "1 (or not at all)"
+            raise NncgError(f"target {self.name} cannot print {lanes}-lane vectors; run vectorize with lanes={widths}")

@@ -71,7 +71,7 @@ def interleaved_medians(timers: dict, batches: int, min_seconds: float) -> dict[
 def benchmark(
     model,
     target: str = "ssse3",
-    unroll: str | int | None = 2,
+    unroll: str | int | None = "auto",
     *,
     batches: int = 15,
     min_batch_seconds: float = 0.02,
@@ -136,7 +136,7 @@ class LayerTime:
 def profile(
     model,
     target: str = "ssse3",
-    unroll: str | int | None = 2,
+    unroll: str | int | None = "auto",
     *,
     min_seconds: float = 0.2,
     cc: str | None = None,

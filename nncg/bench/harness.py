@@ -135,7 +135,17 @@ def harness_source(compiled, profile: bool) -> str:
 class CompiledHarness:
     """The built harness for one compiled model, running as a child process."""
 
-    def __init__(self, compiled, workdir: Path, cc: str, inputs: list[np.ndarray], profile: bool = False):
+    def __init__(
+        self,
+        compiled,
+        workdir: Path,
+        cc: str,
+        inputs: list[np.ndarray],
+        profile: bool = False,
+        runner: tuple[str, ...] = (),
+    ):
+        """`runner` prefixes the harness's command line (an emulator such as qemu-aarch64, or a
+        script that runs it on a board), for a harness built with a cross compiler."""
         self.compiled = compiled
         self.workdir = workdir
         compiled.write(workdir)
@@ -151,13 +161,16 @@ class CompiledHarness:
         for path, array in zip(in_files, inputs):
             np.ascontiguousarray(array, dtype="<f4").tofile(workdir / path)
         self.out_files = [f"out{i}.bin" for i in range(len(compiled.outputs))]
-        self.process = subprocess.Popen(
-            ["./bench", *in_files, *self.out_files],
-            cwd=workdir,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
+        try:
+            self.process = subprocess.Popen(
+                [*runner, "./bench", *in_files, *self.out_files],
+                cwd=workdir,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+        except OSError as exc:
+            raise NncgError(f"cannot start the benchmark harness with '{' '.join(runner)}': {exc}") from None
 
     def run(self, calls: int) -> float:
         """Seconds for `calls` back-to-back inferences."""

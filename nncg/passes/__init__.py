@@ -15,25 +15,33 @@ from .fuse_residual import fuse_residual
 from .inline_constants import inline_constants
 from .manager import REGISTRY, PassManager, PassSpec, format_pipeline, parse_pipeline, register
 from .plan_memory import parse_align, parse_reuse, parse_weights, plan_memory
-from .unroll import NEST_BUDGET, unroll
+from .register_block import parse_layers, register_block
+from .unroll import AUTO_BUDGET, NEST_BUDGET, parse_layer_budgets, unroll
 from .vectorize import vectorize
 
 
 def parse_unroll_level(text: str) -> int | None:
-    """An unroll level: a loop depth >= 0, or `none`."""
+    """An unroll level: a loop depth >= 0, `none`, or `auto` (every loop that unrolls to at most the
+    unroll pass's `budget` statements)."""
     if text == "none":
         return None
+    if text == "auto":
+        return text
     level = int(text)
     if level < 0:
         raise ValueError("the unroll level is a depth >= 0, or none")
     return level
 
 
-def parse_lanes(text: str) -> int:
-    lanes = int(text)
-    if lanes not in (1, 2, 4, 8, 16):
-        raise ValueError("lanes is 1, 2, 4, 8 or 16")
-    return lanes
+def parse_lanes(text: str) -> tuple[int, ...]:
+    """Vector widths, widest first: `4`, or `16/8/4` (a loop is split into blocks of the widest that
+    fits, the rest into the next narrower, ...). `1`: no vectors."""
+    widths = tuple(int(part) for part in text.split("/"))
+    if widths == (1,):
+        return widths
+    if not all(w in (2, 4, 8, 16) for w in widths) or list(widths) != sorted(set(widths), reverse=True):
+        raise ValueError("lanes is 1, 2, 4, 8 or 16, or widths from 2, 4, 8, 16 widest first: 16/8/4")
+    return widths
 
 
 register("drop-identity", "graph", drop_identity)
@@ -43,25 +51,37 @@ register("fuse-residual", "graph", fuse_residual)
 register("fuse-activation", "graph", fuse_activation)
 register("lower", "lower", lower)
 register("vectorize", "loop", vectorize, lanes=parse_lanes)
-register("unroll", "loop", unroll, level=parse_unroll_level, budget=int, total=int)
+register("register-block", "loop", register_block, registers=int, layers=parse_layers)
+register("unroll", "loop", unroll, level=parse_unroll_level, budget=int, total=int, layers=parse_layer_budgets)
 register("inline-constants", "loop", inline_constants)
 register("plan-memory", "loop", plan_memory, align=parse_align, reuse=parse_reuse, weights=parse_weights)
 
 GRAPH_PIPELINE = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation,lower"
 
 
-def default_pipeline(lanes: int, unroll_level: str = "2", weights: str = "auto", budget: int | None = None) -> str:
-    """The pipeline `nncg-onnx` runs for a target with `lanes` SIMD lanes at an unroll level;
-    `weights` (auto, embed, bin) says where plan-memory puts the weights; `budget` caps the
-    statements of the unrolled program (None: no cap)."""
-    vector = f",vectorize{{lanes={lanes}}}" if lanes > 1 else ""
+def default_pipeline(
+    widths: tuple[int, ...] | int,
+    unroll_level: str = "auto",
+    weights: str = "auto",
+    budget: int | None = None,
+    registers: int = 16,
+) -> str:
+    """The pipeline `nncg-onnx` runs for a target with these SIMD widths (widest first; one int: one
+    width) and `registers` vector registers, at an unroll level; `weights` (auto, embed, bin) says
+    where plan-memory puts the weights; `budget` caps the statements of the unrolled program (None: no cap)."""
+    widths = tuple(w for w in ((widths,) if isinstance(widths, int) else widths) if w > 1)
+    vector = f",vectorize{{lanes={'/'.join(map(str, widths))}}}" if widths else ""
     try:
         parse_unroll_level(unroll_level)
     except ValueError:
-        raise NncgError(f"unroll level '{unroll_level}' is not a depth >= 0 or none") from None
+        raise NncgError(f"unroll level '{unroll_level}' is not auto, a depth >= 0 or none") from None
     plan = "plan-memory" if weights == "auto" else f"plan-memory{{weights={weights}}}"
-    cap = f",budget={min(NEST_BUDGET, budget)},total={budget}" if budget and unroll_level != "none" else ""
-    return f"{GRAPH_PIPELINE}{vector},unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
+    nest = AUTO_BUDGET if unroll_level == "auto" else NEST_BUDGET
+    cap = f",budget={min(nest, budget)},total={budget}" if budget and unroll_level != "none" else ""
+    if unroll_level == "auto" and not budget:
+        cap = f",budget={nest}"
+    block = f",register-block{{registers={registers}}}"
+    return f"{GRAPH_PIPELINE}{vector}{block},unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
 
 
 __all__ = [

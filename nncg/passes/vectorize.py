@@ -2,8 +2,11 @@
 
 Marks, in each kernel, the innermost parallel loop that every store walks contiguously, then
 materialises it: a loop over vector blocks whose expressions have N lanes, plus a scalar tail when
-the extent is not a multiple of N. Loads that do not depend on the loop become broadcasts. A call
-(exp, ...) becomes a vector call: backends without a vector version call the function per lane."""
+the extent is not a multiple of N. With several widths, widest first (`lanes=16/8/4`), the extent is
+split greedily: blocks of the widest width that fits, the remainder in the next narrower width, and
+so on; only what is left after the narrowest is scalar (12 channels at 16/8/4: one 8-lane and one
+4-lane block). Loads that do not depend on the loop become broadcasts. A call (exp, ...) becomes a
+vector call: backends without a vector version call the function per lane."""
 
 from __future__ import annotations
 
@@ -34,35 +37,41 @@ from ..ir.loops import (
 from .substitute import substitute_body
 
 
-def vectorize(program: Program, lanes: int = 4) -> Program:
-    if lanes <= 1:
+def vectorize(program: Program, lanes: int | tuple[int, ...] = 4) -> Program:
+    """`lanes`: one vector width, or several, widest first."""
+    widths = tuple(w for w in ((lanes,) if isinstance(lanes, int) else lanes) if w > 1)
+    if not widths:
         return program
+    if list(widths) != sorted(set(widths), reverse=True):
+        raise ValueError(f"vector widths {widths} are not strictly decreasing")
     kernels = []
     for kernel in program.kernels:
-        body = mark_vector_loop(kernel.body, lanes)
-        kernels.append(replace(kernel, body=map_body(body, lambda s: materialize(s))))
+        body = mark_vector_loop(kernel.body, widths)
+        kernels.append(replace(kernel, body=map_body(body, lambda s: materialize(s, widths))))
     return replace(program, kernels=tuple(kernels))
 
 
 # ---------------------------------------------------------------------------- choice
 
 
-def mark_vector_loop(body: tuple[Stmt, ...], lanes: int) -> tuple[Stmt, ...]:
-    """Marks the innermost eligible loop on each path (loops already marked are kept)."""
+def mark_vector_loop(body: tuple[Stmt, ...], widths: int | tuple[int, ...]) -> tuple[Stmt, ...]:
+    """Marks the innermost eligible loop on each path (loops already marked are kept) with the
+    widest width that fits its extent."""
+    widths = (widths,) if isinstance(widths, int) else widths
 
     def mark(stmt: Stmt) -> Stmt:
-        if not isinstance(stmt, Loop) or stmt.kind != "serial" or not vectorizable(stmt, lanes):
+        if not isinstance(stmt, Loop) or stmt.kind != "serial" or not vectorizable(stmt, widths[-1]):
             return stmt
         if any(isinstance(s, Loop) and s.kind == "vectorized" for s in walk_stmts(stmt.body)):
             return stmt
-        return replace(stmt, kind="vectorized", lanes=lanes)
+        return replace(stmt, kind="vectorized", lanes=next(w for w in widths if w <= stmt.extent))
 
     return map_body(body, mark)
 
 
 def vectorizable(loop: Loop, lanes: int) -> bool:
-    """Parallel, at least one full vector, stores contiguous along the loop, loads contiguous or
-    invariant, no branch or outer local that depends on the loop."""
+    """Parallel, at least one full vector of `lanes`, stores contiguous along the loop, loads
+    contiguous or invariant, no branch or outer local that depends on the loop."""
     if not loop.parallel or loop.extent < lanes:
         return False
     var = loop.var
@@ -87,25 +96,30 @@ def vectorizable(loop: Loop, lanes: int) -> bool:
 # ---------------------------------------------------------------------------- mechanism
 
 
-def materialize(stmt: Stmt) -> Stmt | tuple[Stmt, ...]:
+def materialize(stmt: Stmt, widths: tuple[int, ...] = ()) -> Stmt | tuple[Stmt, ...]:
+    """A marked loop as blocks of its width, then of each narrower width of `widths` that fits the
+    rest, then a scalar tail."""
     if not isinstance(stmt, Loop) or stmt.kind != "vectorized":
         return stmt
-    lanes, var = stmt.lanes, stmt.var
-    blocks, tail = divmod(stmt.extent, lanes)
+    var, start = stmt.var, 0
     out: list[Stmt] = []
-    # Which loads become vector loads is decided on the original indices, before var is scaled.
-    vector = _vector_body(stmt.body, var, lanes, set())
-    if blocks == 1:
-        out += substitute_body(vector, {var: Affine()})
-    elif blocks > 1:
-        out.append(
-            Loop(var, blocks, substitute_body(vector, {var: Affine.of(var) * lanes}), parallel=True, lanes=lanes)
-        )
-    start = Affine.of(blocks * lanes)
+    for lanes in (stmt.lanes, *(w for w in widths if w < stmt.lanes)):
+        blocks = (stmt.extent - start) // lanes
+        if not blocks:
+            continue
+        # Which loads become vector loads is decided on the original indices, before var is scaled.
+        vector = _vector_body(stmt.body, var, lanes, set())
+        if blocks == 1:
+            out += substitute_body(vector, {var: Affine.of(start)})
+        else:
+            index = Affine.of(var) * lanes + start
+            out.append(Loop(var, blocks, substitute_body(vector, {var: index}), parallel=True, lanes=lanes))
+        start += blocks * lanes
+    tail = stmt.extent - start
     if tail == 1:
-        out += substitute_body(stmt.body, {var: start})
+        out += substitute_body(stmt.body, {var: Affine.of(start)})
     elif tail:
-        out.append(Loop(var, tail, substitute_body(stmt.body, {var: start + var}), parallel=True))
+        out.append(Loop(var, tail, substitute_body(stmt.body, {var: Affine.of(start) + var}), parallel=True))
     return tuple(out)
 
 

@@ -1,0 +1,324 @@
+"""Loop pass `register-block{registers=R,layers=NAME:PxC;...}`: register blocking by unroll-and-jam.
+
+A layer that accumulates (a Let whose body loops over a reduction, as Conv, Gemm and pooling do)
+adds into one register per output: every add waits for the previous one. This pass jams several
+iterations of the parallel loops around the accumulator into one, so P output pixels x C output
+channels (vectors, after vectorize) accumulate in P*C independent registers: the adds overlap, each
+input value is loaded (broadcast) once for C channels and each weight once for P pixels.
+
+The *pixel loop* is the innermost parallel loop that encloses all of a layer's accumulators; the
+*channel loops* are the parallel loops inside it that hold accumulators directly. Border checks
+that depend on a jammed loop would differ between the jammed iterations, so that loop is first
+split into its border iterations (kept as they were) and the interior, where the checks always hold
+and are dropped. Choice and mechanism are apart: `choose_blocks` is the cost model, `layers`
+overrides it per layer (what `--tune` measured), `jam_loop` does the rewriting."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..errors import NncgError
+from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
+from .substitute import prune_bounds, rename_variables, substitute_body
+
+# The cost model: channel vectors jammed per pixel at most, and registers left besides accumulators
+# (the broadcast input, a product, weights the compiler keeps).
+MAX_CHANNEL_BLOCK = 5
+RESERVED = 6
+
+
+def parse_layers(text: str) -> dict[str, tuple[int, int]]:
+    """`conv1:4x2;conv2:3x3` -> {"conv1": (4, 2), "conv2": (3, 3)}: pixels x channel vectors per layer."""
+    out = {}
+    for item in filter(None, (part.strip() for part in text.split(";"))):
+        name, sep, blocks = item.partition(":")
+        pixels, x, channels = blocks.partition("x")
+        if not sep or not x or not pixels.isdigit() or not channels.isdigit():
+            raise ValueError(f"'{item}' is not LAYER:PIXELSxCHANNELS, e.g. conv1:4x2")
+        if int(pixels) < 1 or int(channels) < 1:
+            raise ValueError(f"'{item}': block sizes are at least 1")
+        out[name] = (int(pixels), int(channels))
+    return out
+
+
+def format_layers(blocks: dict[str, tuple[int, int]]) -> str:
+    return ";".join(f"{name}:{p}x{c}" for name, (p, c) in sorted(blocks.items()))
+
+
+def register_block(program: Program, registers: int = 16, layers: dict[str, tuple[int, int]] | None = None) -> Program:
+    layers = layers or {}
+    unknown = sorted(set(layers) - {k.name for k in program.kernels})
+    if unknown:
+        names = ", ".join(k.name for k in program.kernels)
+        raise NncgError(f"register-block: no layer named {', '.join(unknown)}; the layers are: {names}")
+    kernels = []
+    for kernel in program.kernels:
+        shape = block_shape(kernel.body)
+        if shape is None:
+            kernels.append(kernel)
+            continue
+        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, registers)
+        kernels.append(replace(kernel, body=block_body(kernel.body, pixels, channels)))
+    return replace(program, kernels=tuple(kernels))
+
+
+# ---------------------------------------------------------------------------- structure
+
+
+def is_accumulator(stmt: Stmt) -> bool:
+    return isinstance(stmt, Let) and any(isinstance(s, Loop) for s in walk_stmts(stmt.body))
+
+
+def holds_accumulators(loop: Loop) -> bool:
+    return any(is_accumulator(s) for s in walk_stmts(loop.body))
+
+
+def pixel_loop_of(stmt: Stmt) -> Loop | None:
+    """The innermost parallel loop at or below stmt that encloses every accumulator under stmt and
+    is not a channel loop (unless there is nothing outside the channel loop to block)."""
+    if not isinstance(stmt, Loop) or not stmt.parallel or not holds_accumulators(stmt):
+        return None
+    inner = [s for s in stmt.body if isinstance(s, Loop) and holds_accumulators(s)]
+    if len(inner) == 1 and not is_channel_loop(stmt):
+        deeper = pixel_loop_of(inner[0])
+        if deeper is not None and not is_channel_loop(deeper):
+            return deeper
+    return stmt
+
+
+def is_channel_loop(loop: Loop) -> bool:
+    """A loop over output-channel blocks: it holds accumulators directly and its iterations store
+    side by side (the vector loop strides by its lanes, the scalar tail by 1)."""
+    stores = [s for s in walk_stmts(loop.body) if isinstance(s, Store)]
+    return any(is_accumulator(s) for s in loop.body) and all(s.index.coeff(loop.var) == s.value.lanes for s in stores)
+
+
+def block_shape(body: tuple[Stmt, ...]) -> tuple[int, int] | None:
+    """(pixel loop extent, accumulators per pixel) of the first blockable nest, or None."""
+    for stmt in body:
+        pixel = pixel_loop_of(stmt) if isinstance(stmt, Loop) else None
+        if pixel is not None and jammable(pixel):
+            return pixel.extent, sum(_vectors(s) for s in pixel.body)
+        if isinstance(stmt, Loop | Let | If):
+            inner = block_shape(stmt.body)
+            if inner is not None:
+                return inner
+    return None
+
+
+def _vectors(stmt: Stmt) -> int:
+    """Accumulators (channel vectors) one pixel's statement holds: a channel loop holds one per iteration."""
+    if is_accumulator(stmt):
+        return 1
+    if isinstance(stmt, Loop) and is_channel_loop(stmt):
+        return stmt.extent
+    return 0
+
+
+def jammable(loop: Loop) -> bool:
+    """Iterations that may run interleaved: parallel, no buffer both read and written, and locals
+    assigned only where declared (so each jammed copy gets its own)."""
+    if not loop.parallel:
+        return False
+    stored = {s.buffer for s in walk_stmts(loop.body) if isinstance(s, Store)}
+    declared = {s.name for s in walk_stmts(loop.body) if isinstance(s, Let)}
+    for stmt in walk_stmts(loop.body):
+        if isinstance(stmt, Assign) and stmt.name not in declared:
+            return False
+        for top in stmt_exprs(stmt):
+            if any(isinstance(e, Load) and e.buffer in stored for e in walk_exprs(top)):
+                return False
+    return True
+
+
+# ---------------------------------------------------------------------------- cost model
+
+
+def choose_blocks(shape: tuple[int, int], registers: int) -> tuple[int, int]:
+    """Pixels x channel vectors. All of a pixel's channel vectors when they are few (each saves a
+    broadcast per tap), else MAX_CHANNEL_BLOCK; then as many pixels as keep the accumulators to
+    `registers - RESERVED` (measured on SSE: more spills, fewer leave the adds waiting)."""
+    extent, vectors = shape
+    channels = vectors if vectors <= MAX_CHANNEL_BLOCK else MAX_CHANNEL_BLOCK - 1
+    pixels = max(1, min(extent, (registers - RESERVED) // channels))
+    return pixels, channels
+
+
+# ---------------------------------------------------------------------------- mechanism
+
+
+def block_body(body: tuple[Stmt, ...], pixels: int, channels: int) -> tuple[Stmt, ...]:
+    out: list[Stmt] = []
+    for stmt in body:
+        pixel = pixel_loop_of(stmt) if isinstance(stmt, Loop) else None
+        if pixel is not None and jammable(pixel):
+            out.extend(_replace_loop(stmt, pixel, _block_pixel_loop(pixel, pixels, channels)))
+        elif isinstance(stmt, Loop | Let | If):
+            out.append(replace(stmt, body=block_body(stmt.body, pixels, channels)))
+        else:
+            out.append(stmt)
+    return tuple(out)
+
+
+def _replace_loop(stmt: Stmt, target: Loop, new: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
+    if stmt is target:
+        return new
+    if isinstance(stmt, Loop | Let | If):
+        body = tuple(s for child in stmt.body for s in _replace_loop(child, target, new))
+        return (replace(stmt, body=body),)
+    return (stmt,)
+
+
+def _block_pixel_loop(loop: Loop, pixels: int, channels: int) -> tuple[Stmt, ...]:
+    body: list[Stmt] = []
+    for stmt in loop.body:
+        if isinstance(stmt, Loop) and is_channel_loop(stmt) and jammable(stmt):
+            body.extend(jam_loop(stmt, channels))
+        else:
+            body.append(stmt)
+    return jam_loop(replace(loop, body=fuse_siblings(tuple(body), channels)), pixels)
+
+
+def fuse_siblings(body: tuple[Stmt, ...], limit: int) -> tuple[Stmt, ...]:
+    """Consecutive accumulators of one pixel (an 8-lane and a 4-lane block of 12 channels, a jammed
+    block and a leftover vector) share their reduction loops, up to `limit` accumulators together."""
+    out: list[Stmt] = []
+    run: list[Stmt] = []
+    for stmt in (*body, None):
+        if stmt is not None and is_accumulator(stmt) and len(_let_chain(stmt)[0]) + _count(run) <= limit:
+            run.append(stmt)
+            continue
+        out.extend(_fused_run(run))
+        run = [stmt] if stmt is not None and is_accumulator(stmt) else []
+        if stmt is not None and not is_accumulator(stmt):
+            out.append(stmt)
+    return tuple(out)
+
+
+def _count(run: list[Stmt]) -> int:
+    return sum(len(_let_chain(s)[0]) for s in run)
+
+
+def _let_chain(stmt: Let) -> tuple[list[Let], tuple[Stmt, ...]]:
+    """The Lets of a chain (a Let whose body is just the next Let) and the innermost body."""
+    lets = [stmt]
+    while len(lets[-1].body) == 1 and isinstance(lets[-1].body[0], Let):
+        lets.append(lets[-1].body[0])
+    return lets, lets[-1].body
+
+
+def _fused_run(run: list[Stmt]) -> tuple[Stmt, ...]:
+    if len(run) < 2:
+        return tuple(run)
+    chains = [_let_chain(_suffixed_locals((s,), f"_s{i}")[0]) for i, s in enumerate(run)]
+    body = fuse([inner for _, inner in chains])
+    if body is None:
+        return tuple(run)
+    for let in reversed([let for lets, _ in chains for let in lets]):
+        body = (replace(let, body=body),)
+    return body
+
+
+def interior(loop: Loop) -> tuple[int, int]:
+    """[first, last) iterations of `loop` for which every border check that depends on its variable
+    holds whatever the inner loops' variables are; (0, 0) if a check also depends on outer loops."""
+    first, last = 0, loop.extent
+    extents = {s.var: s.extent for s in walk_stmts(loop.body) if isinstance(s, Loop)}
+    for stmt in walk_stmts(loop.body):
+        if not isinstance(stmt, If):
+            continue
+        for bound in stmt.bounds:
+            step = bound.expr.coeff(loop.var)
+            if not step:
+                continue
+            rest = bound.expr - Affine.of(loop.var) * step
+            if step < 0 or any(v not in extents for v in rest.vars):
+                return 0, 0
+            lo, hi = rest.bounds(extents)
+            if bound.lo is not None:  # step*i + lo >= bound.lo
+                first = max(first, -((lo - bound.lo) // step))
+            if bound.hi is not None:  # step*i + hi < bound.hi
+                last = min(last, (bound.hi - 1 - hi) // step + 1)
+    return first, max(first, last)
+
+
+def jam_loop(loop: Loop, factor: int) -> tuple[Stmt, ...]:
+    """The loop with `factor` consecutive interior iterations jammed into one: border iterations,
+    then the jammed blocks (what is left over in one smaller block), then the far border."""
+    first, last = interior(loop)
+    factor = min(factor, last - first)
+    if factor <= 1:
+        return (loop,)
+    jammed = _jammed_range(loop, first, last, factor)
+    if jammed is None:
+        return (loop,)
+    return _iterations(loop, 0, first) + jammed + _iterations(loop, last, loop.extent)
+
+
+def _jammed_range(loop: Loop, start: int, stop: int, factor: int) -> tuple[Stmt, ...] | None:
+    """Iterations [start, stop), whose border checks all hold, `factor` at a time in one body."""
+    var, blocks = loop.var, (stop - start) // factor
+    extents = {var: blocks} if blocks > 1 else {}
+    copies = []
+    for j in range(factor):
+        at = Affine.of(var) * factor + (start + j) if blocks > 1 else Affine.of(start + j)
+        copy = prune_bounds(substitute_body(loop.body, {var: at}), extents)
+        copies.append(_suffixed_locals(copy, f"_{j}"))
+    fused = fuse(copies)
+    if fused is None:
+        return None
+    out = (replace(loop, extent=blocks, body=fused),) if blocks > 1 else fused
+    done = start + blocks * factor
+    rest = _jammed_range(loop, done, stop, stop - done) if stop - done > 1 else None
+    return out + (rest if rest is not None else _iterations(loop, done, stop, prune=True))
+
+
+def _iterations(loop: Loop, start: int, stop: int, prune: bool = False) -> tuple[Stmt, ...]:
+    """Iterations [start, stop) of loop, as a loop (or straight code for one iteration); with
+    `prune`, their border checks are known to hold and are dropped."""
+    count = stop - start
+    if count <= 0:
+        return ()
+    if count == 1:
+        body = substitute_body(loop.body, {loop.var: Affine.of(start)})
+        return prune_bounds(body) if prune else body
+    body = substitute_body(loop.body, {loop.var: Affine.of(loop.var) + start})
+    body = prune_bounds(body, {loop.var: count}) if prune else body
+    return (replace(loop, extent=count, body=body),)
+
+
+def _suffixed_locals(body: tuple[Stmt, ...], suffix: str) -> tuple[Stmt, ...]:
+    names = {s.name: s.name + suffix for s in walk_stmts(body) if isinstance(s, Let)}
+    return rename_variables(body, names) if names else body
+
+
+def fuse(copies: list[tuple[Stmt, ...]]) -> tuple[Stmt, ...] | None:
+    """One body doing the work of all copies, interleaved statement by statement: loops and border
+    checks of the same shape are shared, locals declared around the shared body. None when the
+    copies differ in shape (then they cannot be jammed)."""
+    first = copies[0]
+    if any(len(c) != len(first) for c in copies):
+        return None
+    out: list[Stmt] = []
+    for stmts in zip(*copies):
+        head = stmts[0]
+        if isinstance(head, Loop | If):
+            same = all(type(s) is type(head) and replace(s, body=()) == replace(head, body=()) for s in stmts)
+            body = fuse([s.body for s in stmts]) if same else None
+            if body is None:
+                return None
+            out.append(replace(head, body=body))
+        elif isinstance(head, Let):
+            if not all(isinstance(s, Let) for s in stmts):
+                return None
+            body = fuse([s.body for s in stmts])
+            if body is None:
+                return None
+            for let in reversed(stmts):
+                body = (replace(let, body=body),)
+            out.extend(body)
+        elif all(isinstance(s, Store | Assign) for s in stmts):
+            out.extend(stmts)
+        else:
+            return None
+    return tuple(out)

@@ -1,0 +1,237 @@
+"""Per-layer autotuning (`nncg-onnx --tune`), as in the paper: each register-blocked layer is built
+in several code variants, every variant is timed on the machine that runs the code, and each layer
+keeps its fastest.
+
+Variants are measured together: variant i of every layer goes into build i of the whole model (a
+profile build, with a timer around each layer); the builds run interleaved, batch after batch, and
+each layer keeps its best time, so a busy machine slows all variants alike. Two rounds: block shapes
+(pixels x channel vectors) at the default unroll budget, then unroll budgets with the best shapes.
+Choices are cached by layer signature and target, so a layer tuned before costs nothing. The result
+is a pipeline whose register-block and unroll passes name each layer's choice: the C it gives is
+reproducible without the cache."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+from .backends import get_backend
+from .bench.benchmark import calibrate, pinned
+from .bench.harness import CompiledHarness
+from .compiler import compile as compile_model
+from .frontend import import_onnx
+from .ir.loops import Program
+from .ir.text import program_to_text
+from .passes import PassManager, default_pipeline, format_pipeline, parse_pipeline
+from .passes.register_block import block_shape, choose_blocks, format_layers, parse_layers
+from .passes.unroll import AUTO_BUDGET, CODE_BUDGET, parse_layer_budgets
+from .verify import find_c_compiler, random_inputs
+
+UNROLL_BUDGETS = (AUTO_BUDGET, 0, 16, 256)  # the default first: it is the reference
+PIXEL_BLOCKS = (1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24)
+CACHE_VERSION = 1
+
+
+def default_cache() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "nncg" / "tune.json"
+
+
+def tune(
+    model,
+    target: str = "ssse3",
+    *,
+    cc: str | None = None,
+    runner: Sequence[str] = (),
+    cache: Path | None = None,
+    input_shapes=None,
+    weights: str = "auto",
+    code_budget: int | None = CODE_BUDGET,
+    batches: int = 15,
+    cpu: int | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> str:
+    """The default pipeline of `target` with each register-blocked layer's block shape and unroll
+    budget measured (with `cc`, run through `runner` if given). Pass it to nncg.compile(pipeline=)."""
+    progress = progress or (lambda line: print(line, file=sys.stderr, flush=True))
+    backend = get_backend(target)
+    base = default_pipeline(backend.vector_widths, "auto", weights, code_budget, backend.registers)
+    layers = tunable_layers(model, base, input_shapes)
+    if not layers:
+        progress("tune: no register-blocked layer to tune")
+        return base
+    cc = find_c_compiler(cc)
+    where = f"{target}|{Path(cc).name}|{' '.join(runner)}"
+    keys = {name: _cache_key(where, signature) for name, (_, signature) in layers.items()}
+    cache = cache or default_cache()
+    known = _read_cache(cache)
+    todo = {name: shape for name, (shape, _) in layers.items() if keys[name] not in known}
+    blocks = {name: parse_layers(f"x:{known[keys[name]]['block']}")["x"] for name in layers if name not in todo}
+    budgets = {name: known[keys[name]]["unroll"] for name in layers if name not in todo}
+    progress(f"tune: {len(layers)} layers, {len(layers) - len(todo)} cached, {len(todo)} to measure")
+    if todo:
+        measure = _Measurer(model, target, cc, tuple(runner), input_shapes, batches, cpu, progress)
+        shapes = {name: block_candidates(shape, backend.registers) for name, shape in todo.items()}
+        blocks |= measure.best("block shape", shapes, lambda pick: with_layer_choices(base, blocks | pick, budgets))
+        unrolls = {name: UNROLL_BUDGETS for name in todo}
+        budgets |= measure.best("unroll budget", unrolls, lambda pick: with_layer_choices(base, blocks, budgets | pick))
+        for name in todo:
+            known[keys[name]] = {"block": f"{blocks[name][0]}x{blocks[name][1]}", "unroll": budgets[name]}
+        _write_cache(cache, known)
+    for name in sorted(layers):
+        progress(f"tune: {name}: {blocks[name][0]}x{blocks[name][1]} block, unroll budget {budgets[name]}")
+    return with_layer_choices(base, blocks, budgets)
+
+
+# ---------------------------------------------------------------------------- what to tune
+
+
+def tunable_layers(model, pipeline: str, input_shapes=None) -> dict[str, tuple[tuple[int, int], str]]:
+    """Layer name -> (its block_shape, a signature of its loop nest) for every layer the
+    register-block pass would block, from the IR just before that pass."""
+    specs = parse_pipeline(pipeline)
+    cut = next(i for i, spec in enumerate(specs) if spec.name == "register-block")
+    program = PassManager(specs[:cut]).run(import_onnx(model, input_shapes))
+    out = {}
+    for kernel in program.kernels:
+        shape = block_shape(kernel.body)
+        if shape is not None:
+            out[kernel.name] = (shape, layer_signature(program, kernel))
+    return out
+
+
+def layer_signature(program: Program, kernel) -> str:
+    """The kernel's loop nest as text with buffers named by role and size, so the same layer in
+    another model (or under another name) has the same signature."""
+    single = replace(program, kernels=(kernel,), buffers=program.buffers)
+    text = program_to_text(single).split(f"kernel {kernel.name} ", 1)[1]
+    for buf in program.buffers:
+        text = re.sub(rf"\b{re.escape(buf.name)}\b", f"{buf.role}{buf.size}", text)
+    return text
+
+
+def block_candidates(shape: tuple[int, int], registers: int) -> list[tuple[int, int]]:
+    """Block shapes worth timing: the cost model's first, then pixel counts up to a register file
+    of accumulators, with all channel vectors of a pixel (or 2, 3, 4 of them when there are many)."""
+    extent, vectors = shape
+    first = choose_blocks(shape, registers)
+    channel_options = [vectors] if vectors <= 5 else [2, 3, 4]
+    out = [first]
+    for channels in channel_options:
+        for pixels in PIXEL_BLOCKS:
+            if pixels <= extent and pixels * channels <= registers - 2 and (pixels, channels) not in out:
+                out.append((pixels, channels))
+    return out
+
+
+def with_layer_choices(pipeline: str, blocks: dict[str, tuple[int, int]], budgets: dict[str, int]) -> str:
+    """The pipeline with register-block's and unroll's per-layer choices set."""
+    specs = []
+    for spec in parse_pipeline(pipeline):
+        params = dict(spec.params)
+        if spec.name == "register-block" and blocks:
+            params["layers"] = format_layers(blocks)
+        if spec.name == "unroll" and budgets:
+            params["layers"] = ";".join(f"{name}:{b}" for name, b in sorted(budgets.items()))
+        specs.append(replace(spec, params=tuple(params.items())))
+    return format_pipeline(specs)
+
+
+# ---------------------------------------------------------------------------- measuring
+
+
+class _Measurer:
+    def __init__(self, model, target, cc, runner, input_shapes, batches, cpu, progress):
+        self.model, self.target, self.cc, self.runner = model, target, cc, runner
+        self.input_shapes, self.batches, self.cpu, self.progress = input_shapes, batches, cpu, progress
+
+    def best(self, what: str, candidates: dict[str, Sequence], pipeline_for: Callable[[dict], str]) -> dict:
+        """For each layer, its candidate with the lowest time. Build i gives every layer its i-th
+        candidate (its last when it has fewer); pipeline_for(choices) is the pipeline of a build."""
+        rounds = max(len(c) for c in candidates.values())
+        picks = [{name: c[min(i, len(c) - 1)] for name, c in candidates.items()} for i in range(rounds)]
+        self.progress(f"tune: {what}: {rounds} builds of the model")
+        times = self._layer_times([pipeline_for(pick) for pick in picks])
+        best = {}
+        for name, options in candidates.items():
+            scored = [(times[i].get(name, float("inf")), i) for i in range(len(options))]
+            best[name] = options[min(scored)[1]]
+        return best
+
+    def _layer_times(self, pipelines: list[str]) -> list[dict[str, float]]:
+        """Best seconds per call of each layer in each build, builds run in turn."""
+        with tempfile.TemporaryDirectory(prefix="nncg-tune-") as tmp:
+            compiled = [
+                compile_model(self.model, self.target, pipeline=p, input_shapes=self.input_shapes, profile=True)
+                for p in pipelines
+            ]
+            inputs = random_inputs(compiled[0].inputs, seed=0)
+
+            def build(i):
+                workdir = Path(tmp) / str(i)
+                workdir.mkdir()
+                return CompiledHarness(compiled[i], workdir, self.cc, inputs, profile=True, runner=self.runner)
+
+            with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+                harnesses = list(pool.map(build, range(len(pipelines))))
+            try:
+                with pinned(self.cpu):
+                    return self._interleaved(harnesses)
+            finally:
+                for harness in harnesses:
+                    harness.close()
+
+    def _interleaved(self, harnesses) -> list[dict[str, float]]:
+        calls = [calibrate(h.run, 0.002) for h in harnesses]
+        best: list[dict[str, float]] = [{} for _ in harnesses]
+        for h in harnesses:
+            h.layer_seconds()  # drop what calibration accumulated
+        for batch in range(self.batches):
+            for i, h in enumerate(harnesses):
+                h.run(calls[i])
+                for layer, seconds in h.layer_seconds():
+                    best[i][layer] = min(best[i].get(layer, float("inf")), seconds / calls[i])
+            if (batch + 1) % 5 == 0 or batch + 1 == self.batches:
+                self.progress(f"tune:   {batch + 1}/{self.batches} batches")
+        return best
+
+
+# ---------------------------------------------------------------------------- cache
+
+
+def _cache_key(where: str, signature: str) -> str:
+    return hashlib.sha256(f"{CACHE_VERSION}|{where}|{signature}".encode()).hexdigest()
+
+
+def _read_cache(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    entries = data.get("entries", {}) if isinstance(data, dict) else {}
+    return {k: v for k, v in entries.items() if _valid_entry(v)}
+
+
+def _valid_entry(entry) -> bool:
+    try:
+        parse_layers(f"x:{entry['block']}")
+        parse_layer_budgets(f"x:{entry['unroll']}")
+    except (KeyError, TypeError, ValueError):
+        return False
+    return True
+
+
+def _write_cache(path: Path, entries: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temp = tempfile.mkstemp(prefix=".tune.", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        json.dump({"version": CACHE_VERSION, "entries": entries}, f, indent=1, sort_keys=True)
+    os.replace(temp, path)

@@ -1,0 +1,302 @@
+"""Building the generated C for other machines and running it there (tests/test_cross_targets.py,
+scripts/cross_matrix.py).
+
+Linux targets reuse nncg.verify's harness with a cross compiler and a qemu-user prefix. The
+Cortex-M4 is bare metal: the inputs are compiled into the program, which runs in qemu-system-arm
+and prints its outputs through semihosting (start-up code and linker script in tests/cortex_m4/).
+"""
+
+from __future__ import annotations
+
+import functools
+import shutil
+import subprocess
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+import nncg
+from nncg.compiler import CompiledModel
+from nncg.verify import VerifyReport, compare, random_inputs, reference_outputs, verify
+
+ROOT = Path(__file__).resolve().parent.parent
+CORTEX_M4_DIR = Path(__file__).resolve().parent / "cortex_m4"
+PAPER_NETWORKS = {n: ROOT / "examples" / f"{n}.onnx" for n in ("ball", "pedestrian", "robot")}
+MLPERF_TINY = {
+    n: ROOT / "benchmarks" / "models" / f"{n}.onnx" for n in ("resnet8", "dscnn", "mobilenet_v1_025", "autoencoder")
+}
+MODELS = {**PAPER_NETWORKS, **MLPERF_TINY}
+OPT = "-O2"
+TOLERANCE = 1e-4  # as tests/helpers.py: max abs error relative to the output's largest magnitude
+SEED = 0
+TOOL_TIMEOUT_S = 600
+QEMU_TIMEOUT_S = 300
+
+
+@dataclass(frozen=True)
+class Toolchain:
+    """How one target builds and runs the generated C: the NNCG target, compiler, flags and emulator."""
+
+    name: str
+    target: str
+    cc: str
+    flags: tuple[str, ...] = ()
+    emulator: tuple[str, ...] = ()  # prefix that runs the program; empty: the host runs it
+    native_if_possible: bool = False  # i686: an x86-64 kernel with 32-bit support runs it itself
+
+
+def _linux(name: str, cc: str, emulator: str, target: str = "ansi-c", flags: tuple[str, ...] = ()) -> Toolchain:
+    # Static: qemu-user then needs no target libraries (no -L sysroot).
+    return Toolchain(name, target, cc, ("-static", *flags), (emulator,), native_if_possible=emulator == "qemu-i386")
+
+
+TOOLCHAINS = {
+    t.name: t
+    for t in (
+        _linux("i686-ansi-c", "i686-linux-gnu-gcc", "qemu-i386"),
+        # The paper's Nao robot: a 32-bit Atom (Bonnell) with SSSE3.
+        _linux("i686-ssse3", "i686-linux-gnu-gcc", "qemu-i386", "ssse3", ("-march=bonnell", "-mssse3")),
+        _linux("armhf", "arm-linux-gnueabihf-gcc", "qemu-arm"),
+        _linux("aarch64", "aarch64-linux-gnu-gcc", "qemu-aarch64"),
+        _linux("riscv64", "riscv64-linux-gnu-gcc", "qemu-riscv64"),
+        Toolchain("clang", "ansi-c", "clang"),
+        Toolchain("tcc", "ansi-c", "tcc"),
+    )
+}
+# The MLPerf-Tiny-shaped models are the slowest to build (gcc -O2 took a minute over them at unroll
+# level 2): they run on one ARM target (armhf: 32-bit, the constrained case), the paper's three
+# networks on every target. The slow ones first, so that they do not finish last on one xdist worker.
+CASES = [("armhf", model) for model in MLPERF_TINY] + [(tc, model) for tc in TOOLCHAINS for model in PAPER_NETWORKS]
+CORTEX_M4_MODELS = ("ball", "pedestrian", "robot")
+
+
+@functools.cache
+def runs_natively(cc: str) -> bool:
+    """Whether this machine runs a static program built by `cc` itself (a 32-bit x86 program on an
+    x86-64 kernel built with IA-32 emulation)."""
+    with tempfile.TemporaryDirectory(prefix="nncg-probe-") as tmp:
+        source, program = Path(tmp) / "probe.c", Path(tmp) / "probe"
+        source.write_text("int main(void) { return 0; }\n")
+        if subprocess.run([cc, "-static", str(source), "-o", str(program)], capture_output=True).returncode != 0:
+            return False
+        try:
+            return subprocess.run([str(program)], capture_output=True, timeout=60).returncode == 0
+        except OSError:  # exec format error: the kernel cannot run it
+            return False
+
+
+def runner(toolchain: Toolchain) -> tuple[str, ...]:
+    """The command prefix that runs the toolchain's programs on this machine."""
+    if toolchain.native_if_possible and runs_natively(toolchain.cc):
+        return ()
+    return toolchain.emulator
+
+
+def missing_tools(toolchain: Toolchain) -> list[str]:
+    """The compiler or emulator this toolchain needs that is not on PATH."""
+    if shutil.which(toolchain.cc) is None:
+        return [toolchain.cc]
+    return [tool for tool in runner(toolchain)[:1] if shutil.which(tool) is None]
+
+
+def verify_on(toolchain: Toolchain, model: str, compiled: CompiledModel) -> VerifyReport:
+    """Builds `compiled` (the C of MODELS[model]) with the toolchain, runs it, compares with onnxruntime."""
+    return verify(
+        nncg.load_model(MODELS[model]),
+        compiled,
+        seed=SEED,
+        tolerance=TOLERANCE,
+        cc=toolchain.cc,
+        opt=OPT,
+        extra_cflags=toolchain.flags,
+        runner=runner(toolchain),
+    )
+
+
+# --- Cortex-M4, bare metal ---
+
+CORTEX_M4_CC = "arm-none-eabi-gcc"
+CORTEX_M4_TOOLS = (CORTEX_M4_CC, "arm-none-eabi-size", "qemu-system-arm")
+CORTEX_M4_FLAGS = (
+    "-mcpu=cortex-m4", "-mthumb", "-mfpu=fpv4-sp-d16", "-mfloat-abi=hard", "-Os",
+    "-ffunction-sections", "-fdata-sections",
+)  # fmt: skip
+# newlib (nano) only for libm's exp (and memset); nosys.specs stubs the system calls nothing here makes.
+CORTEX_M4_LINK = (
+    "-nostartfiles", f"-T{CORTEX_M4_DIR / 'mps2_an386.ld'}", "--specs=nano.specs", "--specs=nosys.specs",
+    "-Wl,--gc-sections",
+)  # fmt: skip
+# Semihosting output goes to a file: QEMU would otherwise mix it into its own messages on stderr.
+QEMU_MPS2_AN386 = (
+    "qemu-system-arm", "-M", "mps2-an386", "-display", "none", "-monitor", "none", "-serial", "null",
+    "-chardev", "file,id=semihosting,path=semihosting.txt",
+    "-semihosting-config", "enable=on,target=native,chardev=semihosting", "-kernel",
+)  # fmt: skip
+PROGRAM_FLAGS = ("-std=c11", "-Wall", "-Wextra", "-Werror")
+
+
+@dataclass(frozen=True)
+class CortexM4Result:
+    """One run on the emulated Cortex-M4: the outputs, the stack's deepest use, and section sizes
+    (text, rodata, data, bss, stack reserved) in bytes of the model's object file and of the image."""
+
+    outputs: list[np.ndarray]
+    stack_bytes: int
+    model_sizes: dict[str, int]
+    image_sizes: dict[str, int]
+
+
+def _c_floats(values: np.ndarray) -> str:
+    # 9 significant digits give back the same float32 exactly.
+    items = [f"{float(v):.9g}f" for v in values.ravel()]
+    return ",\n".join(", ".join(items[i : i + 8]) for i in range(0, len(items), 8))
+
+
+def cortex_m4_program(compiled: CompiledModel, inputs: Sequence[np.ndarray]) -> str:
+    """C test program: the host's inputs as constants, one call of the model, every output float
+    printed as the 8 hex digits of its bits (one per line), then the stack's high-water mark."""
+    decls = [f"static const float in{i}[{a.size}] = {{\n{_c_floats(a)}\n}};" for i, a in enumerate(inputs)]
+    decls += [f"static float out{i}[{int(np.prod(s.shape))}];" for i, s in enumerate(compiled.outputs)]
+    outs = [f"out{i}" for i in range(len(compiled.outputs))]
+    # Outputs start as all-ones bytes (a NaN), so an element the model never writes shows up.
+    body = [f"    memset({o}, 0xff, sizeof {o});" for o in outs]
+    body.append(f"    {compiled.name}({', '.join([f'in{i}' for i in range(len(inputs))] + outs)});")
+    body += [f"    print_floats({o}, sizeof {o} / sizeof {o}[0]);" for o in outs]
+    return _PROGRAM.format(name=compiled.name, decls="\n".join(decls), body="\n".join(body))
+
+
+_PROGRAM = """\
+/* Cortex-M4 test program generated by tests/cross_helpers.py. */
+#include <stdint.h>
+#include <string.h>
+
+#include "startup.h"
+#include "{name}.h"
+
+{decls}
+
+static void print_hex(uint32_t value)
+{{
+    static const char digits[] = "0123456789abcdef";
+    char line[10];
+    int i;
+    for (i = 0; i < 8; ++i) line[i] = digits[(value >> (28 - 4 * i)) & 0xf];
+    line[8] = '\\n';
+    line[9] = 0;
+    semihost_write0(line);
+}}
+
+static void print_floats(const float *data, uint32_t count)
+{{
+    uint32_t i, bits;
+    for (i = 0; i < count; ++i) {{
+        memcpy(&bits, &data[i], sizeof bits);
+        print_hex(bits);
+    }}
+}}
+
+int main(void)
+{{
+{body}
+    semihost_write0("stack\\n");
+    print_hex(stack_bytes_used());
+    return 0;
+}}
+"""
+
+
+def _run(cmd: Sequence[str], cwd: Path, timeout: float = TOOL_TIMEOUT_S) -> str:
+    """Runs a tool; a nonzero status, a warning or the timeout raises with its output. Returns stdout."""
+    proc = subprocess.run(list(cmd), cwd=cwd, capture_output=True, text=True, timeout=timeout)
+    if proc.returncode != 0 or "warning:" in proc.stderr:
+        output = proc.stderr[-4000:] + proc.stdout[-2000:]
+        raise RuntimeError(f"{' '.join(map(str, cmd))} exited with status {proc.returncode}:\n{output}")
+    return proc.stdout
+
+
+def section_sizes(path: Path) -> dict[str, int]:
+    """Bytes of text, rodata, data, bss and stack sections of an object or image (`arm-none-eabi-size -A`)."""
+    kinds = {".text": "text", ".rodata": "rodata", ".ARM.exidx": "rodata", ".data": "data", ".bss": "bss"}
+    kinds |= {".stack": "stack"}  # only in the image: the linker script's reservation
+    sizes = dict.fromkeys(kinds.values(), 0)
+    for line in _run(["arm-none-eabi-size", "-A", str(path)], path.parent).splitlines():
+        fields = line.split()
+        if len(fields) == 3 and fields[1].isdigit():
+            kind = next((k for prefix, k in kinds.items() if fields[0].startswith(prefix)), None)
+            if kind:
+                sizes[kind] += int(fields[1])
+    return sizes
+
+
+def build_cortex_m4(compiled: CompiledModel, inputs: Sequence[np.ndarray], workdir: Path) -> tuple[Path, Path]:
+    """Compiles the model (with its strict flags), the test program and the start-up code for the
+    Cortex-M4 and links them; returns the model's object file and the image."""
+    compiled.write(workdir)
+    (workdir / "main.c").write_text(cortex_m4_program(compiled, inputs))
+    cc, include = [CORTEX_M4_CC, *CORTEX_M4_FLAGS], f"-I{CORTEX_M4_DIR}"
+    model_obj, image = workdir / f"{compiled.name}.o", workdir / f"{compiled.name}.elf"
+    _run([*cc, *compiled.strict_cflags, "-c", f"{compiled.name}.c", "-o", model_obj.name], workdir)
+    _run([*cc, *PROGRAM_FLAGS, include, "-I.", "-c", "main.c", "-o", "main.o"], workdir)
+    _run([*cc, *PROGRAM_FLAGS, include, "-c", str(CORTEX_M4_DIR / "startup.c"), "-o", "startup.o"], workdir)
+    _run([*cc, *CORTEX_M4_LINK, model_obj.name, "main.o", "startup.o", "-o", image.name, "-lm"], workdir)
+    return model_obj, image
+
+
+def _parse_output(text: str, compiled: CompiledModel) -> tuple[list[np.ndarray], int]:
+    """The outputs and the stack bytes from what the program printed."""
+    words = text.split()
+    if "stack" not in words:
+        raise RuntimeError(f"the Cortex-M4 program stopped early; it printed: {' '.join(words[-5:])}")
+    marker = words.index("stack")
+    bits = np.array([int(word, 16) for word in words[:marker]], dtype=np.uint32)
+    sizes = [int(np.prod(spec.shape)) for spec in compiled.outputs]
+    if bits.size != sum(sizes):
+        raise RuntimeError(f"the Cortex-M4 program printed {bits.size} floats, expected {sum(sizes)}")
+    chunks = np.split(bits.view(np.float32), np.cumsum(sizes)[:-1])
+    return [c.reshape(spec.shape) for c, spec in zip(chunks, compiled.outputs)], int(words[marker + 1], 16)
+
+
+def run_cortex_m4(compiled: CompiledModel, inputs: Sequence[np.ndarray], workdir: Path) -> CortexM4Result:
+    """Builds the model for the Cortex-M4, runs it on QEMU's MPS2 AN386 and reads its outputs."""
+    model_obj, image = build_cortex_m4(compiled, inputs, workdir)
+    _run([*QEMU_MPS2_AN386, image.name], workdir, timeout=QEMU_TIMEOUT_S)
+    outputs, stack_bytes = _parse_output((workdir / "semihosting.txt").read_text(), compiled)
+    return CortexM4Result(outputs, stack_bytes, section_sizes(model_obj), section_sizes(image))
+
+
+def verify_on_cortex_m4(model: str, compiled: CompiledModel, workdir: Path) -> tuple[VerifyReport, CortexM4Result]:
+    """Runs `compiled` (the C of MODELS[model]) on the Cortex-M4 and compares with onnxruntime."""
+    inputs = random_inputs(compiled.inputs, SEED)
+    result = run_cortex_m4(compiled, inputs, workdir)
+    references = reference_outputs(nncg.load_model(MODELS[model]), compiled.inputs, inputs)
+    stats = compare(result.outputs, references, [spec.name for spec in compiled.outputs])
+    return VerifyReport(compiled.name, "cortex-m4", tuple(stats), TOLERANCE, SEED), result
+
+
+def size_row(result: CortexM4Result, arena_bytes: int) -> dict[str, int]:
+    """Flash (text + rodata + data's initial values) and RAM (data + bss, the arena being part of
+    bss, + the stack's deepest use) of the model's object file and of the whole linked image."""
+    m, image = result.model_sizes, result.image_sizes
+    return {
+        "flash": m["text"] + m["rodata"] + m["data"],
+        "text": m["text"],
+        "rodata": m["rodata"],
+        "RAM": m["data"] + m["bss"] + result.stack_bytes,
+        "data": m["data"],
+        "bss": m["bss"],
+        "arena": arena_bytes,
+        "stack": result.stack_bytes,
+        "image flash": image["text"] + image["rodata"] + image["data"],
+        "image RAM": image["data"] + image["bss"] + result.stack_bytes,
+    }
+
+
+def format_table(rows: dict[str, dict[str, object]], corner: str = "model") -> str:
+    """A right-aligned text table: one row per key, the columns of the first row."""
+    columns = list(next(iter(rows.values())))
+    cells = [[corner, *columns]] + [[name, *(str(row.get(c, "-")) for c in columns)] for name, row in rows.items()]
+    widths = [max(len(line[i]) for line in cells) for i in range(len(cells[0]))]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths)).rstrip() for line in cells)

@@ -1,0 +1,124 @@
+"""The register-block pass: structure of the jammed loop nests, and every block shape against onnxruntime."""
+
+import pytest
+from helpers import check_against_onnxruntime
+from onnx import helper
+from test_ops import conv_model, model, weights
+
+import nncg
+from nncg.errors import NncgError
+from nncg.frontend import import_onnx
+from nncg.ir.loops import If, Let, Loop, Store, walk_stmts
+from nncg.passes import PassManager
+from nncg.passes.register_block import choose_blocks, parse_layers
+
+LOWER = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation,lower"
+
+
+def pipeline(vector: str, block: str, unroll: str = "none") -> str:
+    steps = [LOWER] + ([f"vectorize{{lanes={vector}}}"] if vector else []) + [f"register-block{{{block}}}"]
+    steps += [] if unroll == "none" else [f"unroll{{level={unroll}}}"]
+    return ",".join(steps + ["inline-constants", "plan-memory"])
+
+
+def lowered(m, vector="4", block="registers=16"):
+    return PassManager(pipeline(vector, block), verify=True).run(import_onnx(m))
+
+
+def test_jam_splits_borders_and_interleaves_accumulators():
+    # 12 channels = 3 vectors of 4; 3x3, pad 1 over 10 columns: columns 0 and 9 are borders.
+    m = conv_model((1, 5, 6, 10), 12, (3, 3), pads=[1, 1, 1, 1])
+    kernel = lowered(m, block="registers=16,layers=Conv_0:4x3").kernels[0]
+    stmts = list(walk_stmts(kernel.body))
+    lets = [s for s in stmts if isinstance(s, Let)]
+    # border columns: 3 accumulators each; interior 8 columns = 2 jammed blocks of 4 x 3 vectors
+    assert sorted({len(let.name.split("_")) for let in lets}) == [2, 3]
+    blocked = [s for s in stmts if isinstance(s, Loop) and s.var == "ow"]
+    assert [loop.extent for loop in blocked] == [2]
+    interior_checks = [s for s in walk_stmts(blocked[0].body) if isinstance(s, If)]
+    assert all("ow" not in b.expr.vars for s in interior_checks for b in s.bounds)
+    stores = [s for s in walk_stmts(blocked[0].body) if isinstance(s, Store)]
+    assert len(stores) == 12 and len({s.index for s in stores}) == 12
+
+
+def test_siblings_of_mixed_width_share_their_reduction():
+    # 12 channels on 8/4 lanes: the 8-lane and the 4-lane accumulator run in the same loops.
+    m = conv_model((1, 4, 5, 9), 12, (3, 3), pads=[1, 1, 1, 1])
+    kernel = lowered(m, vector="8/4", block="registers=16,layers=Conv_0:2x2").kernels[0]
+    jammed = next(s for s in walk_stmts(kernel.body) if isinstance(s, Loop) and s.var == "ow")
+    lanes = sorted(s.init.lanes for s in walk_stmts(jammed.body) if isinstance(s, Let))
+    assert lanes == [4, 4, 8, 8]
+    reductions = [s for s in walk_stmts(jammed.body) if isinstance(s, Loop) and s.var == "ci"]
+    assert len(reductions) == 1
+
+
+def test_cost_model_fills_the_registers_it_is_given():
+    assert choose_blocks((40, 3), 16) == (3, 3)  # 9 accumulators, 6 registers left
+    assert choose_blocks((40, 2), 16) == (5, 2)
+    assert choose_blocks((2, 1), 16) == (2, 1)  # never more pixels than the loop has
+    assert choose_blocks((40, 1), 32) == (26, 1)
+    assert choose_blocks((40, 16), 16) == (2, 4)  # many channel vectors: blocks of 4
+
+
+def test_layers_parameter_parses_and_rejects():
+    assert parse_layers("conv1:4x2;conv_2:1x3") == {"conv1": (4, 2), "conv_2": (1, 3)}
+    for bad in ("conv1", "conv1:4", "conv1:0x2", "conv1:ax2"):
+        with pytest.raises(ValueError):
+            parse_layers(bad)
+    with pytest.raises(NncgError, match="register-block"):
+        PassManager("register-block{layers=conv1:4}")
+    with pytest.raises(NncgError, match="no layer named conv9; the layers are: Conv_0, Conv_0_to_y"):
+        lowered(conv_model((1, 2, 4, 4), 4, (3, 3)), block="layers=conv9:2x2")
+
+
+def conv_case(**attrs):
+    shape = attrs.pop("x", (1, 6, 9, 11))
+    return conv_model(shape, attrs.pop("c_out", 12), attrs.pop("kernel", (3, 3)), **attrs)
+
+
+CONVS = {
+    "pad1": conv_case(pads=[1, 1, 1, 1]),
+    "asymmetric_pads_stride2": conv_case(pads=[0, 2, 1, 0], strides=[2, 2]),
+    "dilated": conv_case(pads=[2, 2, 2, 2], dilations=[2, 2]),
+    "depthwise": conv_case(c_out=6, group=6, pads=[1, 1, 1, 1]),
+    "grouped": conv_case(c_out=12, group=3, pads=[1, 0, 1, 0]),
+    "conv1d": conv_case(x=(1, 5, 17), kernel=(5,), pads=[2, 2]),
+    "conv3d": conv_case(x=(1, 3, 4, 5, 6), kernel=(3, 3, 3), c_out=8, pads=[1, 1, 1, 1, 1, 1]),
+    "20_channels": conv_case(c_out=20, pads=[1, 1, 1, 1]),
+    "narrow_input": conv_case(x=(1, 6, 3, 2), pads=[1, 1, 1, 1]),
+}
+BLOCKS = ["registers=16", "registers=32", "registers=16,layers=Conv_0:1x1", "registers=16,layers=Conv_0:7x5"]
+
+
+@pytest.mark.parametrize("block", BLOCKS)
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx512"])
+@pytest.mark.parametrize("case", CONVS)
+def test_blocked_conv_matches_onnxruntime(case, target, block):
+    from test_x86_targets import HOST
+
+    if target == "avx512" and "avx512f" not in HOST:
+        pytest.skip("the host CPU lacks avx512f")
+    widths = "/".join(map(str, nncg.backends.get_backend(target).vector_widths))
+    compiled = nncg.compile(CONVS[case], target=target, pipeline=pipeline(widths, block, "auto"), verify_ir=True)
+    check_against_onnxruntime(CONVS[case], compiled, opt="-O1")
+
+
+def residual_then_pool():
+    nodes = [
+        helper.make_node("Conv", ["x", "w", "b"], ["c"], pads=[1, 1, 1, 1]),
+        helper.make_node("Add", ["c", "x"], ["r"]),
+        helper.make_node("Relu", ["r"], ["p"]),
+        helper.make_node("MaxPool", ["p"], ["q"], kernel_shape=[3, 3], pads=[1, 1, 1, 1]),
+        helper.make_node("Flatten", ["q"], ["f"]),
+        helper.make_node("Gemm", ["f", "g"], ["y"], transB=1),
+    ]
+    inits = [("w", weights(8, 8, 3, 3)), ("b", weights(8)), ("g", weights(10, 8 * 7 * 9))]
+    return model(nodes, {"x": (1, 8, 7, 9)}, None, inits)
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
+def test_blocked_residual_pool_and_gemm_under_sanitizers(target):
+    m = residual_then_pool()
+    widths = "/".join(map(str, nncg.backends.get_backend(target).vector_widths))
+    compiled = nncg.compile(m, target=target, pipeline=pipeline(widths, "registers=16"), verify_ir=True)
+    check_against_onnxruntime(m, compiled, sanitize=True, opt="-O1")

@@ -1,0 +1,95 @@
+"""Per-layer autotuning: the choices it makes are valid, cached, reproducible, and the tuned code
+matches onnxruntime."""
+
+import re
+
+import pytest
+from helpers import check_against_onnxruntime
+from onnx import helper
+from test_ops import model, weights
+
+import nncg
+from nncg.cli import main
+from nncg.passes import parse_pipeline
+from nncg.passes.register_block import choose_blocks
+from nncg.tune import UNROLL_BUDGETS, block_candidates, tunable_layers, tune, with_layer_choices
+
+
+def conv_pool_conv():
+    nodes = [
+        helper.make_node("Conv", ["x", "w1", "b1"], ["c1"], pads=[1, 1, 1, 1]),
+        helper.make_node("Relu", ["c1"], ["r1"]),
+        helper.make_node("MaxPool", ["r1"], ["p1"], kernel_shape=[2, 2], strides=[2, 2]),
+        helper.make_node("Conv", ["p1", "w2"], ["y"], pads=[1, 1, 1, 1]),
+    ]
+    inits = [("w1", weights(8, 3, 3, 3)), ("b1", weights(8)), ("w2", weights(12, 8, 3, 3))]
+    return model(nodes, {"x": (1, 3, 12, 16)}, None, inits)
+
+
+def layer_choices(pipeline: str, pass_name: str) -> dict[str, str]:
+    spec = next(s for s in parse_pipeline(pipeline) if s.name == pass_name)
+    text = dict(spec.params).get("layers", "")
+    return dict(item.split(":") for item in text.split(";") if item)
+
+
+def test_candidates_start_with_the_cost_model_and_fit_the_registers():
+    for shape, registers in (((40, 2), 16), ((6, 3), 16), ((40, 1), 32), ((40, 16), 16)):
+        candidates = block_candidates(shape, registers)
+        assert candidates[0] == choose_blocks(shape, registers)
+        assert len(set(candidates)) == len(candidates)
+        assert all(p <= shape[0] and p * c <= registers - 2 for p, c in candidates[1:])
+
+
+def test_with_layer_choices_sets_both_passes():
+    base = nncg.default_pipeline(4)
+    tuned = with_layer_choices(base, {"conv1": (3, 2)}, {"conv1": 16})
+    assert layer_choices(tuned, "register-block") == {"conv1": "3x2"}
+    assert layer_choices(tuned, "unroll") == {"conv1": "16"}
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
+def test_tuned_pipeline_matches_onnxruntime_and_is_cached(tmp_path, target):
+    m = conv_pool_conv()
+    lines = []
+    pipeline = tune(m, target, cache=tmp_path / "tune.json", batches=2, progress=lines.append)
+    layers = set(tunable_layers(m, nncg.default_pipeline(4)))
+    assert layers == {"Conv_0", "MaxPool_2", "Conv_3"}
+    blocks = layer_choices(pipeline, "register-block")
+    assert set(blocks) == layers and all(re.fullmatch(r"\d+x\d+", b) for b in blocks.values())
+    assert {int(b) for b in layer_choices(pipeline, "unroll").values()} <= set(UNROLL_BUDGETS)
+    assert any("builds of the model" in line for line in lines)
+    check_against_onnxruntime(m, nncg.compile(m, target, pipeline=pipeline, verify_ir=True), opt="-O1")
+
+    again = []
+    assert tune(m, target, cache=tmp_path / "tune.json", batches=2, progress=again.append) == pipeline
+    assert "3 cached, 0 to measure" in again[0] and not any("builds" in line for line in again)
+
+
+def test_cli_tune_writes_tuned_code_through_a_runner(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    path = tmp_path / "net.onnx"
+    path.write_bytes(conv_pool_conv().SerializeToString())
+    # `env` runs the timing program as given: proves the runner prefixes its command line
+    status = main([str(path), "--target", "ssse3", "--tune", "--tune-runner", "env", "-o", str(tmp_path / "out")])
+    assert status == 0
+    source = (tmp_path / "out" / "net.c").read_text()
+    assert "register-block{registers=16,layers=Conv_0:" in source.splitlines()[0]
+    assert (tmp_path / "cache" / "nncg" / "tune.json").exists()
+    assert "tune: Conv_3:" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--pipeline", "lower,plan-memory"], "give --tune or --pipeline, not both"),
+        (["--unroll", "2"], "leave --unroll at auto"),
+        (["--tune-runner", "/no/such/emulator"], "cannot start the benchmark harness with '/no/such/emulator'"),
+    ],
+)
+def test_cli_tune_errors_are_clear(tmp_path, monkeypatch, capsys, extra, message):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    path = tmp_path / "net.onnx"
+    path.write_bytes(conv_pool_conv().SerializeToString())
+    assert main([str(path), "--tune", "-o", str(tmp_path / "out"), *extra]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
