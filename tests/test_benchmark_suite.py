@@ -27,7 +27,18 @@ def test_suite_report_lists_results_and_unsupported_models(tmp_path, monkeypatch
     table = [line for line in text.splitlines() if line.startswith("| ")]
     assert table[0].startswith("| model | target | unroll | NNCG µs") and len(table) == 1 + len(rows)
     assert all(line.count("|") == table[0].count("|") for line in table)
-    assert "| broken | ssse3 | auto | not supported yet: " in text and "pinned to core 0" in text and "2026-01-01" in text
+    assert (
+        "| broken | ssse3 | auto | not supported yet: " in text and "pinned to core 0" in text and "2026-01-01" in text
+    )
     chart = tmp_path / "results.png"
     write_chart(rows, chart)
     assert chart.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and chart.stat().st_size > 5000
+
+
+def test_tuned_suite_row_uses_the_tuned_pipeline(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    rows = run_suite(["ball"], ["ssse3"], batches=2, min_batch_seconds=0.001, peaks=PEAKS, progress=lambda _: None,
+                     tuned=True)  # fmt: skip
+    assert rows[0].unroll == "auto, tuned" and rows[0].result is not None
+    assert rows[0].result.max_rel_err < 1e-4
+    assert (tmp_path / "nncg" / "tune.json").exists()

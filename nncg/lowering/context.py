@@ -5,12 +5,13 @@ from __future__ import annotations
 import keyword
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..ir.graph import Graph
 from ..ir.loops import Affine, Buffer, Kernel, Loop, Stmt
+from .halo import conv_halos, zero_halo
 
 C_KEYWORDS = frozenset(
     """auto break case char const continue default do double else enum extern float for goto if
@@ -46,36 +47,55 @@ def layout_name(shape: tuple[int, ...], order: tuple[int, ...]) -> str:
 
 @dataclass(frozen=True)
 class TensorRef:
-    """Where a logical tensor lives: a buffer and the physical order of its logical dims."""
+    """Where a logical tensor lives: a buffer and the physical order of its logical dims. With a
+    `halo` ((before, after) per logical dim), the buffer holds the tensor inside a border of zeros
+    that padded convolutions read instead of checking bounds."""
 
     buffer: str
     shape: tuple[int, ...]
     order: tuple[int, ...]  # logical dims from outermost to innermost in memory
+    halo: tuple[tuple[int, int], ...] = ()
+
+    @property
+    def stored_shape(self) -> tuple[int, ...]:
+        """The shape with the halo included."""
+        if not self.halo:
+            return self.shape
+        return tuple(d + before + after for d, (before, after) in zip(self.shape, self.halo))
 
     @property
     def strides(self) -> tuple[int, ...]:
-        strides = [0] * len(self.shape)
+        shape = self.stored_shape
+        strides = [0] * len(shape)
         step = 1
         for dim in reversed(self.order):
             strides[dim] = step
-            step *= self.shape[dim]
+            step *= shape[dim]
         return tuple(strides)
 
     def at(self, index) -> Affine:
         """Flat offset of a logical index (a sequence of Affine/str/int, one per dim)."""
         offset = Affine()
-        for i, stride in zip(index, self.strides):
-            offset = offset + Affine.of(i) * stride
+        for d, (i, stride) in enumerate(zip(index, self.strides)):
+            offset = offset + (Affine.of(i) + (self.halo[d][0] if self.halo else 0)) * stride
         return offset
+
+    @property
+    def spatial_ranges(self) -> list[tuple[int, int]]:
+        """Per spatial dim (2, 3, ...), the positions that may be read: [-halo before, size + halo after)."""
+        halo = self.halo or ((0, 0),) * len(self.shape)
+        return [(-halo[d][0], self.shape[d] + halo[d][1]) for d in range(2, len(self.shape))]
 
     @property
     def is_row_major(self) -> bool:
         physical = [d for d in self.order if self.shape[d] != 1]
-        return physical == sorted(physical)
+        return physical == sorted(physical) and not self.halo
 
 
 def same_memory_order(a: TensorRef, b: TensorRef) -> bool:
     """Whether both place every element at the same offset (dims of extent 1 do not matter)."""
+    if a.halo or b.halo:
+        return a == replace(b, buffer=a.buffer)
     return all(sa == sb for sa, sb, d in zip(a.strides, b.strides, a.shape) if d != 1)
 
 
@@ -100,7 +120,7 @@ def nest(
 class LoweringContext:
     """Allocates buffers and remembers where each graph value lives."""
 
-    def __init__(self, graph: Graph):
+    def __init__(self, graph: Graph, halos: bool = False):
         self.graph = graph
         self.buffers: list[Buffer] = []
         self.constants: dict[str, np.ndarray] = {}
@@ -108,6 +128,7 @@ class LoweringContext:
         self.kernels: list[Kernel] = []
         self._names: set[str] = set()
         self.pending_copies: list[tuple[str, TensorRef, TensorRef]] = []
+        self.halos = conv_halos(graph) if halos else {}
 
     def unique(self, name: str) -> str:
         """A C identifier for name, distinct from all given out so far, ignoring case (the header
@@ -153,7 +174,13 @@ class LoweringContext:
             temp = self.add_buffer("t_" + value, "internal", shape, order)
             self.pending_copies.append((value, temp, target))
             return temp
-        ref = self.add_buffer("t_" + value, "internal", shape, order)
+        if value in self.halos:
+            halo = self.halos[value]
+            stored = TensorRef("", shape, tuple(order), halo).stored_shape
+            ref = replace(self.add_buffer("t_" + value, "internal", stored, order), shape=shape, halo=halo)
+            self.emit("halo_" + ref.buffer, "ZeroHalo", zero_halo(ref))
+        else:
+            ref = self.add_buffer("t_" + value, "internal", shape, order)
         self.refs[value] = ref
         return ref
 

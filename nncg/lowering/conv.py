@@ -48,7 +48,7 @@ def lower_conv(ctx: LoweringContext, node: Node) -> None:
             return (Loop("ci", c_in, update),) if c_in > 1 else update
 
         init = Load(bias.buffer, bias.at([co])) if bias else Const.splat(0.0)
-        window = window_nest(attrs, env, dict(out_loops), x.shape[2:], tap)
+        window = window_nest(attrs, env, dict(out_loops), x.spatial_ranges, tap)
         index = [n, co, *(env["o" + s] for s in names)]
         value: Expr = LocalRef("acc")
         if residual:

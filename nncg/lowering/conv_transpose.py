@@ -99,7 +99,7 @@ def _phase_nest(attrs: ConvTransposeAttrs, refs: Operands, phases: tuple[int, ..
             return (Loop("ci", c_in_g, update),) if c_in_g > 1 else update
 
         reached = all(t.count for t in taps)
-        window = guarded_taps(tap_loops, positions, x.shape[2:], dict(q_loops), tap) if reached else ()
+        window = guarded_taps(tap_loops, positions, x.spatial_ranges, dict(q_loops), tap) if reached else ()
         c = g * c_out_g + co
         init = Load(bias.buffer, bias.at([c])) if bias else Const.splat(0.0)
         o = [qi * stride + p for qi, stride, p in zip(q, attrs.strides, phases)]

@@ -52,7 +52,7 @@ def _lower_pool(ctx: LoweringContext, node: Node, acc: str, init: Const, op: str
             load = Load(x.buffer, x.at([n, c, *positions]))
             return (Assign(acc, Binary(op, LocalRef(acc), load)),)
 
-        window = window_nest(attrs, env, dict(out_loops), x.shape[2:], tap)
+        window = window_nest(attrs, env, dict(out_loops), x.spatial_ranges, tap)
         value = LocalRef(acc)
         if inverse is not None:
             value = Binary("*", value, Load(inverse.buffer, inverse.at(o)))

@@ -20,13 +20,14 @@ def window_nest(
     attrs,
     out_env: dict[str, Affine],
     out_extents: dict[str, int],
-    in_spatial: tuple[int, ...],
+    in_ranges: list[tuple[int, int]],
     tap: Tap,
 ) -> tuple[Stmt, ...]:
     """for k_1 { if border_1 { for k_2 { ... tap(positions, k) } } }.
 
     `attrs` has kernel, strides, dilations and pads_begin: output o reads input o*stride +
-    k*dilation - pad_begin."""
+    k*dilation - pad_begin. in_ranges[i] = [lo, hi) are the positions along dim i that may be read
+    (TensorRef.spatial_ranges: the input, and the zero halo around it if it has one)."""
     names = spatial_names(len(attrs.kernel))
     loops = [("k" + s, attrs.kernel[i]) for i, s in enumerate(names)]
     k_vars = [Affine.of(var) if extent > 1 else Affine() for var, extent in loops]
@@ -34,13 +35,13 @@ def window_nest(
         out_env["o" + s] * attrs.strides[i] + k_vars[i] * attrs.dilations[i] - attrs.pads_begin[i]
         for i, s in enumerate(names)
     ]
-    return guarded_taps(loops, positions, in_spatial, out_extents, lambda: tap(positions, k_vars))
+    return guarded_taps(loops, positions, in_ranges, out_extents, lambda: tap(positions, k_vars))
 
 
 def guarded_taps(
     loops: list[tuple[str, int]],
     positions: list[Affine],
-    in_spatial: tuple[int, ...],
+    in_ranges: list[tuple[int, int]],
     out_extents: dict[str, int],
     body: Callable[[], tuple[Stmt, ...]],
 ) -> tuple[Stmt, ...]:
@@ -52,8 +53,9 @@ def guarded_taps(
     stmts = body()
     for i in reversed(range(len(loops))):
         lo, hi = positions[i].bounds(extents)
-        if lo < 0 or hi >= in_spatial[i]:
-            bound = Bound(positions[i], 0 if lo < 0 else None, in_spatial[i] if hi >= in_spatial[i] else None)
+        first, stop = in_ranges[i]
+        if lo < first or hi >= stop:
+            bound = Bound(positions[i], first if lo < first else None, stop if hi >= stop else None)
             stmts = (If((bound,), stmts),)
         var, extent = loops[i]
         if extent > 1:

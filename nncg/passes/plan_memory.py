@@ -66,8 +66,9 @@ def parse_weights(text: str) -> str:
 
 
 def parse_reuse(text: str) -> bool:
+    """A boolean parameter: true or false."""
     if text not in ("true", "false"):
-        raise ValueError("reuse is true or false")
+        raise ValueError("the value is true or false")
     return text == "true"
 
 
