@@ -1,6 +1,6 @@
 """The benchmark suite: every model x every target, NNCG against onnxruntime and the hardware peak.
 
-    python3 -m benchmarks.suite [--cpu 0] [--targets ansi-c ssse3] [--models ball robot]
+    python3 -m benchmarks.suite [--cpu 0] [--tune] [--targets ansi-c ssse3] [--models ball robot]
 
 writes benchmarks/RESULTS.md (the table, the machine's CPU, the date) and benchmarks/results.png (speed-up
 over onnxruntime and % of peak per model and target). Models NNCG cannot compile yet are listed, not hidden.
@@ -18,8 +18,9 @@ from pathlib import Path
 
 from nncg.backends import BACKENDS
 from nncg.bench.benchmark import BenchResult, benchmark
-from nncg.bench.peak import measure_peaks
+from nncg.bench.peak import TARGET_ISA, measure_peaks
 from nncg.errors import NncgError
+from nncg.tune import tune
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER = ["ball", "pedestrian", "robot"]
@@ -41,18 +42,20 @@ class Row:
 
 
 def run_suite(
-    models, targets, *, cpu=None, batches=15, min_batch_seconds=0.02, peaks=None, progress=print
+    models, targets, *, cpu=None, batches=15, min_batch_seconds=0.02, peaks=None, progress=print, tuned=False
 ) -> list[Row]:
+    """With `tuned`, each model is first tuned per layer for each target (nncg.tune, cached)."""
     peaks = peaks if peaks is not None else measure_peaks()
     rows = []
     for model in models:
         for target in targets:
             progress(f"{model} / {target} ...")
-            level = "auto"  # the defaults
+            level = "auto, tuned" if tuned else "auto"  # the defaults
             try:
+                pipeline = tune(model_path(model), target, cpu=cpu, progress=lambda _: None) if tuned else None
                 result = benchmark(
-                    model_path(model), target, level, cpu=cpu, batches=batches, min_batch_seconds=min_batch_seconds,
-                    peaks=peaks,
+                    model_path(model), target, "auto", cpu=cpu, batches=batches, min_batch_seconds=min_batch_seconds,
+                    peaks=peaks, pipeline=pipeline,
                 )  # fmt: skip
                 rows.append(Row(model, target, result, unroll=level))
             except NncgError as exc:
@@ -86,7 +89,8 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'})",
         f"- Date: {date}",
         f"- Measured peak (this core, `python3 -m nncg.bench.peak`): {peak_text}",
-        "- NNCG: the generated C at `gcc -O3` plus the target's flags, at the unroll level shown; onnxruntime:",
+        "- NNCG: the generated C at `gcc -O3` plus the target's flags, at the unroll level shown (tuned: per-layer",
+        "  block shapes and unroll budgets from `--tune`, timed on this core); onnxruntime:",
         "  batch 1, one intra-op thread, all graph optimisations; `ORT µs` with IOBinding, `ORT run µs` through",
         "  `InferenceSession.run`. Medians of 15 batches of >= 20 ms each, NNCG and onnxruntime interleaved.",
         "- speed-up = ORT µs / NNCG µs; GFLOP/s = 2 x MACs / NNCG time; % peak of the ISA the target uses.",
@@ -141,12 +145,14 @@ def write_chart(rows: list[Row], path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=PAPER + MLPERF_TINY)
-    parser.add_argument("--targets", nargs="+", default=sorted(BACKENDS))
+    # The targets this x86 host runs (neon is ARM code).
+    parser.add_argument("--targets", nargs="+", default=sorted(t for t in BACKENDS if t in TARGET_ISA))
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
+    parser.add_argument("--tune", action="store_true", help="tune every model per layer first (nncg-onnx --tune)")
     args = parser.parse_args(argv)
     peaks = measure_peaks()
-    rows = run_suite(args.models, args.targets, cpu=args.cpu, peaks=peaks)
+    rows = run_suite(args.models, args.targets, cpu=args.cpu, peaks=peaks, tuned=args.tune)
     today = datetime.date.today().isoformat()
     (args.out_dir / "RESULTS.md").write_text(results_markdown(rows, peaks, args.cpu, today))
     write_chart(rows, args.out_dir / "results.png")

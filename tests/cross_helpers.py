@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import onnx
 
 import nncg
 from nncg.compiler import CompiledModel
@@ -53,6 +54,8 @@ def _linux(name: str, cc: str, emulator: str, target: str = "ansi-c", flags: tup
     return Toolchain(name, target, cc, ("-static", *flags), (emulator,), native_if_possible=emulator == "qemu-i386")
 
 
+ARMHF_NEON_FLAGS = ("-mfpu=neon-vfpv4", "-mfloat-abi=hard")  # the neon target on ARMv7 with VFPv4 (FMA)
+
 TOOLCHAINS = {
     t.name: t
     for t in (
@@ -61,15 +64,30 @@ TOOLCHAINS = {
         _linux("i686-ssse3", "i686-linux-gnu-gcc", "qemu-i386", "ssse3", ("-march=bonnell", "-mssse3")),
         _linux("armhf", "arm-linux-gnueabihf-gcc", "qemu-arm"),
         _linux("aarch64", "aarch64-linux-gnu-gcc", "qemu-aarch64"),
+        # NEON: baseline on aarch64; ARMv7 needs it switched on, with VFPv4 for fused multiply-adds,
+        # or plain NEON (VFPv3), where the generated file falls back to vmlaq_f32.
+        _linux("armhf-neon", "arm-linux-gnueabihf-gcc", "qemu-arm", "neon", ARMHF_NEON_FLAGS),
+        _linux("armhf-neon-vfpv3", "arm-linux-gnueabihf-gcc", "qemu-arm", "neon", ("-mfpu=neon", "-mfloat-abi=hard")),
+        _linux("aarch64-neon", "aarch64-linux-gnu-gcc", "qemu-aarch64", "neon"),
         _linux("riscv64", "riscv64-linux-gnu-gcc", "qemu-riscv64"),
         Toolchain("clang", "ansi-c", "clang"),
         Toolchain("tcc", "ansi-c", "tcc"),
     )
 }
 # The MLPerf-Tiny-shaped models are the slowest to build (gcc -O2 took a minute over them at unroll
-# level 2): they run on one ARM target (armhf: 32-bit, the constrained case), the paper's three
-# networks on every target. The slow ones first, so that they do not finish last on one xdist worker.
-CASES = [("armhf", model) for model in MLPERF_TINY] + [(tc, model) for tc in TOOLCHAINS for model in PAPER_NETWORKS]
+# level 2): they run on the ARM targets (armhf: 32-bit, the constrained case; and NEON on both), the
+# paper's three networks on every target. The slow ones first, so that they do not finish last on
+# one xdist worker.
+CASES = [(tc, model) for tc in ("armhf", "armhf-neon", "aarch64-neon") for model in MLPERF_TINY]
+CASES += [(tc, model) for tc in TOOLCHAINS for model in PAPER_NETWORKS]
+NEON_TOOLCHAINS = tuple(name for name, tc in TOOLCHAINS.items() if tc.target == "neon")
+# clang cross-compiles the neon file (-c: no target libraries needed) with its own arm_neon.h and
+# the cross sysroot's headers that the gcc cross toolchains install.
+CLANG_NEON_FLAGS = {
+    "aarch64": ("--target=aarch64-linux-gnu",),
+    "armhf": ("--target=arm-linux-gnueabihf", *ARMHF_NEON_FLAGS),
+    "armhf-vfpv3": ("--target=arm-linux-gnueabihf", "-mfpu=neon", "-mfloat-abi=hard"),
+}
 CORTEX_M4_MODELS = ("ball", "pedestrian", "robot")
 
 
@@ -102,10 +120,11 @@ def missing_tools(toolchain: Toolchain) -> list[str]:
     return [tool for tool in runner(toolchain)[:1] if shutil.which(tool) is None]
 
 
-def verify_on(toolchain: Toolchain, model: str, compiled: CompiledModel) -> VerifyReport:
-    """Builds `compiled` (the C of MODELS[model]) with the toolchain, runs it, compares with onnxruntime."""
+def verify_on(toolchain: Toolchain, model: str | onnx.ModelProto, compiled: CompiledModel) -> VerifyReport:
+    """Builds `compiled` (the C of MODELS[model], or of the model given) with the toolchain, runs it,
+    compares with onnxruntime."""
     return verify(
-        nncg.load_model(MODELS[model]),
+        nncg.load_model(MODELS[model]) if isinstance(model, str) else model,
         compiled,
         seed=SEED,
         tolerance=TOLERANCE,
@@ -114,6 +133,27 @@ def verify_on(toolchain: Toolchain, model: str, compiled: CompiledModel) -> Veri
         extra_cflags=toolchain.flags,
         runner=runner(toolchain),
     )
+
+
+def clang_cross_problem(flags: Sequence[str]) -> str | None:
+    """Why clang cannot compile NEON code with these flags here (no clang, no sysroot headers), or None."""
+    if shutil.which("clang") is None:
+        return "clang not installed (scripts/install-test-deps.sh installs it)"
+    with tempfile.TemporaryDirectory(prefix="nncg-probe-") as tmp:
+        source = Path(tmp) / "probe.c"
+        source.write_text("#include <math.h>\n#include <arm_neon.h>\nint probe(void) { return 0; }\n")
+        command = ["clang", *flags, "-c", str(source), "-o", str(source.with_suffix(".o"))]
+        proc = subprocess.run(command, capture_output=True, text=True)
+    if proc.returncode == 0:
+        return None
+    first = next((line for line in proc.stderr.splitlines() if "error" in line), proc.stderr.strip())
+    return f"clang {' '.join(flags)} cannot build NEON code here (cross sysroot headers missing?): {first}"
+
+
+def compile_with_clang(flags: Sequence[str], compiled: CompiledModel, workdir: Path) -> None:
+    """Compiles the model's C file with clang and the target's strict flags (-c); raises on an error or warning."""
+    compiled.write(workdir)
+    _run(["clang", *flags, OPT, *compiled.strict_cflags, "-c", f"{compiled.name}.c", "-o", "model.o"], workdir)
 
 
 # --- Cortex-M4, bare metal ---

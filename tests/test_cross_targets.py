@@ -1,6 +1,8 @@
 """Portability (issue 6): the generated C cross-compiled for 32-bit x86, armhf, aarch64 and riscv64 and
 run natively or under qemu-user, built with clang and tcc on the host, and built bare metal for a
-Cortex-M4 run in qemu-system-arm. Every run is compared with onnxruntime on the host.
+Cortex-M4 run in qemu-system-arm; the neon target's C run on armhf (with and without VFPv4's fused
+multiply-add) and aarch64, and cross-compiled with clang. Every run is compared with onnxruntime on
+the host.
 
 A missing toolchain skips its tests when run by hand and fails them in CI (CI set), so that CI
 proves scripts/install-test-deps.sh installed every one. scripts/cross_matrix.py prints the
@@ -10,13 +12,18 @@ import functools
 import os
 import shutil
 
+import numpy as np
 import pytest
 from cross_helpers import (
     CASES,
+    CLANG_NEON_FLAGS,
     CORTEX_M4_MODELS,
     CORTEX_M4_TOOLS,
     MODELS,
+    NEON_TOOLCHAINS,
     TOOLCHAINS,
+    clang_cross_problem,
+    compile_with_clang,
     format_table,
     missing_tools,
     runner,
@@ -24,14 +31,20 @@ from cross_helpers import (
     verify_on,
     verify_on_cortex_m4,
 )
+from onnx import helper
+from test_ops import conv_model
+from test_ops import model as onnx_model
+from test_x86_targets import HOOKS
 
 import nncg
 
 
 def require(missing: list[str]) -> None:
-    if not missing:
-        return
-    message = f"{', '.join(missing)} not installed (scripts/install-test-deps.sh installs it)"
+    if missing:
+        skip_unless_ci(f"{', '.join(missing)} not installed (scripts/install-test-deps.sh installs it)")
+
+
+def skip_unless_ci(message: str) -> None:
     if os.environ.get("CI"):
         pytest.fail(f"{message}: CI must run every target", pytrace=False)
     pytest.skip(message)
@@ -67,3 +80,59 @@ def test_model_matches_onnxruntime_on_cortex_m4(model, compiled_model, tmp_path)
     # The static arena is RAM, and the stack's deepest use stayed inside the stack (no overflow).
     assert result.model_sizes["bss"] >= compiled.arena_bytes
     assert 0 < result.stack_bytes < result.image_sizes["stack"]
+
+
+def divide_by_tensor():
+    """x / (d * d + 1): a vector division by a computed tensor (8 contiguous floats: two vectors)."""
+    nodes = [
+        helper.make_node("Mul", ["d", "d"], ["s"]),
+        helper.make_node("Add", ["s", "one"], ["t"]),
+        helper.make_node("Div", ["x", "t"], ["y"]),
+    ]
+    return onnx_model(nodes, {"x": (1, 4, 5, 8), "d": (1, 4, 5, 8)}, None, [("one", np.float32(1.0))])
+
+
+# The x86 targets' vector hooks (20 channels: five NEON vectors), 22 channels for a scalar tail
+# next to the vectors, and a division.
+NEON_HOOKS = {
+    **HOOKS,
+    "vectors_and_tail": conv_model((1, 3, 6, 7), 22, (3, 3), pads=[1, 1, 1, 1]),
+    "div": divide_by_tensor(),
+}
+# What each case must print: the hook's intrinsic or helper.
+NEON_PRINTS = {
+    "fma_and_tail": ["nncg_vfmaq_f32("],
+    "select": ["vbslq_f32(vcgtq_f32("],
+    "max": ["vmaxq_f32("],
+    "lane_wise_call": ["nncg_vexpq_f32(", "nncg_vdivq_f32("],
+    "vectors_and_tail": ["nncg_vfmaq_f32(", "float acc"],
+    "div": ["nncg_vdivq_f32(vld1q_f32("],
+}
+
+
+@pytest.mark.parametrize("toolchain", NEON_TOOLCHAINS)
+@pytest.mark.parametrize("case", NEON_HOOKS)
+def test_neon_vector_hooks_match_onnxruntime(case, toolchain):
+    tc = TOOLCHAINS[toolchain]
+    require(missing_tools(tc))
+    m = NEON_HOOKS[case]
+    for unroll in (None, 2):
+        compiled = nncg.compile(m, target="neon", unroll=unroll, verify_ir=True)
+        for text in NEON_PRINTS[case]:
+            assert text in compiled.source, (text, unroll)
+        report = verify_on(tc, m, compiled)
+        assert report.ok, report.format()
+
+
+@pytest.mark.parametrize("target", CLANG_NEON_FLAGS)
+def test_neon_source_compiles_with_clang(target, compiled_model, tmp_path):
+    """clang's arm_neon.h differs from gcc's (vld1q_f32 and others are macros): the paper's networks
+    and every hook's file build with its strict flags."""
+    flags = CLANG_NEON_FLAGS[target]
+    problem = clang_cross_problem(flags)
+    if problem:
+        skip_unless_ci(problem)
+    sources = [compiled_model(name, "neon") for name in ("ball", "pedestrian", "robot")]
+    sources += [nncg.compile(m, target="neon") for m in NEON_HOOKS.values()]
+    for i, compiled in enumerate(sources):
+        compile_with_clang(flags, compiled, tmp_path / str(i))

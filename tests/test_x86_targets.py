@@ -108,7 +108,7 @@ def test_several_vector_widths_match_onnxruntime(case, target):
 
 def test_backends_declare_the_widths_they_print():
     widths = {name: get_backend(name).vector_widths for name in BACKENDS}
-    assert widths == {"ansi-c": (), "ssse3": (4,), "avx2": (8, 4), "avx512": (16, 8, 4)}
+    assert widths == {"ansi-c": (), "ssse3": (4,), "avx2": (8, 4), "avx512": (16, 8, 4), "neon": (4,)}
     for name in BACKENDS:
         backend = get_backend(name)
         assert backend.lanes == (backend.vector_widths or (1,))[0]

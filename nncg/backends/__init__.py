@@ -5,9 +5,10 @@ from __future__ import annotations
 from ..errors import NncgError
 from .avx import Avx2, Avx512
 from .c import AnsiC
+from .neon import Neon
 from .ssse3 import Ssse3
 
-BACKENDS: dict[str, type[AnsiC]] = {cls.name: cls for cls in (AnsiC, Ssse3, Avx2, Avx512)}
+BACKENDS: dict[str, type[AnsiC]] = {cls.name: cls for cls in (AnsiC, Ssse3, Avx2, Avx512, Neon)}
 
 
 def get_backend(name: str) -> AnsiC:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..compiler import compile as compile_model
+from ..errors import NncgError
 from ..frontend import load_model
 from ..verify import compare, find_c_compiler, random_inputs
 from .harness import CompiledHarness, ObjectSizes
@@ -85,6 +86,8 @@ def benchmark(
     side. `peaks` (GFLOP/s per ISA, from nncg.bench.peak.measure_peaks) is measured here when not given."""
     from .peak import TARGET_ISA, measure_peak
 
+    if target not in TARGET_ISA:  # neon: ARM code, which the x86 host neither builds nor has a peak for
+        raise NncgError(f"--benchmark times x86 targets ({', '.join(TARGET_ISA)}) on this host, not {target}")
     cc = find_c_compiler(cc)
     proto = load_model(model, input_shapes)
     start = time.perf_counter()
