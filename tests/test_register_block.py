@@ -122,3 +122,9 @@ def test_blocked_residual_pool_and_gemm_under_sanitizers(target):
     widths = "/".join(map(str, nncg.backends.get_backend(target).vector_widths))
     compiled = nncg.compile(m, target=target, pipeline=pipeline(widths, "registers=16"), verify_ir=True)
     check_against_onnxruntime(m, compiled, sanitize=True, opt="-O1")
+
+
+def test_unroll_layer_budgets_name_existing_layers():
+    m = conv_model((1, 2, 4, 4), 4, (3, 3))
+    with pytest.raises(NncgError, match="unroll: no layer named conv9"):
+        PassManager(f"{LOWER},unroll{{level=auto,layers=conv9:16}}").run(import_onnx(m))

@@ -6,8 +6,11 @@ iterations of the parallel loops around the accumulator into one, so P output pi
 channels (vectors, after vectorize) accumulate in P*C independent registers: the adds overlap, each
 input value is loaded (broadcast) once for C channels and each weight once for P pixels.
 
-The *pixel loop* is the innermost parallel loop that encloses all of a layer's accumulators; the
-*channel loops* are the parallel loops inside it that hold accumulators directly. Border checks
+The *channel loops* are parallel loops that hold accumulators directly and whose iterations store
+side by side (the output-channel vector loop and its tail); the *pixel loop* is the innermost
+parallel loop around them that encloses all of a layer's accumulators. When a layer's channels fill
+exactly one vector, consecutive output columns are side by side too: the column loop is then the
+channel loop and the row loop the pixel loop, and the block is 2-D (rows x columns). Border checks
 that depend on a jammed loop would differ between the jammed iterations, so that loop is first
 split into its border iterations (kept as they were) and the interior, where the checks always hold
 and are dropped. Choice and mechanism are apart: `choose_blocks` is the cost model, `layers`

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..errors import NncgError
 from ..ir.loops import Affine, If, Let, Loop, Program, Stmt
 from .substitute import prune_bounds, substitute_body
 
@@ -39,6 +40,10 @@ def unroll(
         budget = AUTO_BUDGET
     budget = budget if budget is not None or total is None else total
     layers = layers or {}
+    unknown = sorted(set(layers) - {k.name for k in program.kernels})
+    if unknown:
+        names = ", ".join(k.name for k in program.kernels)
+        raise NncgError(f"unroll: no layer named {', '.join(unknown)}; the layers are: {names}")
 
     def marked_with(budget):
         return [mark_unroll(k.body, level, layers.get(k.name, budget)) for k in program.kernels]
