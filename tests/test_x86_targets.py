@@ -57,13 +57,19 @@ HOOKS = {
 }
 
 
+def checked_builds(m, target) -> list:
+    """m compiled without unrolling (run under ASan/UBSan) and at level 2, each checked against onnxruntime."""
+    builds = []
+    for unroll in (None, 2):
+        builds.append(nncg.compile(m, target=target, unroll=unroll, verify_ir=True))
+        check_against_onnxruntime(m, builds[-1], sanitize=unroll is None)
+    return builds
+
+
 @pytest.mark.parametrize("target", TARGETS)
 @pytest.mark.parametrize("case", HOOKS)
 def test_vector_hooks_match_onnxruntime(case, target):
-    m = HOOKS[case]
-    for unroll in (None, 2):
-        compiled = nncg.compile(m, target=target, unroll=unroll, verify_ir=True)
-        check_against_onnxruntime(m, compiled, sanitize=unroll is None)
+    compiled = checked_builds(HOOKS[case], target)[-1]
     prefix = {"avx2": "_mm256", "avx512": "_mm512"}[target]
     assert f"{prefix}_fmadd_ps" in compiled.source or case != "fma_and_tail"
     if case == "select":
@@ -92,10 +98,7 @@ STORES = {
 @pytest.mark.parametrize("target", TARGETS)
 @pytest.mark.parametrize("case", WIDTHS)
 def test_several_vector_widths_match_onnxruntime(case, target):
-    m = WIDTHS[case]
-    for unroll in (None, 2):
-        compiled = nncg.compile(m, target=target, unroll=unroll, verify_ir=True)
-        check_against_onnxruntime(m, compiled, sanitize=unroll is None)
+    for compiled in checked_builds(WIDTHS[case], target):
         stores = set(re.findall(r"(_mm\d*)_storeu_ps\(&", compiled.source))
         assert stores == STORES[case][target == "avx512"], stores
         assert "float acc" not in compiled.source  # no channel left scalar
