@@ -31,8 +31,9 @@ from .frontend import import_onnx
 from .ir.loops import Program
 from .ir.text import program_to_text
 from .passes import PassManager, default_pipeline, format_pipeline, parse_pipeline
-from .passes.register_block import block_shape, choose_blocks, format_layers, parse_layers
-from .passes.unroll import AUTO_BUDGET, CODE_BUDGET, parse_layer_budgets
+from .passes.per_layer import format_layer_map
+from .passes.register_block import block_shape, choose_blocks, format_block, parse_block
+from .passes.unroll import AUTO_BUDGET, CODE_BUDGET, parse_budget
 from .verify import find_c_compiler, random_inputs
 
 UNROLL_BUDGETS = (AUTO_BUDGET, 0, 16, 256)  # the default first: it is the reference
@@ -74,7 +75,7 @@ def tune(
     cache = cache or default_cache()
     known = _read_cache(cache)
     todo = {name: shape for name, (shape, _) in layers.items() if keys[name] not in known}
-    blocks = {name: parse_layers(f"x:{known[keys[name]]['block']}")["x"] for name in layers if name not in todo}
+    blocks = {name: parse_block(known[keys[name]]["block"]) for name in layers if name not in todo}
     budgets = {name: known[keys[name]]["unroll"] for name in layers if name not in todo}
     progress(f"tune: {len(layers)} layers, {len(layers) - len(todo)} cached, {len(todo)} to measure")
     if todo:
@@ -84,10 +85,10 @@ def tune(
         unrolls = {name: UNROLL_BUDGETS for name in todo}
         budgets |= measure.best("unroll budget", unrolls, lambda pick: with_layer_choices(base, blocks, budgets | pick))
         for name in todo:
-            known[keys[name]] = {"block": f"{blocks[name][0]}x{blocks[name][1]}", "unroll": budgets[name]}
+            known[keys[name]] = {"block": format_block(blocks[name]), "unroll": budgets[name]}
         _write_cache(cache, known)
     for name in sorted(layers):
-        progress(f"tune: {name}: {blocks[name][0]}x{blocks[name][1]} block, unroll budget {budgets[name]}")
+        progress(f"tune: {name}: {format_block(blocks[name])} block, unroll budget {budgets[name]}")
     return with_layer_choices(base, blocks, budgets)
 
 
@@ -138,9 +139,9 @@ def with_layer_choices(pipeline: str, blocks: dict[str, tuple[int, int]], budget
     for spec in parse_pipeline(pipeline):
         params = dict(spec.params)
         if spec.name == "register-block" and blocks:
-            params["layers"] = format_layers(blocks)
+            params["layers"] = format_layer_map(blocks, format_block)
         if spec.name == "unroll" and budgets:
-            params["layers"] = ";".join(f"{name}:{b}" for name, b in sorted(budgets.items()))
+            params["layers"] = format_layer_map(budgets)
         specs.append(replace(spec, params=tuple(params.items())))
     return format_pipeline(specs)
 
@@ -222,8 +223,8 @@ def _read_cache(path: Path) -> dict:
 
 def _valid_entry(entry) -> bool:
     try:
-        parse_layers(f"x:{entry['block']}")
-        parse_layer_budgets(f"x:{entry['unroll']}")
+        parse_block(entry["block"])
+        parse_budget(str(entry["unroll"]))
     except (KeyError, TypeError, ValueError):
         return False
     return True

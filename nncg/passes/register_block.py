@@ -20,8 +20,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..errors import NncgError
 from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
+from .per_layer import check_layer_names, parse_layer_map
 from .substitute import prune_bounds, rename_variables, substitute_body
 
 # The cost model: channel vectors jammed per pixel at most, and registers left besides accumulators
@@ -30,30 +30,26 @@ MAX_CHANNEL_BLOCK = 5
 RESERVED = 6
 
 
+def parse_block(text: str) -> tuple[int, int]:
+    """`4x2` -> (4, 2): pixels x channel vectors."""
+    pixels, x, channels = text.partition("x")
+    if not x or not pixels.isdigit() or not channels.isdigit() or int(pixels) < 1 or int(channels) < 1:
+        raise ValueError("a block is PIXELSxCHANNELS, both at least 1")
+    return int(pixels), int(channels)
+
+
+def format_block(block: tuple[int, int]) -> str:
+    return f"{block[0]}x{block[1]}"
+
+
 def parse_layers(text: str) -> dict[str, tuple[int, int]]:
-    """`conv1:4x2;conv2:3x3` -> {"conv1": (4, 2), "conv2": (3, 3)}: pixels x channel vectors per layer."""
-    out = {}
-    for item in filter(None, (part.strip() for part in text.split(";"))):
-        name, sep, blocks = item.partition(":")
-        pixels, x, channels = blocks.partition("x")
-        if not sep or not x or not pixels.isdigit() or not channels.isdigit():
-            raise ValueError(f"'{item}' is not LAYER:PIXELSxCHANNELS, e.g. conv1:4x2")
-        if int(pixels) < 1 or int(channels) < 1:
-            raise ValueError(f"'{item}': block sizes are at least 1")
-        out[name] = (int(pixels), int(channels))
-    return out
-
-
-def format_layers(blocks: dict[str, tuple[int, int]]) -> str:
-    return ";".join(f"{name}:{p}x{c}" for name, (p, c) in sorted(blocks.items()))
+    """`conv1:4x2;conv2:3x3` -> {"conv1": (4, 2), "conv2": (3, 3)}."""
+    return parse_layer_map(text, parse_block, "conv1:4x2")
 
 
 def register_block(program: Program, registers: int = 16, layers: dict[str, tuple[int, int]] | None = None) -> Program:
     layers = layers or {}
-    unknown = sorted(set(layers) - {k.name for k in program.kernels})
-    if unknown:
-        names = ", ".join(k.name for k in program.kernels)
-        raise NncgError(f"register-block: no layer named {', '.join(unknown)}; the layers are: {names}")
+    check_layer_names(program, layers, "register-block")
     kernels = []
     for kernel in program.kernels:
         shape = block_shape(kernel.body)

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..errors import NncgError
 from ..ir.loops import Affine, If, Let, Loop, Program, Stmt
+from .per_layer import check_layer_names, parse_layer_map
 from .substitute import prune_bounds, substitute_body
 
 # Defaults of nncg.compile and nncg-onnx: statements per unrolled loop nest, and in the whole program
@@ -40,10 +40,7 @@ def unroll(
         budget = AUTO_BUDGET
     budget = budget if budget is not None or total is None else total
     layers = layers or {}
-    unknown = sorted(set(layers) - {k.name for k in program.kernels})
-    if unknown:
-        names = ", ".join(k.name for k in program.kernels)
-        raise NncgError(f"unroll: no layer named {', '.join(unknown)}; the layers are: {names}")
+    check_layer_names(program, layers, "unroll")
 
     def marked_with(budget):
         return [mark_unroll(k.body, level, layers.get(k.name, budget)) for k in program.kernels]
@@ -56,15 +53,15 @@ def unroll(
     return replace(program, kernels=kernels)
 
 
+def parse_budget(text: str) -> int:
+    if not text.isdigit():
+        raise ValueError("a budget is a number of statements >= 0")
+    return int(text)
+
+
 def parse_layer_budgets(text: str) -> dict[str, int]:
     """`conv1:256;conv2:0` -> {"conv1": 256, "conv2": 0}."""
-    out = {}
-    for item in filter(None, (part.strip() for part in text.split(";"))):
-        name, sep, budget = item.partition(":")
-        if not sep or not budget.isdigit():
-            raise ValueError(f"'{item}' is not LAYER:STATEMENTS, e.g. conv1:64")
-        out[name] = int(budget)
-    return out
+    return parse_layer_map(text, parse_budget, "conv1:64")
 
 
 def emitted_size(body: tuple[Stmt, ...]) -> int:
