@@ -1,14 +1,14 @@
-"""Per-layer autotuning (`nncg-onnx --tune`), as in the paper: each register-blocked layer is built
-in several code variants, every variant is timed on the machine that runs the code, and each layer
-keeps its fastest.
+"""Per-layer autotuning (`nncg-onnx --tune`), as in the paper: each layer is built in several code
+variants, every variant is timed on the machine that runs the code, and each layer keeps its fastest.
 
 Variants are measured together: variant i of every layer goes into build i of the whole model (a
 profile build, with a timer around each layer); the builds run interleaved, batch after batch, and
-each layer keeps its best time, so a busy machine slows all variants alike. Two rounds: block shapes
-(pixels x channel vectors) at the default unroll budget, then unroll budgets with the best shapes.
-Choices are cached by layer signature and target, so a layer tuned before costs nothing. The result
-is a pipeline whose register-block and unroll passes name each layer's choice: the C it gives is
-reproducible without the cache."""
+each layer keeps its best time, so a busy machine slows all variants alike. Three rounds: the
+algorithm of each 3x3 convolution (direct or Winograd), then block shapes (pixels x channel vectors)
+of the register-blocked layers at the default unroll budget, then unroll budgets with the best
+shapes. Choices are cached by layer signature and target, so a layer tuned before costs nothing.
+The result is a pipeline whose winograd, register-block and unroll passes name each layer's choice:
+the C it gives is reproducible without the cache."""
 
 from __future__ import annotations
 
@@ -34,6 +34,7 @@ from .passes import PassManager, default_pipeline, format_pipeline, parse_pipeli
 from .passes.per_layer import format_layer_map
 from .passes.register_block import block_shape, choose_blocks, format_block, parse_block
 from .passes.unroll import AUTO_BUDGET, CODE_BUDGET, parse_budget
+from .passes.winograd import winograd_candidates
 from .verify import find_c_compiler, random_inputs
 
 UNROLL_BUDGETS = (AUTO_BUDGET, 0, 16, 256)  # the default first: it is the reference
@@ -65,34 +66,70 @@ def tune(
     progress = progress or (lambda line: print(line, file=sys.stderr, flush=True))
     backend = get_backend(target)
     base = default_pipeline(backend.vector_widths, "auto", weights, code_budget, backend.registers)
+    cc = find_c_compiler(cc)
+    where = f"{target}|{Path(cc).name}|{' '.join(runner)}"
+    cache = cache or default_cache()
+    known = _read_cache(cache)
+    measure = _Measurer(model, target, cc, tuple(runner), input_shapes, batches, cpu, progress)
+    algorithms = _tune_algorithms(model, base, input_shapes, where, known, measure, progress)
+    base = with_layer_choices(base, {}, {}, algorithms)
     layers = tunable_layers(model, base, input_shapes)
     if not layers:
         progress("tune: no register-blocked layer to tune")
+        _write_cache(cache, known)
         return base
-    cc = find_c_compiler(cc)
-    where = f"{target}|{Path(cc).name}|{' '.join(runner)}"
     keys = {name: _cache_key(where, signature) for name, (_, signature) in layers.items()}
-    cache = cache or default_cache()
-    known = _read_cache(cache)
     todo = {name: shape for name, (shape, _) in layers.items() if keys[name] not in known}
     blocks = {name: parse_block(known[keys[name]]["block"]) for name in layers if name not in todo}
     budgets = {name: known[keys[name]]["unroll"] for name in layers if name not in todo}
     progress(f"tune: {len(layers)} layers, {len(layers) - len(todo)} cached, {len(todo)} to measure")
     if todo:
-        measure = _Measurer(model, target, cc, tuple(runner), input_shapes, batches, cpu, progress)
         shapes = {name: block_candidates(shape, backend.registers) for name, shape in todo.items()}
         blocks |= measure.best("block shape", shapes, lambda pick: with_layer_choices(base, blocks | pick, budgets))
         unrolls = {name: UNROLL_BUDGETS for name in todo}
         budgets |= measure.best("unroll budget", unrolls, lambda pick: with_layer_choices(base, blocks, budgets | pick))
         for name in todo:
             known[keys[name]] = {"block": format_block(blocks[name]), "unroll": budgets[name]}
-        _write_cache(cache, known)
+    _write_cache(cache, known)
     for name in sorted(layers):
         progress(f"tune: {name}: {format_block(blocks[name])} block, unroll budget {budgets[name]}")
     return with_layer_choices(base, blocks, budgets)
 
 
+def _tune_algorithms(model, base, input_shapes, where, known, measure, progress) -> dict[str, bool]:
+    """Winograd or not for each layer it applies to: measured (both variants in two builds) or
+    from the cache, keyed by the layer's direct loop nest."""
+    layers = algorithm_layers(model, base, input_shapes)
+    keys = {name: _cache_key(where + "|winograd", signature) for name, signature in layers.items()}
+    chosen = {name: known[keys[name]]["winograd"] for name in layers if keys[name] in known}
+    todo = {name: (False, True) for name in layers if name not in chosen}
+    if todo:
+        progress(f"tune: direct or Winograd for {', '.join(sorted(todo))}")
+        chosen |= measure.best("algorithm", todo, lambda pick: with_layer_choices(base, {}, {}, chosen | pick))
+        for name in todo:
+            known[keys[name]] = {"winograd": chosen[name]}
+    for name in sorted(layers):
+        progress(f"tune: {name}: {'Winograd' if chosen[name] else 'direct'}")
+    return chosen
+
+
 # ---------------------------------------------------------------------------- what to tune
+
+
+def algorithm_layers(model, pipeline: str, input_shapes=None) -> dict[str, str]:
+    """Layer name -> signature of its direct loop nest, for every layer Winograd applies to (whose
+    kernel carries the node's name)."""
+    specs = parse_pipeline(pipeline)
+    cut = next(i for i, spec in enumerate(specs) if spec.name == "winograd")
+    graph = PassManager(specs[:cut]).run(import_onnx(model, input_shapes))
+    names = winograd_candidates(graph)
+    if not names:
+        return {}
+    direct = with_layer_choices(pipeline, {}, {}, dict.fromkeys(names, False))
+    specs = parse_pipeline(direct)
+    cut = next(i for i, spec in enumerate(specs) if spec.name == "register-block")
+    program = PassManager(specs[:cut]).run(import_onnx(model, input_shapes))
+    return {k.name: layer_signature(program, k) for k in program.kernels if k.name in names}
 
 
 def tunable_layers(model, pipeline: str, input_shapes=None) -> dict[str, tuple[tuple[int, int], str]]:
@@ -133,11 +170,18 @@ def block_candidates(shape: tuple[int, int], registers: int) -> list[tuple[int, 
     return out
 
 
-def with_layer_choices(pipeline: str, blocks: dict[str, tuple[int, int]], budgets: dict[str, int]) -> str:
-    """The pipeline with register-block's and unroll's per-layer choices set."""
+def with_layer_choices(
+    pipeline: str,
+    blocks: dict[str, tuple[int, int]],
+    budgets: dict[str, int],
+    algorithms: dict[str, bool] | None = None,
+) -> str:
+    """The pipeline with register-block's, unroll's (and winograd's) per-layer choices set."""
     specs = []
     for spec in parse_pipeline(pipeline):
         params = dict(spec.params)
+        if spec.name == "winograd" and algorithms:
+            params["layers"] = format_layer_map(algorithms, lambda on: "true" if on else "false")
         if spec.name == "register-block" and blocks:
             params["layers"] = format_layer_map(blocks, format_block)
         if spec.name == "unroll" and budgets:
@@ -222,6 +266,8 @@ def _read_cache(path: Path) -> dict:
 
 
 def _valid_entry(entry) -> bool:
+    if isinstance(entry, dict) and set(entry) == {"winograd"}:
+        return isinstance(entry["winograd"], bool)
     try:
         parse_block(entry["block"])
         parse_budget(str(entry["unroll"]))

@@ -58,11 +58,14 @@ def test_tuned_pipeline_matches_onnxruntime_and_is_cached(tmp_path, target):
     assert set(blocks) == layers and all(re.fullmatch(r"\d+x\d+", b) for b in blocks.values())
     assert {int(b) for b in layer_choices(pipeline, "unroll").values()} <= set(UNROLL_BUDGETS)
     assert any("builds of the model" in line for line in lines)
+    assert "tune: direct or Winograd for Conv_0, Conv_3" in lines
+    assert set(layer_choices(pipeline, "winograd").values()) <= {"true", "false"}
+    assert set(layer_choices(pipeline, "winograd")) == {"Conv_0", "Conv_3"}
     check_against_onnxruntime(m, nncg.compile(m, target, pipeline=pipeline, verify_ir=True), opt="-O1")
 
     again = []
     assert tune(m, target, cache=tmp_path / "tune.json", batches=2, progress=again.append) == pipeline
-    assert "3 cached, 0 to measure" in again[0] and not any("builds" in line for line in again)
+    assert "tune: 3 layers, 3 cached, 0 to measure" in again and not any("builds" in line for line in again)
 
 
 def test_cli_tune_writes_tuned_code_through_a_runner(tmp_path, monkeypatch, capsys):

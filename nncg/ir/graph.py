@@ -54,6 +54,8 @@ class ConvAttrs:
     group: int = 1
     activation: Activation | None = None
     residual: bool = False
+    algorithm: str = "direct"  # or "winograd" (set by the winograd pass)
+    gemm_channels: int = 0  # Winograd: output channels padded to this many in its GEMMs (0: not padded)
 
 
 @dataclass(frozen=True)

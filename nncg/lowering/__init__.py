@@ -23,9 +23,16 @@ from .resize import lower_resize
 from .slice import lower_slice, lower_split
 from .softmax import lower_log_softmax, lower_softmax
 from .transpose import lower_transpose
+from .winograd import lower_winograd
+
+
+def lower_any_conv(ctx: LoweringContext, node: Node) -> None:
+    """Direct convolution, or Winograd where the winograd pass chose it."""
+    (lower_winograd if node.attrs.algorithm == "winograd" else lower_conv)(ctx, node)
+
 
 LOWERINGS = {
-    "Conv": lower_conv,
+    "Conv": lower_any_conv,
     "ConvTranspose": lower_conv_transpose,
     "MaxPool": lower_maxpool,
     "AveragePool": lower_averagepool,

@@ -18,6 +18,8 @@ from .plan_memory import parse_align, parse_reuse, parse_weights, plan_memory
 from .register_block import parse_layers, register_block
 from .unroll import AUTO_BUDGET, NEST_BUDGET, parse_layer_budgets, unroll
 from .vectorize import vectorize
+from .winograd import parse_layers as parse_winograd_layers
+from .winograd import winograd
 
 
 def parse_unroll_level(text: str) -> int | None:
@@ -49,6 +51,7 @@ register("fold-batchnorm", "graph", fold_batchnorm)
 register("fuse-bias", "graph", fuse_bias)
 register("fuse-residual", "graph", fuse_residual)
 register("fuse-activation", "graph", fuse_activation)
+register("winograd", "graph", winograd, lanes=parse_lanes, layers=parse_winograd_layers)
 register("lower", "lower", lower, halos=parse_reuse)
 register("vectorize", "loop", vectorize, lanes=parse_lanes)
 register("register-block", "loop", register_block, registers=int, layers=parse_layers)
@@ -56,7 +59,7 @@ register("unroll", "loop", unroll, level=parse_unroll_level, budget=int, total=i
 register("inline-constants", "loop", inline_constants)
 register("plan-memory", "loop", plan_memory, align=parse_align, reuse=parse_reuse, weights=parse_weights)
 
-GRAPH_PIPELINE = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation,lower"
+GRAPH_PIPELINE = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation"
 
 
 def default_pipeline(
@@ -70,7 +73,8 @@ def default_pipeline(
     width) and `registers` vector registers, at an unroll level; `weights` (auto, embed, bin) says
     where plan-memory puts the weights; `budget` caps the statements of the unrolled program (None: no cap)."""
     widths = tuple(w for w in ((widths,) if isinstance(widths, int) else widths) if w > 1)
-    vector = f",vectorize{{lanes={'/'.join(map(str, widths))}}}" if widths else ""
+    lanes = f"{{lanes={'/'.join(map(str, widths))}}}" if widths else ""
+    vector = f",vectorize{lanes}" if widths else ""
     try:
         parse_unroll_level(unroll_level)
     except ValueError:
@@ -81,7 +85,8 @@ def default_pipeline(
     if unroll_level == "auto" and not budget:
         cap = f",budget={nest}"
     block = f",register-block{{registers={registers}}}"
-    return f"{GRAPH_PIPELINE}{vector}{block},unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
+    loops = f"{vector}{block},unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
+    return f"{GRAPH_PIPELINE},winograd{lanes},lower{loops}"
 
 
 __all__ = [

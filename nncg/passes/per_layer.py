@@ -1,5 +1,5 @@
 """Per-layer pass parameters, `layers=conv1:4x2;conv2:3x3`: how a pipeline records what `--tune`
-chose for each layer (register-block's block shapes, unroll's budgets)."""
+chose for each layer (register-block's block shapes, unroll's budgets, winograd's choices)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from ..errors import NncgError
+from ..ir.graph import Graph
 from ..ir.loops import Program
 
 T = TypeVar("T")
@@ -30,9 +31,11 @@ def format_layer_map(values: dict[str, T], format_value: Callable[[T], str] = st
     return ";".join(f"{name}:{format_value(value)}" for name, value in sorted(values.items()))
 
 
-def check_layer_names(program: Program, layers: dict, pass_name: str) -> None:
-    """A per-layer choice for a layer the program does not have is a typo: say which layers there are."""
-    unknown = sorted(set(layers) - {k.name for k in program.kernels})
+def check_layer_names(ir: Program | Graph, layers: dict, pass_name: str) -> None:
+    """A per-layer choice for a layer the IR does not have is a typo: say which layers there are
+    (kernels of a loop-nest program, nodes of a graph)."""
+    known = [k.name for k in ir.kernels] if isinstance(ir, Program) else [n.name for n in ir.nodes]
+    unknown = sorted(set(layers) - set(known))
     if unknown:
-        names = ", ".join(k.name for k in program.kernels)
+        names = ", ".join(known)
         raise NncgError(f"{pass_name}: no layer named {', '.join(unknown)}; the layers are: {names}")

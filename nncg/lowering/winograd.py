@@ -1,0 +1,276 @@
+"""Winograd F(2x2, 3x3) convolution (Lavin & Gray, 2015): 2.25x fewer multiplies than direct.
+
+Each 2x2 block of outputs (a tile) comes from a 4x4 patch d of the input:
+    Y = A^T [ (G g G^T) . (B^T d B) ] A
+with g a 3x3 filter and `.` elementwise over the 16 positions e of the 4x4 Winograd domain. The
+filters are transformed once, at compile time (U[e][ci][co]); at run time one kernel does three
+nests in turn:
+  1. input transform   V[e][t][ci] = (B^T d B)[e] for every tile t and input channel: adds only;
+  2. 16 GEMMs           M[e][t][co] = sum_ci V[e][t][ci] * U[e][ci][co]: the multiplies, in the same
+                        shape as a 1x1 convolution (tiles are its pixels), so vectorize and
+                        register-block treat it like one;
+  3. output transform  Y = A^T M A per tile and output channel, then bias, residual and activation
+                        at the store, as the direct lowering does.
+Channels are innermost everywhere, so every nest vectorises over them. Border tiles are cut into
+their own loops where a patch row or column falls into the padding (those reads are zeros and are
+left out of the sums) or where the tile's second output row or column lies past the output (not
+stored), so the loops have no border checks. Multiplies per output: 16/4 * C_in instead of 9 * C_in."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from itertools import groupby
+
+import numpy as np
+
+from ..ir.graph import ConvAttrs, Graph, Node
+from ..ir.loops import (
+    Affine,
+    Assign,
+    Binary,
+    Const,
+    Expr,
+    Let,
+    Load,
+    LocalRef,
+    Loop,
+    Stmt,
+    Store,
+    stmt_exprs,
+    walk_exprs,
+    walk_stmts,
+)
+from .activation import apply_activation
+from .context import LoweringContext, channels_last, nest, row_major
+from .conv import conv_extras
+from .weights import weight_operand
+
+TILE, PATCH = 2, 4  # outputs per tile side, inputs per patch side
+B_T = ((1, 0, -1, 0), (0, 1, 1, 0), (0, -1, 1, 0), (0, 1, 0, -1))
+G = ((1.0, 0.0, 0.0), (0.5, 0.5, 0.5), (0.5, -0.5, 0.5), (0.0, 0.0, 1.0))
+A_T = ((1, 1, 1, 0), (0, 1, -1, -1))
+CHUNK_TILES = 24  # tiles per chunk (rounded up to whole tile rows): scratch that stays in L1
+
+
+def winograd_applies(graph: Graph, node: Node) -> bool:
+    """A 2-D 3x3 Conv, stride 1, no dilation, no groups, with constant weights."""
+    attrs = node.attrs
+    return (
+        node.op == "Conv"
+        and isinstance(attrs, ConvAttrs)
+        and attrs.kernel == (3, 3)
+        and attrs.strides == (1, 1)
+        and attrs.dilations == (1, 1)
+        and attrs.group == 1
+        and graph.is_constant(node.inputs[1])
+    )
+
+
+def transformed_filters(w: np.ndarray) -> np.ndarray:
+    """U[e][ci][co] = (G g G^T)[e] of filter g = w[co, ci], computed in double precision."""
+    g = np.asarray(G, dtype=np.float64)
+    u = np.einsum("ak,oikl,bl->abio", g, w.astype(np.float64), g)
+    return u.reshape(PATCH * PATCH, w.shape[1], w.shape[0]).astype(np.float32)
+
+
+def lower_winograd(ctx: LoweringContext, node: Node) -> None:
+    attrs: ConvAttrs = node.attrs
+    x = ctx.ref(node.inputs[0])
+    c_out, c_in = ctx.graph.shape(node.inputs[1])[:2]
+    width = max(c_out, attrs.gemm_channels)
+    filters = transformed_filters(ctx.graph.constants[node.inputs[1]])
+    filters = np.pad(filters, ((0, 0), (0, 0), (0, width - c_out)))  # padded channels compute zeros
+    u = ctx.add_constant(f"u_{node.name}", filters)
+    bias_name, residual_name = conv_extras(node)
+    bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
+    residual = ctx.ref(residual_name) if residual_name else None
+    out = ctx.output(node.outputs[0], channels_last(4))
+    grid = TileGrid(out.shape[2:], attrs.pads_begin, x.spatial_ranges)
+    v = ctx.add_buffer(f"v_{node.name}", "internal", (PATCH * PATCH, grid.chunk_tiles, c_in), row_major(3))
+    m = ctx.add_buffer(f"m_{node.name}", "internal", (PATCH * PATCH, grid.chunk_tiles, width), row_major(3))
+
+    def transform_input(at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+        def patch(i: int, j: int) -> Expr | None:
+            if not (rows[i] and cols[j]):
+                return None
+            h = at.row * TILE + (i - attrs.pads_begin[0])
+            w = at.col * TILE + (j - attrs.pads_begin[1])
+            return Load(x.buffer, x.at([at.n, at.channel, h, w]))
+
+        # r = B^T d, row by row, in locals: each patch value is loaded once
+        r = {(a, j): combine(B_T[a], [patch(i, j) for i in range(PATCH)]) for a in range(PATCH) for j in range(PATCH)}
+        stores = tuple(
+            Store(v.buffer, v.at([a * PATCH + b, at.tile, at.channel]), or_zero(combine(B_T[b], row)))
+            for a in range(PATCH)
+            for b in range(PATCH)
+            for row in [[local(r, (a, j)) for j in range(PATCH)]]
+        )
+        return with_locals(r, stores)
+
+    def multiply(env: dict[str, Affine]) -> tuple[Stmt, ...]:
+        e, t, co = env["e"], env["t"], env["co"]
+        product = Binary("*", Load(v.buffer, v.at([e, t, "ci"])), Load(u.buffer, u.at([e, "ci", co])))
+        update = Assign("acc", Binary("+", LocalRef("acc"), product))
+        reduction = (Loop("ci", c_in, (update,)),) if c_in > 1 else (Assign("acc", product),)
+        return (Let("acc", Const.splat(0.0), (*reduction, Store(m.buffer, m.at([e, t, co]), LocalRef("acc")))),)
+
+    def transform_output(at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+        def product(a: int, b: int) -> Expr:
+            return Load(m.buffer, m.at([a * PATCH + b, at.tile, at.channel]))
+
+        # s = A^T M for the rows that are stored, in locals: each product is loaded once
+        kept_rows = [i for i in range(TILE) if rows[i]]
+        s = {(i, b): combine(A_T[i], [product(a, b) for a in range(PATCH)]) for i in kept_rows for b in range(PATCH)}
+        stores = []
+        for i in kept_rows:
+            for j in (j for j in range(TILE) if cols[j]):
+                index = [at.n, at.channel, at.row * TILE + i, at.col * TILE + j]
+                value = or_zero(combine(A_T[j], [local(s, (i, b)) for b in range(PATCH)]))
+                if bias:
+                    value = Binary("+", value, Load(bias.buffer, bias.at([at.channel])))
+                if residual:
+                    value = Binary("+", value, Load(residual.buffer, residual.at(index)))
+                stores.append(Store(out.buffer, out.at(index), apply_activation(value, attrs.activation)))
+        return with_locals(s, tuple(stores))
+
+    def chunk(n: Affine, first_row: Affine, rows: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
+        tiles = len(rows) * grid.tiles[1]
+        return (
+            *grid.transform(n, first_row, [kind.reads for kind in rows], 0, ("ci", c_in), transform_input),
+            *gemms(tiles, width, multiply),
+            *grid.transform(n, first_row, [kind.writes for kind in rows], 1, ("co", c_out), transform_output),
+        )
+
+    body = tuple(s for n in range(out.shape[0]) for s in grid.chunks(Affine.of(n), chunk))
+    ctx.emit(node.name, "Conv", body)
+
+
+def gemms(count: int, c_out: int, multiply) -> tuple[Stmt, ...]:
+    """for e { for t [parallel] { for co [parallel] { multiply } } }. The loop over the 16 GEMMs is
+    not marked parallel, though it is: register blocking across it would reuse no operand (each
+    GEMM has its own inputs and weights), so it blocks tiles x output channels instead."""
+    (loop,) = nest([("e", PATCH * PATCH), ("t", count), ("co", c_out)], multiply, parallel=True)
+    return (replace(loop, parallel=False),)
+
+
+# ---------------------------------------------------------------------------- tiles and chunks
+
+
+@dataclass(frozen=True)
+class RowKind:
+    """Which patch rows of a tile row lie in the readable input, which output rows in the output."""
+
+    reads: tuple[bool, ...]
+    writes: tuple[bool, ...]
+
+
+@dataclass(frozen=True)
+class TileAt:
+    """Where a transform is: image n, tile row and column, the tile's index in the chunk's scratch,
+    the channel."""
+
+    n: Affine
+    row: Affine
+    col: Affine
+    tile: Affine
+    channel: Affine
+
+
+class TileGrid:
+    """The output's 2x2 tiles, taken a chunk of CHUNK_TILES (whole tile rows) at a time, so the
+    scratch of the transforms and GEMMs stays small and in cache. Tiles whose patch reaches into the
+    padding or whose outputs reach past the output get loops of their own (see RowKind), so no
+    loop has a border check."""
+
+    def __init__(self, out_hw: tuple[int, int], pads: tuple[int, ...], readable: list[tuple[int, int]]):
+        self.out_hw, self.pads, self.readable = out_hw, pads, readable
+        self.tiles = tuple(-(-size // TILE) for size in out_hw)
+        self.rows_per_chunk = max(1, min(self.tiles[0], -(-CHUNK_TILES // self.tiles[1])))
+        self.chunk_tiles = self.rows_per_chunk * self.tiles[1]
+        self.col_kinds = [self.kind(1, t) for t in range(self.tiles[1])]
+
+    def kind(self, dim: int, t: int) -> RowKind:
+        lo, hi = self.readable[dim]
+        reads = tuple(lo <= t * TILE + i - self.pads[dim] < hi for i in range(PATCH))
+        return RowKind(reads, tuple(t * TILE + i < self.out_hw[dim] for i in range(TILE)))
+
+    def chunks(self, n: Affine, chunk) -> tuple[Stmt, ...]:
+        """chunk(n, first tile row, kinds of its rows) for every chunk; runs of chunks whose rows are
+        alike share one loop (serial: the chunks share the scratch)."""
+        size, out = self.rows_per_chunk, []
+        rows = range(self.tiles[0])
+        kinds = [tuple(self.kind(0, r) for r in rows[k : k + size]) for k in range(0, len(rows), size)]
+        for start, stop, rows in runs(len(kinds), kinds.__getitem__):
+            if stop - start == 1:
+                out.extend(chunk(n, Affine.of(start * size), rows))
+            else:
+                first_row = (Affine.of("tc") + start) * size
+                out.append(Loop("tc", stop - start, chunk(n, first_row, rows)))
+        return tuple(out)
+
+    def transform(self, n, first_row, rows, side, channel, body) -> tuple[Stmt, ...]:
+        """body(TileAt, row flags, column flags) over a chunk's tiles and channels, one loop nest per
+        run of alike rows x run of alike columns; side 0 is the input's flags, 1 the output's."""
+        cols = [(kind.reads, kind.writes)[side] for kind in self.col_kinds]
+        out: list[Stmt] = []
+        for row_start, row_stop, row_flags in runs(len(rows), rows.__getitem__):
+            for col_start, col_stop, col_flags in runs(len(cols), cols.__getitem__):
+                loops = [("i", row_stop - row_start), ("tw", col_stop - col_start), channel]
+
+                def inner(env, row_start=row_start, col_start=col_start, flags=(row_flags, col_flags)):
+                    i, col = env["i"] + row_start, env["tw"] + col_start
+                    at = TileAt(n, first_row + i, col, i * self.tiles[1] + col, env[channel[0]])
+                    return body(at, *flags)
+
+                out.extend(nest(loops, inner, parallel=True))
+        return tuple(out)
+
+
+def runs(count: int, key) -> list[tuple[int, int, object]]:
+    """[start, stop, key] of the runs of consecutive indices in range(count) with equal key."""
+    out, start = [], 0
+    for value, group in groupby(range(count), key=key):
+        stop = start + len(list(group))
+        out.append((start, stop, value))
+        start = stop
+    return out
+
+
+# ---------------------------------------------------------------------------- expressions
+
+
+def combine(coeffs: tuple[int, ...], terms: list[Expr | None]) -> Expr | None:
+    """sum(c * term) for coefficients in {-1, 0, 1}; None terms are zeros; None if nothing is left."""
+    plus = [t for c, t in zip(coeffs, terms) if c == 1 and t is not None]
+    minus = [t for c, t in zip(coeffs, terms) if c == -1 and t is not None]
+    if not plus and not minus:
+        return None
+    value = plus[0] if plus else Binary("-", Const.splat(0.0), minus.pop(0))
+    for t in plus[1:]:
+        value = Binary("+", value, t)
+    for t in minus:
+        value = Binary("-", value, t)
+    return value
+
+
+def or_zero(value: Expr | None) -> Expr:
+    return Const.splat(0.0) if value is None else value
+
+
+def local_name(key: tuple[int, int]) -> str:
+    return f"w{key[0]}{key[1]}"
+
+
+def local(values: dict[tuple[int, int], Expr | None], key: tuple[int, int]) -> Expr | None:
+    """The local holding values[key], or None when that value is zero."""
+    return None if values[key] is None else LocalRef(local_name(key))
+
+
+def with_locals(values: dict[tuple[int, int], Expr | None], body: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
+    """body inside one Let per non-zero value it uses."""
+    exprs = (e for stmt in walk_stmts(body) for top in stmt_exprs(stmt) for e in walk_exprs(top))
+    used = {e.name for e in exprs if isinstance(e, LocalRef)}
+    for key in reversed(list(values)):
+        if values[key] is not None and local_name(key) in used:
+            body = (Let(local_name(key), values[key], body),)
+    return body

@@ -1,0 +1,82 @@
+"""Graph pass `winograd{lanes=16/8/4,layers=conv2:true;conv1:false}`: Winograd F(2x2, 3x3) for 3x3 convs.
+
+Winograd (nncg/lowering/winograd.py) does 2.25x fewer multiplies than direct convolution but adds
+an input and an output transform (adds only) and two scratch buffers. The multiplies it saves grow
+with the input channels, the transforms' adds do not, so the cost model takes it for every 3x3,
+stride-1, ungrouped 2-D Conv with at least MIN_INPUT_CHANNELS input channels; `layers` overrides
+the choice per layer (what `--tune` measured). Layers Winograd does not apply to stay direct.
+
+The GEMMs' output channels are internal, so they may be padded with zero filters: with the target's
+vector widths `lanes`, a count that would take more vector instructions than its padded form (12 on
+16/8/4: an 8- and a 4-lane block, padded to 16: one block) is padded, if the padding stays under a
+quarter of the lanes computed (measured on robot, avx512: 12 -> 16 ran 1.5x faster; 8 -> 16 and
+20 -> 32 ran slower)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..errors import NncgError
+from ..ir.graph import Graph
+from ..lowering.winograd import winograd_applies
+from .per_layer import check_layer_names, parse_layer_map
+
+MIN_INPUT_CHANNELS = 8
+
+
+def parse_choice(text: str) -> bool:
+    if text not in ("true", "false"):
+        raise ValueError("the value is true or false")
+    return text == "true"
+
+
+def parse_layers(text: str) -> dict[str, bool]:
+    """`conv2:true;conv1:false` -> {"conv2": True, "conv1": False}."""
+    return parse_layer_map(text, parse_choice, "conv2:true;conv1:false")
+
+
+def winograd(graph: Graph, lanes: tuple[int, ...] = (1,), layers: dict[str, bool] | None = None) -> Graph:
+    layers = layers or {}
+    check_layer_names(graph, layers, "winograd")
+    nodes = []
+    for node in graph.nodes:
+        wanted = layers.get(node.name)
+        if wanted and not winograd_applies(graph, node):
+            raise NncgError(
+                f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights"
+            )
+        if wanted if wanted is not None else chosen_by_cost_model(graph, node):
+            c_out = graph.shape(node.inputs[1])[0]
+            width = padded_channels(c_out, lanes)
+            attrs = replace(node.attrs, algorithm="winograd", gemm_channels=width if width != c_out else 0)
+            node = replace(node, attrs=attrs)
+        nodes.append(node)
+    return graph.with_nodes(nodes)
+
+
+def chosen_by_cost_model(graph: Graph, node) -> bool:
+    return winograd_applies(graph, node) and graph.shape(node.inputs[1])[1] >= MIN_INPUT_CHANNELS
+
+
+def winograd_candidates(graph: Graph) -> list[str]:
+    """The layers Winograd applies to (what --tune measures both ways)."""
+    return [node.name for node in graph.nodes if winograd_applies(graph, node)]
+
+
+def vector_instructions(channels: int, lanes: tuple[int, ...]) -> int:
+    """Blocks of the widest width that fits, then narrower ones, then scalars (as vectorize splits)."""
+    count = 0
+    for width in lanes:
+        count += channels // width
+        channels %= width
+    return count + channels
+
+
+def padded_channels(channels: int, lanes: tuple[int, ...]) -> int:
+    best = channels
+    for width in lanes:
+        padded = -(-channels // width) * width
+        cheaper = vector_instructions(padded, lanes) < vector_instructions(best, lanes)
+        if cheaper and 4 * channels >= 3 * padded:
+            best = padded
+    return best
