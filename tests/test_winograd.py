@@ -135,8 +135,9 @@ def test_halo_input_reads_the_border_instead_of_skipping_it():
     check_against_onnxruntime(m, nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True), sanitize=True)
 
 
-def test_narrow_input_forced_through_winograd():
-    m = conv_model((1, 3, 10, 11), 8, (3, 3), pads=[1, 1, 1, 1])
+@pytest.mark.parametrize("c_in", [1, 3])
+def test_narrow_input_forced_through_winograd(c_in):
+    m = conv_model((1, c_in, 10, 11), 8, (3, 3), pads=[1, 1, 1, 1])
     pipeline = default_pipeline((4,)).replace("winograd{lanes=4}", "winograd{lanes=4,layers=Conv_0:true}")
     compiled = nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True)
     check_against_onnxruntime(m, compiled, sanitize=True)

@@ -103,13 +103,14 @@ def lower_winograd(ctx: LoweringContext, node: Node) -> None:
             Store(v.buffer, v.at([a * PATCH + b, at.tile, at.channel]), or_zero(combine(B_T[b], row)))
             for a in range(PATCH)
             for b in range(PATCH)
-            for row in [[local(r, (a, j)) for j in range(PATCH)]]
+            for row in [[local("r", r, (a, j)) for j in range(PATCH)]]
         )
-        return with_locals(r, stores)
+        return with_locals("r", r, stores)
 
     def multiply(env: dict[str, Affine]) -> tuple[Stmt, ...]:
         e, t, co = env["e"], env["t"], env["co"]
-        product = Binary("*", Load(v.buffer, v.at([e, t, "ci"])), Load(u.buffer, u.at([e, "ci", co])))
+        ci = Affine.of("ci") if c_in > 1 else Affine()
+        product = Binary("*", Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, u.at([e, ci, co])))
         update = Assign("acc", Binary("+", LocalRef("acc"), product))
         reduction = (Loop("ci", c_in, (update,)),) if c_in > 1 else (Assign("acc", product),)
         return (Let("acc", Const.splat(0.0), (*reduction, Store(m.buffer, m.at([e, t, co]), LocalRef("acc")))),)
@@ -125,13 +126,13 @@ def lower_winograd(ctx: LoweringContext, node: Node) -> None:
         for i in kept_rows:
             for j in (j for j in range(TILE) if cols[j]):
                 index = [at.n, at.channel, at.row * TILE + i, at.col * TILE + j]
-                value = or_zero(combine(A_T[j], [local(s, (i, b)) for b in range(PATCH)]))
+                value = or_zero(combine(A_T[j], [local("s", s, (i, b)) for b in range(PATCH)]))
                 if bias:
                     value = Binary("+", value, Load(bias.buffer, bias.at([at.channel])))
                 if residual:
                     value = Binary("+", value, Load(residual.buffer, residual.at(index)))
                 stores.append(Store(out.buffer, out.at(index), apply_activation(value, attrs.activation)))
-        return with_locals(s, tuple(stores))
+        return with_locals("s", s, tuple(stores))
 
     def chunk(n: Affine, first_row: Affine, rows: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
         tiles = len(rows) * grid.tiles[1]
@@ -257,20 +258,20 @@ def or_zero(value: Expr | None) -> Expr:
     return Const.splat(0.0) if value is None else value
 
 
-def local_name(key: tuple[int, int]) -> str:
-    return f"w{key[0]}{key[1]}"
+def local_name(prefix: str, key: tuple[int, int]) -> str:
+    return f"{prefix}{key[0]}{key[1]}"
 
 
-def local(values: dict[tuple[int, int], Expr | None], key: tuple[int, int]) -> Expr | None:
+def local(prefix: str, values: dict[tuple[int, int], Expr | None], key: tuple[int, int]) -> Expr | None:
     """The local holding values[key], or None when that value is zero."""
-    return None if values[key] is None else LocalRef(local_name(key))
+    return None if values[key] is None else LocalRef(local_name(prefix, key))
 
 
-def with_locals(values: dict[tuple[int, int], Expr | None], body: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
+def with_locals(prefix: str, values: dict[tuple[int, int], Expr | None], body: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
     """body inside one Let per non-zero value it uses."""
     exprs = (e for stmt in walk_stmts(body) for top in stmt_exprs(stmt) for e in walk_exprs(top))
     used = {e.name for e in exprs if isinstance(e, LocalRef)}
     for key in reversed(list(values)):
-        if values[key] is not None and local_name(key) in used:
-            body = (Let(local_name(key), values[key], body),)
+        if values[key] is not None and local_name(prefix, key) in used:
+            body = (Let(local_name(prefix, key), values[key], body),)
     return body
