@@ -156,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     peaks = measure_peaks()
     rows = run_suite(args.models, args.targets, cpu=args.cpu, peaks=peaks, tuned=args.tune)
     today = datetime.date.today().isoformat()
+    args.out_dir.mkdir(parents=True, exist_ok=True)
     (args.out_dir / "RESULTS.md").write_text(results_markdown(rows, peaks, args.cpu, today))
     write_chart(rows, args.out_dir / "results.png")
     print((args.out_dir / "RESULTS.md").read_text())

@@ -142,8 +142,9 @@ def lower_winograd(ctx: LoweringContext, node: Node) -> None:
             *grid.transform(n, first_row, [kind.writes for kind in rows], 1, ("co", c_out), transform_output),
         )
 
-    body = tuple(s for n in range(out.shape[0]) for s in grid.chunks(Affine.of(n), chunk))
-    ctx.emit(node.name, "Conv", body)
+    batch = out.shape[0]
+    body = grid.chunks(Affine.of("n") if batch > 1 else Affine(), chunk)
+    ctx.emit(node.name, "Conv", (Loop("n", batch, body),) if batch > 1 else body)  # serial: shared scratch
 
 
 def gemms(count: int, c_out: int, multiply) -> tuple[Stmt, ...]:
