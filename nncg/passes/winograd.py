@@ -45,7 +45,7 @@ def winograd(graph: Graph, lanes: tuple[int, ...] = (1,), layers: dict[str, bool
             raise NncgError(
                 f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights"
             )
-        if wanted if wanted is not None else chosen_by_cost_model(graph, node):
+        if chosen_by_cost_model(graph, node) if wanted is None else wanted:
             c_out = graph.shape(node.inputs[1])[0]
             width = padded_channels(c_out, lanes)
             attrs = replace(node.attrs, algorithm="winograd", gemm_channels=width if width != c_out else 0)
