@@ -61,8 +61,9 @@ def tune(
     cpu: int | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> str:
-    """The default pipeline of `target` with each register-blocked layer's block shape and unroll
-    budget measured (with `cc`, run through `runner` if given). Pass it to nncg.compile(pipeline=)."""
+    """The default pipeline of `target` with each 3x3 conv's algorithm and each register-blocked
+    layer's block shape and unroll budget measured (with `cc`, run through `runner` if given). Pass it
+    to nncg.compile(pipeline=)."""
     progress = progress or (lambda line: print(line, file=sys.stderr, flush=True))
     backend = get_backend(target)
     base = default_pipeline(backend.vector_widths, "auto", weights, code_budget, backend.registers)
@@ -119,31 +120,31 @@ def _tune_algorithms(model, base, input_shapes, where, known, measure, progress)
 def algorithm_layers(model, pipeline: str, input_shapes=None) -> dict[str, str]:
     """Layer name -> signature of its direct loop nest, for every layer Winograd applies to (whose
     kernel carries the node's name)."""
-    specs = parse_pipeline(pipeline)
-    cut = next(i for i, spec in enumerate(specs) if spec.name == "winograd")
-    graph = PassManager(specs[:cut]).run(import_onnx(model, input_shapes))
-    names = winograd_candidates(graph)
+    names = winograd_candidates(ir_before(model, pipeline, "winograd", input_shapes))
     if not names:
         return {}
     direct = with_layer_choices(pipeline, {}, {}, dict.fromkeys(names, False))
-    specs = parse_pipeline(direct)
-    cut = next(i for i, spec in enumerate(specs) if spec.name == "register-block")
-    program = PassManager(specs[:cut]).run(import_onnx(model, input_shapes))
+    program = ir_before(model, direct, "register-block", input_shapes)
     return {k.name: layer_signature(program, k) for k in program.kernels if k.name in names}
 
 
 def tunable_layers(model, pipeline: str, input_shapes=None) -> dict[str, tuple[tuple[int, int], str]]:
     """Layer name -> (its block_shape, a signature of its loop nest) for every layer the
     register-block pass would block, from the IR just before that pass."""
-    specs = parse_pipeline(pipeline)
-    cut = next(i for i, spec in enumerate(specs) if spec.name == "register-block")
-    program = PassManager(specs[:cut]).run(import_onnx(model, input_shapes))
+    program = ir_before(model, pipeline, "register-block", input_shapes)
     out = {}
     for kernel in program.kernels:
         shape = block_shape(kernel.body)
         if shape is not None:
             out[kernel.name] = (shape, layer_signature(program, kernel))
     return out
+
+
+def ir_before(model, pipeline: str, pass_name: str, input_shapes=None):
+    """The IR the pipeline gives the pass `pass_name` (a graph or a loop-nest program)."""
+    specs = parse_pipeline(pipeline)
+    cut = next(i for i, spec in enumerate(specs) if spec.name == pass_name)
+    return PassManager(specs[:cut]).run(import_onnx(model, input_shapes))
 
 
 def layer_signature(program: Program, kernel) -> str:

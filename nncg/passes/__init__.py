@@ -14,7 +14,7 @@ from .fuse_bias import fuse_bias
 from .fuse_residual import fuse_residual
 from .inline_constants import inline_constants
 from .manager import REGISTRY, PassManager, PassSpec, format_pipeline, parse_pipeline, register
-from .plan_memory import parse_align, parse_reuse, parse_weights, plan_memory
+from .plan_memory import parse_align, parse_bool, parse_weights, plan_memory
 from .register_block import parse_layers, register_block
 from .unroll import AUTO_BUDGET, NEST_BUDGET, parse_layer_budgets, unroll
 from .vectorize import vectorize
@@ -52,12 +52,12 @@ register("fuse-bias", "graph", fuse_bias)
 register("fuse-residual", "graph", fuse_residual)
 register("fuse-activation", "graph", fuse_activation)
 register("winograd", "graph", winograd, lanes=parse_lanes, layers=parse_winograd_layers)
-register("lower", "lower", lower, halos=parse_reuse)
+register("lower", "lower", lower, halos=parse_bool)
 register("vectorize", "loop", vectorize, lanes=parse_lanes)
 register("register-block", "loop", register_block, registers=int, layers=parse_layers)
 register("unroll", "loop", unroll, level=parse_unroll_level, budget=int, total=int, layers=parse_layer_budgets)
 register("inline-constants", "loop", inline_constants)
-register("plan-memory", "loop", plan_memory, align=parse_align, reuse=parse_reuse, weights=parse_weights)
+register("plan-memory", "loop", plan_memory, align=parse_align, reuse=parse_bool, weights=parse_weights)
 
 GRAPH_PIPELINE = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation"
 

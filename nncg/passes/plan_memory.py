@@ -65,7 +65,7 @@ def parse_weights(text: str) -> str:
     return text
 
 
-def parse_reuse(text: str) -> bool:
+def parse_bool(text: str) -> bool:
     """A boolean parameter: true or false."""
     if text not in ("true", "false"):
         raise ValueError("the value is true or false")

@@ -20,19 +20,14 @@ from ..errors import NncgError
 from ..ir.graph import Graph
 from ..lowering.winograd import winograd_applies
 from .per_layer import check_layer_names, parse_layer_map
+from .plan_memory import parse_bool
 
 MIN_INPUT_CHANNELS = 8
 
 
-def parse_choice(text: str) -> bool:
-    if text not in ("true", "false"):
-        raise ValueError("the value is true or false")
-    return text == "true"
-
-
 def parse_layers(text: str) -> dict[str, bool]:
     """`conv2:true;conv1:false` -> {"conv2": True, "conv1": False}."""
-    return parse_layer_map(text, parse_choice, "conv2:true;conv1:false")
+    return parse_layer_map(text, parse_bool, "conv2:true;conv1:false")
 
 
 def winograd(graph: Graph, lanes: tuple[int, ...] = (1,), layers: dict[str, bool] | None = None) -> Graph:
