@@ -3,12 +3,14 @@ variants, every variant is timed on the machine that runs the code, and each lay
 
 Variants are measured together: variant i of every layer goes into build i of the whole model (a
 profile build, with a timer around each layer); the builds run interleaved, batch after batch, and
-each layer keeps its best time, so a busy machine slows all variants alike. Three rounds: the
-algorithm of each 3x3 convolution (direct or Winograd), then block shapes (pixels x channel vectors)
-of the register-blocked layers at the default unroll budget, then unroll budgets with the best
-shapes. Choices are cached by layer signature and target, so a layer tuned before costs nothing.
-The result is a pipeline whose winograd, register-block and unroll passes name each layer's choice:
-the C it gives is reproducible without the cache."""
+each layer keeps its best time, so a busy machine slows all variants alike. Four rounds: the
+algorithm of each 3x3 convolution (direct or Winograd), the vectorisation axis of the layers that
+can vectorise over output pixels (timed as whole models: it changes what their consumers read),
+then block shapes (pixels x channel vectors) of the register-blocked layers at the default unroll
+budget, then unroll budgets with the best shapes. Choices are cached by layer signature and target,
+so a layer tuned before costs nothing. The result is a pipeline whose winograd, vectorize-pixels,
+register-block and unroll passes name each layer's choice: the C it gives is reproducible without
+the cache."""
 
 from __future__ import annotations
 
@@ -34,6 +36,7 @@ from .passes import PassManager, default_pipeline, format_pipeline, parse_pipeli
 from .passes.per_layer import format_layer_map
 from .passes.register_block import block_shape, choose_blocks, format_block, parse_block
 from .passes.unroll import AUTO_BUDGET, CODE_BUDGET, parse_budget
+from .passes.vectorize_pixels import pixel_candidates
 from .passes.winograd import winograd_candidates
 from .verify import find_c_compiler, random_inputs
 
@@ -74,6 +77,8 @@ def tune(
     measure = _Measurer(model, target, cc, tuple(runner), input_shapes, batches, cpu, progress)
     algorithms = _tune_algorithms(model, base, input_shapes, where, known, measure, progress)
     base = with_layer_choices(base, {}, {}, algorithms)
+    pixels = _tune_pixel_axis(model, base, input_shapes, where, known, measure, progress)
+    base = with_layer_choices(base, {}, {}, pixels=pixels)
     layers = tunable_layers(model, base, input_shapes)
     if not layers:
         progress("tune: no register-blocked layer to tune")
@@ -111,6 +116,32 @@ def _tune_algorithms(model, base, input_shapes, where, known, measure, progress)
             known[keys[name]] = {"winograd": chosen[name]}
     for name in sorted(layers):
         progress(f"tune: {name}: {'Winograd' if chosen[name] else 'direct'}")
+    return chosen
+
+
+def _tune_pixel_axis(model, base, input_shapes, where, known, measure, progress) -> dict[str, bool]:
+    """Which layers vectorise over output pixels. A layer's choice changes its consumers' time too
+    (they read a planar tensor), and a layer can take the pixel axis only if its input is planar, so
+    the builds are: the first k candidates on, k = 0..N; the fastest whole model wins. Cached by the
+    network's loop nests with every candidate off."""
+    if all(spec.name != "vectorize-pixels" for spec in parse_pipeline(base)):
+        return {}  # a target without vectors
+    names = pixel_candidates(ir_before(model, base, "vectorize-pixels", input_shapes))
+    if not names:
+        return {}
+    off = with_layer_choices(base, {}, {}, pixels=dict.fromkeys(names, False))
+    program = ir_before(model, off, "register-block", input_shapes)
+    key = _cache_key(where + "|pixels", "\n".join(layer_signature(program, k) for k in program.kernels))
+    if key in known:
+        chosen = {name: name in known[key]["pixels"] for name in names}
+    else:
+        progress(f"tune: vectorise over pixels or channels: {', '.join(names)}")
+        builds = [{name: i < k for i, name in enumerate(names)} for k in range(len(names) + 1)]
+        totals = measure.totals([with_layer_choices(base, {}, {}, pixels=b) for b in builds])
+        chosen = builds[min(range(len(builds)), key=totals.__getitem__)]
+        known[key] = {"pixels": sorted(name for name, on in chosen.items() if on)}
+    for name in names:
+        progress(f"tune: {name}: vectorised over {'pixels' if chosen[name] else 'channels'}")
     return chosen
 
 
@@ -176,19 +207,27 @@ def with_layer_choices(
     blocks: dict[str, tuple[int, int]],
     budgets: dict[str, int],
     algorithms: dict[str, bool] | None = None,
+    pixels: dict[str, bool] | None = None,
 ) -> str:
-    """The pipeline with register-block's, unroll's (and winograd's) per-layer choices set."""
+    """The pipeline with register-block's, unroll's (and winograd's, vectorize-pixels') per-layer
+    choices set."""
     specs = []
     for spec in parse_pipeline(pipeline):
         params = dict(spec.params)
         if spec.name == "winograd" and algorithms:
-            params["layers"] = format_layer_map(algorithms, lambda on: "true" if on else "false")
+            params["layers"] = format_layer_map(algorithms, _format_bool)
+        if spec.name == "vectorize-pixels" and pixels:
+            params["layers"] = format_layer_map(pixels, _format_bool)
         if spec.name == "register-block" and blocks:
             params["layers"] = format_layer_map(blocks, format_block)
         if spec.name == "unroll" and budgets:
             params["layers"] = format_layer_map(budgets)
         specs.append(replace(spec, params=tuple(params.items())))
     return format_pipeline(specs)
+
+
+def _format_bool(on: bool) -> str:
+    return "true" if on else "false"
 
 
 # ---------------------------------------------------------------------------- measuring
@@ -211,6 +250,11 @@ class _Measurer:
             scored = [(times[i].get(name, float("inf")), i) for i in range(len(options))]
             best[name] = options[min(scored)[1]]
         return best
+
+    def totals(self, pipelines: list[str]) -> list[float]:
+        """Seconds per inference of each build: the sum of its layers' best times."""
+        self.progress(f"tune: {len(pipelines)} builds of the model")
+        return [sum(times.values()) for times in self._layer_times(pipelines)]
 
     def _layer_times(self, pipelines: list[str]) -> list[dict[str, float]]:
         """Best seconds per call of each layer in each build, builds run in turn."""
@@ -269,6 +313,8 @@ def _read_cache(path: Path) -> dict:
 def _valid_entry(entry) -> bool:
     if isinstance(entry, dict) and set(entry) == {"winograd"}:
         return isinstance(entry["winograd"], bool)
+    if isinstance(entry, dict) and set(entry) == {"pixels"}:
+        return isinstance(entry["pixels"], list) and all(isinstance(name, str) for name in entry["pixels"])
     try:
         parse_block(entry["block"])
         parse_budget(str(entry["unroll"]))

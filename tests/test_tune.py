@@ -96,3 +96,20 @@ def test_cli_tune_errors_are_clear(tmp_path, monkeypatch, capsys, extra, message
     assert main([str(path), "--tune", "-o", str(tmp_path / "out"), *extra]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_pixel_axis_round_times_whole_models_and_is_cached(tmp_path):
+    nodes = [
+        helper.make_node("Conv", ["x", "w", "b"], ["c"], pads=[2, 2, 2, 2]),
+        helper.make_node("MaxPool", ["c"], ["y"], kernel_shape=[2, 2], strides=[2, 2]),
+    ]
+    m = model(nodes, {"x": (1, 3, 8, 40)}, None, [("w", weights(2, 3, 5, 5)), ("b", weights(2))])
+    lines = []
+    pipeline = tune(m, "ssse3", cache=tmp_path / "tune.json", batches=2, progress=lines.append)
+    assert "tune: vectorise over pixels or channels: Conv_0" in lines
+    assert "tune: 2 builds of the model" in lines  # Conv_0 over channels, over pixels
+    assert set(layer_choices(pipeline, "vectorize-pixels")) == {"Conv_0"}
+    check_against_onnxruntime(m, nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True))
+    again = []
+    assert tune(m, "ssse3", cache=tmp_path / "tune.json", batches=2, progress=again.append) == pipeline
+    assert not any("builds" in line for line in again)

@@ -56,6 +56,7 @@ class ConvAttrs:
     residual: bool = False
     algorithm: str = "direct"  # or "winograd" (set by the winograd pass)
     gemm_channels: int = 0  # Winograd: output channels padded to this many in its GEMMs (0: not padded)
+    vector_axis: str = "channels"  # or "pixels": planar output, SIMD along its rows (vectorize-pixels pass)
 
 
 @dataclass(frozen=True)

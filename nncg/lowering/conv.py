@@ -1,4 +1,5 @@
-"""Conv lowering: direct convolution with output channels innermost, so they vectorise.
+"""Conv lowering: direct convolution with output channels innermost, so they vectorise; or, for a
+layer the vectorize-pixels pass marked, a planar (NCHW) output with its rows innermost.
 
 Weights are read as [k_1..k_d][c_in/group][c_out], packed in that order when constant (a runtime
 weight is read in place through a strided view, see weights.py). With groups, output channel
@@ -10,7 +11,7 @@ from __future__ import annotations
 from ..ir.graph import ConvAttrs, Node
 from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
 from .activation import apply_activation
-from .context import LoweringContext, channels_last, nest
+from .context import LoweringContext, channels_last, nest, row_major
 from .weights import permuted, weight_operand
 from .window import spatial_names, window_nest
 
@@ -32,7 +33,8 @@ def lower_conv(ctx: LoweringContext, node: Node) -> None:
     bias_name, residual_name = conv_extras(node)
     bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
     residual = ctx.ref(residual_name) if residual_name else None
-    out = ctx.output(node.outputs[0], channels_last(rank + 2))
+    pixels = attrs.vector_axis == "pixels"
+    out = ctx.output(node.outputs[0], row_major(rank + 2) if pixels else channels_last(rank + 2))
     names = spatial_names(rank)
     out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]
 
@@ -56,5 +58,9 @@ def lower_conv(ctx: LoweringContext, node: Node) -> None:
         store = Store(out.buffer, out.at(index), apply_activation(value, attrs.activation))
         return (Let("acc", init, (*window, store)),)
 
-    loops = [("n", out.shape[0]), *out_loops, ("g", groups), ("co", c_out_g)]
+    channel_loops = [("g", groups), ("co", c_out_g)]
+    if pixels:  # the output row innermost, contiguous in the planar output: vectorize takes it
+        loops = [("n", out.shape[0]), *out_loops[:-1], *channel_loops, out_loops[-1]]
+    else:
+        loops = [("n", out.shape[0]), *out_loops, *channel_loops]
     ctx.emit(node.name, "Conv", nest(loops, body, parallel=True))

@@ -18,6 +18,8 @@ from .plan_memory import parse_align, parse_bool, parse_weights, plan_memory
 from .register_block import parse_layers, register_block
 from .unroll import AUTO_BUDGET, NEST_BUDGET, parse_layer_budgets, unroll
 from .vectorize import vectorize
+from .vectorize_pixels import parse_layers as parse_pixel_layers
+from .vectorize_pixels import vectorize_pixels
 from .winograd import parse_layers as parse_winograd_layers
 from .winograd import winograd
 
@@ -52,6 +54,7 @@ register("fuse-bias", "graph", fuse_bias)
 register("fuse-residual", "graph", fuse_residual)
 register("fuse-activation", "graph", fuse_activation)
 register("winograd", "graph", winograd, lanes=parse_lanes, layers=parse_winograd_layers)
+register("vectorize-pixels", "graph", vectorize_pixels, lanes=parse_lanes, layers=parse_pixel_layers)
 register("lower", "lower", lower, halos=parse_bool)
 register("vectorize", "loop", vectorize, lanes=parse_lanes)
 register("register-block", "loop", register_block, registers=int, layers=parse_layers)
@@ -86,7 +89,8 @@ def default_pipeline(
         cap = f",budget={nest}"
     block = f",register-block{{registers={registers}}}"
     loops = f"{vector}{block},unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
-    return f"{GRAPH_PIPELINE},winograd{lanes},lower{loops}"
+    pixels = f",vectorize-pixels{lanes}" if widths else ""
+    return f"{GRAPH_PIPELINE},winograd{lanes}{pixels},lower{loops}"
 
 
 __all__ = [

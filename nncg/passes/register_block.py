@@ -22,7 +22,7 @@ from dataclasses import replace
 
 from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
 from .per_layer import check_layer_names, parse_layer_map
-from .substitute import prune_bounds, rename_variables, substitute_body
+from .substitute import interior, iterations, prune_bounds, rename_variables, substitute_body
 
 # The cost model: channel vectors jammed per pixel at most, and registers left besides accumulators
 # (the broadcast input, a product, weights the compiler keeps).
@@ -218,29 +218,6 @@ def _fused_run(run: list[Stmt]) -> tuple[Stmt, ...]:
     return body
 
 
-def interior(loop: Loop) -> tuple[int, int]:
-    """[first, last) iterations of `loop` for which every border check that depends on its variable
-    holds whatever the inner loops' variables are; (0, 0) if a check also depends on outer loops."""
-    first, last = 0, loop.extent
-    extents = {s.var: s.extent for s in walk_stmts(loop.body) if isinstance(s, Loop)}
-    for stmt in walk_stmts(loop.body):
-        if not isinstance(stmt, If):
-            continue
-        for bound in stmt.bounds:
-            step = bound.expr.coeff(loop.var)
-            if not step:
-                continue
-            rest = bound.expr - Affine.of(loop.var) * step
-            if step < 0 or any(v not in extents for v in rest.vars):
-                return 0, 0
-            lo, hi = rest.bounds(extents)
-            if bound.lo is not None:  # step*i + lo >= bound.lo
-                first = max(first, -((lo - bound.lo) // step))
-            if bound.hi is not None:  # step*i + hi < bound.hi
-                last = min(last, (bound.hi - 1 - hi) // step + 1)
-    return first, max(first, last)
-
-
 def jam_loop(loop: Loop, factor: int) -> tuple[Stmt, ...]:
     """The loop with `factor` consecutive interior iterations jammed into one: border iterations,
     then the jammed blocks (what is left over in one smaller block), then the far border."""
@@ -251,7 +228,7 @@ def jam_loop(loop: Loop, factor: int) -> tuple[Stmt, ...]:
     jammed = _jammed_range(loop, first, last, factor)
     if jammed is None:
         return (loop,)
-    return _iterations(loop, 0, first) + jammed + _iterations(loop, last, loop.extent)
+    return iterations(loop, 0, first) + jammed + iterations(loop, last, loop.extent)
 
 
 def _jammed_range(loop: Loop, start: int, stop: int, factor: int) -> tuple[Stmt, ...] | None:
@@ -269,21 +246,7 @@ def _jammed_range(loop: Loop, start: int, stop: int, factor: int) -> tuple[Stmt,
     out = (replace(loop, extent=blocks, body=fused),) if blocks > 1 else fused
     done = start + blocks * factor
     rest = _jammed_range(loop, done, stop, stop - done) if stop - done > 1 else None
-    return out + (rest if rest is not None else _iterations(loop, done, stop, prune=True))
-
-
-def _iterations(loop: Loop, start: int, stop: int, prune: bool = False) -> tuple[Stmt, ...]:
-    """Iterations [start, stop) of loop, as a loop (or straight code for one iteration); with
-    `prune`, their border checks are known to hold and are dropped."""
-    count = stop - start
-    if count <= 0:
-        return ()
-    if count == 1:
-        body = substitute_body(loop.body, {loop.var: Affine.of(start)})
-        return prune_bounds(body) if prune else body
-    body = substitute_body(loop.body, {loop.var: Affine.of(loop.var) + start})
-    body = prune_bounds(body, {loop.var: count}) if prune else body
-    return (replace(loop, extent=count, body=body),)
+    return out + (rest if rest is not None else iterations(loop, done, stop, prune=True))
 
 
 def _suffixed_locals(body: tuple[Stmt, ...], suffix: str) -> tuple[Stmt, ...]:

@@ -18,6 +18,7 @@ from ..ir.loops import (
     Store,
     map_body,
     map_stmt_exprs,
+    walk_stmts,
 )
 
 
@@ -102,3 +103,40 @@ def rename_variables(body: tuple[Stmt, ...], names: dict[str, str]) -> tuple[Stm
         return stmt
 
     return map_body(body, in_stmt)
+
+
+def interior(loop: Loop) -> tuple[int, int]:
+    """[first, last) iterations of `loop` for which every border check that depends on its variable
+    holds whatever the inner loops' variables are; (0, 0) if a check also depends on outer loops."""
+    first, last = 0, loop.extent
+    extents = {s.var: s.extent for s in walk_stmts(loop.body) if isinstance(s, Loop)}
+    for stmt in walk_stmts(loop.body):
+        if not isinstance(stmt, If):
+            continue
+        for bound in stmt.bounds:
+            step = bound.expr.coeff(loop.var)
+            if not step:
+                continue
+            rest = bound.expr - Affine.of(loop.var) * step
+            if step < 0 or any(v not in extents for v in rest.vars):
+                return 0, 0
+            lo, hi = rest.bounds(extents)
+            if bound.lo is not None:  # step*i + lo >= bound.lo
+                first = max(first, -((lo - bound.lo) // step))
+            if bound.hi is not None:  # step*i + hi < bound.hi
+                last = min(last, (bound.hi - 1 - hi) // step + 1)
+    return first, max(first, last)
+
+
+def iterations(loop: Loop, start: int, stop: int, prune: bool = False) -> tuple[Stmt, ...]:
+    """Iterations [start, stop) of loop, as a loop (or straight code for one iteration); with
+    `prune`, their border checks are known to hold and are dropped."""
+    count = stop - start
+    if count <= 0:
+        return ()
+    if count == 1:
+        body = substitute_body(loop.body, {loop.var: Affine.of(start)})
+        return prune_bounds(body) if prune else body
+    body = substitute_body(loop.body, {loop.var: Affine.of(loop.var) + start})
+    body = prune_bounds(body, {loop.var: count}) if prune else body
+    return (replace(loop, extent=count, body=body),)

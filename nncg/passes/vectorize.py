@@ -1,12 +1,15 @@
-"""Loop pass `vectorize{lanes=N}`: SIMD over output channels (the paper's principle 4).
+"""Loop pass `vectorize{lanes=N}`: SIMD over output channels (the paper's principle 4), or over
+output pixels where the layer was lowered for that (see the vectorize-pixels pass).
 
-Marks, in each kernel, the innermost parallel loop that every store walks contiguously, then
-materialises it: a loop over vector blocks whose expressions have N lanes, plus a scalar tail when
-the extent is not a multiple of N. With several widths, widest first (`lanes=16/8/4`), the extent is
-split greedily: blocks of the widest width that fits, the remainder in the next narrower width, and
-so on; only what is left after the narrowest is scalar (12 channels at 16/8/4: one 8-lane and one
-4-lane block). Loads that do not depend on the loop become broadcasts. A call (exp, ...) becomes a
-vector call: backends without a vector version call the function per lane."""
+Marks, in each kernel, the innermost parallel loop that every store walks contiguously (a loop
+whose border checks depend on it is first split into its border iterations, left scalar, and the
+interior, where the checks hold and are dropped), then materialises it: a loop over vector blocks
+whose expressions have N lanes, plus a scalar tail when the extent is not a multiple of N. With
+several widths, widest first (`lanes=16/8/4`), the extent is split greedily: blocks of the widest
+width that fits, the remainder in the next narrower width, and so on; only what is left after the
+narrowest is scalar (12 channels at 16/8/4: one 8-lane and one 4-lane block). Loads that do not
+depend on the loop become broadcasts. A call (exp, ...) becomes a vector call: backends without a
+vector version call the function per lane."""
 
 from __future__ import annotations
 
@@ -34,7 +37,7 @@ from ..ir.loops import (
     walk_exprs,
     walk_stmts,
 )
-from .substitute import substitute_body
+from .substitute import interior, iterations, substitute_body
 
 
 def vectorize(program: Program, lanes: int | tuple[int, ...] = 4) -> Program:
@@ -59,19 +62,30 @@ def mark_vector_loop(body: tuple[Stmt, ...], widths: int | tuple[int, ...]) -> t
     widest width that fits its extent."""
     widths = (widths,) if isinstance(widths, int) else widths
 
-    def mark(stmt: Stmt) -> Stmt:
-        if not isinstance(stmt, Loop) or stmt.kind != "serial" or not vectorizable(stmt, widths[-1]):
+    def mark(stmt: Stmt) -> Stmt | tuple[Stmt, ...]:
+        if not isinstance(stmt, Loop) or stmt.kind != "serial":
             return stmt
         if any(isinstance(s, Loop) and s.kind == "vectorized" for s in walk_stmts(stmt.body)):
             return stmt
-        return replace(stmt, kind="vectorized", lanes=next(w for w in widths if w <= stmt.extent))
+        if vectorizable(stmt, widths[-1]):
+            return _marked(stmt, widths)
+        first, last = interior(stmt)
+        if last - first < widths[-1] or not vectorizable(stmt, widths[-1], borders=True):
+            return stmt
+        inner = iterations(stmt, first, last, prune=True)[0]
+        return (*iterations(stmt, 0, first), _marked(inner, widths), *iterations(stmt, last, stmt.extent))
 
     return map_body(body, mark)
 
 
-def vectorizable(loop: Loop, lanes: int) -> bool:
+def _marked(loop: Loop, widths: tuple[int, ...]) -> Loop:
+    return replace(loop, kind="vectorized", lanes=next(w for w in widths if w <= loop.extent))
+
+
+def vectorizable(loop: Loop, lanes: int, borders: bool = False) -> bool:
     """Parallel, at least one full vector of `lanes`, stores contiguous along the loop, loads
-    contiguous or invariant, no branch or outer local that depends on the loop."""
+    contiguous or invariant, no branch or outer local that depends on the loop. With `borders`,
+    border checks that depend on the loop are allowed (the caller splits off their iterations)."""
     if not loop.parallel or loop.extent < lanes:
         return False
     var = loop.var
@@ -84,7 +98,7 @@ def vectorizable(loop: Loop, lanes: int) -> bool:
                 return False
         if isinstance(stmt, Assign) and stmt.name not in declared:
             return False
-        if isinstance(stmt, If) and any(b.expr.coeff(var) for b in stmt.bounds):
+        if isinstance(stmt, If) and not borders and any(b.expr.coeff(var) for b in stmt.bounds):
             return False
         for expr in stmt_exprs(stmt):
             for e in walk_exprs(expr):
@@ -103,6 +117,15 @@ def materialize(stmt: Stmt, widths: tuple[int, ...] = ()) -> Stmt | tuple[Stmt, 
         return stmt
     var, start = stmt.var, 0
     out: list[Stmt] = []
+    if _overlapped_tail_pays(stmt, widths):
+        blocks = stmt.extent // stmt.lanes
+        vector = _vector_body(stmt.body, var, stmt.lanes, set())
+        index = Affine.of(var) * stmt.lanes
+        if blocks > 1:
+            out.append(Loop(var, blocks, substitute_body(vector, {var: index}), parallel=True, lanes=stmt.lanes))
+        else:
+            out += substitute_body(vector, {var: Affine()})
+        return (*out, *substitute_body(vector, {var: Affine.of(stmt.extent - stmt.lanes)}))
     for lanes in (stmt.lanes, *(w for w in widths if w < stmt.lanes)):
         blocks = (stmt.extent - start) // lanes
         if not blocks:
@@ -121,6 +144,39 @@ def materialize(stmt: Stmt, widths: tuple[int, ...] = ()) -> Stmt | tuple[Stmt, 
     elif tail:
         out.append(Loop(var, tail, substitute_body(stmt.body, {var: Affine.of(start) + var}), parallel=True))
     return tuple(out)
+
+
+def vector_instructions(extent: int, widths: tuple[int, ...]) -> int:
+    """Blocks of the widest width that fits, then narrower ones, then scalars (as materialize splits)."""
+    count = 0
+    for width in widths:
+        count += extent // width
+        extent %= width
+    return count + extent
+
+
+def _overlapped_tail_pays(loop: Loop, widths: tuple[int, ...]) -> bool:
+    """Whether the iterations after the last full vector are better done as one more full vector
+    ending at the last iteration, overlapping the one before: when they would otherwise take more
+    than one instruction (narrower blocks, scalars) and redoing an iteration changes nothing (no
+    buffer the loop stores to is read in it). Only for reductions (convolutions, pooling): an
+    elementwise kernel may later compute in place (plan-memory), where redoing is not harmless."""
+    rest = loop.extent % loop.lanes
+    if not rest or loop.extent < loop.lanes:
+        return False
+    if not any(isinstance(s, Let) and any(isinstance(i, Loop) for i in walk_stmts(s.body)) for s in loop.body):
+        return False
+    if vector_instructions(rest, tuple(w for w in widths if w < loop.lanes)) <= 1:
+        return False
+    stored = {s.buffer for s in walk_stmts(loop.body) if isinstance(s, Store)}
+    loaded = {
+        e.buffer
+        for st in walk_stmts(loop.body)
+        for top in stmt_exprs(st)
+        for e in walk_exprs(top)
+        if isinstance(e, Load)
+    }
+    return not stored & loaded
 
 
 def _vector_body(body: tuple[Stmt, ...], var: str, lanes: int, vector_locals: set[str]) -> tuple[Stmt, ...]:

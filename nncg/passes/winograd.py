@@ -21,6 +21,7 @@ from ..ir.graph import Graph
 from ..lowering.winograd import winograd_applies
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
+from .vectorize import vector_instructions
 
 MIN_INPUT_CHANNELS = 8
 
@@ -56,15 +57,6 @@ def chosen_by_cost_model(graph: Graph, node) -> bool:
 def winograd_candidates(graph: Graph) -> list[str]:
     """The layers Winograd applies to (what --tune measures both ways)."""
     return [node.name for node in graph.nodes if winograd_applies(graph, node)]
-
-
-def vector_instructions(channels: int, lanes: tuple[int, ...]) -> int:
-    """Blocks of the widest width that fits, then narrower ones, then scalars (as vectorize splits)."""
-    count = 0
-    for width in lanes:
-        count += channels // width
-        channels %= width
-    return count + channels
 
 
 def padded_channels(channels: int, lanes: tuple[int, ...]) -> int:

@@ -1,0 +1,108 @@
+"""Graph pass `vectorize-pixels{lanes=16/8/4,layers=conv1:true;conv2:false}`: SIMD over output pixels.
+
+Vectorising over output channels (the default) leaves a wide vector part empty when a layer has
+few of them: 3 channels fill 3 of 16 lanes. Such a layer can instead be lowered with a planar
+(NCHW) output whose rows are innermost: vectorize then runs along the row, every lane busy, the
+weight broadcast and the input loaded as a vector, and register-block jams output channels x row
+vectors. That needs an input whose rows are contiguous too (planar: the graph input, or another
+such layer's output) and stride 1 along them. A padded layer gets its padding as an explicit Pad
+node (a planar copy inside a zero border), so its rows have no border columns, which would each be
+a scalar iteration per row.
+
+The output stays planar: a consumer that vectorises over channels (a MaxPool, a channels-last Conv)
+then reads it element by element, and pays for the layer's gain. The cost model takes the pixel
+axis where the gain is large (see chosen_by_cost_model); `layers` overrides it per layer, and
+`--tune` decides by timing the whole model, consumers included."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..errors import NncgError
+from ..ir.graph import ConvAttrs, Graph, Node, PadAttrs
+from .per_layer import check_layer_names, parse_layer_map
+from .plan_memory import parse_bool
+
+MIN_ROW_VECTORS = 4
+
+
+def parse_layers(text: str) -> dict[str, bool]:
+    """`conv1:true;conv2:false` -> {"conv1": True, "conv2": False}."""
+    return parse_layer_map(text, parse_bool, "conv1:true;conv2:false")
+
+
+def vectorize_pixels(graph: Graph, lanes: tuple[int, ...] = (1,), layers: dict[str, bool] | None = None) -> Graph:
+    layers = layers or {}
+    check_layer_names(graph, layers, "vectorize-pixels")
+    planar = {value.name for value in graph.inputs}
+    nodes: list[Node] = []
+    shapes = dict(graph.shapes)
+    for node in graph.nodes:
+        wanted = layers.get(node.name)
+        applies = pixel_axis_applies(graph, node, planar)
+        if wanted and not applies:
+            raise NncgError(
+                f"vectorize-pixels: layer {node.name} is not a direct Conv with stride 1 along its rows "
+                "reading a planar tensor (the graph input or another pixel-vectorised layer's output)"
+            )
+        if applies and (chosen_by_cost_model(graph, node, lanes) if wanted is None else wanted):
+            if any(node.attrs.pads_begin) or any(node.attrs.pads_end):
+                pad, node = explicit_padding(graph, node, shapes)
+                nodes.append(pad)
+            node = replace(node, attrs=replace(node.attrs, vector_axis="pixels"))
+            planar.add(node.outputs[0])
+        nodes.append(node)
+    return replace(graph, shapes=shapes).with_nodes(nodes)
+
+
+def explicit_padding(graph: Graph, node: Node, shapes: dict) -> tuple[Node, Node]:
+    """A Pad node writing the conv's input inside its zero padding, and the conv reading that."""
+    attrs: ConvAttrs = node.attrs
+    x = node.inputs[0]
+    padded = _unused_name(graph, f"{x}_padded_for_{node.name}")
+    begin, end = (0, 0, *attrs.pads_begin), (0, 0, *attrs.pads_end)
+    shapes[padded] = tuple(d + b + e for d, b, e in zip(graph.shape(x), begin, end))
+    pad = Node("Pad", _unused_name(graph, f"{node.name}_pad"), (x,), (padded,), PadAttrs(begin, end))
+    zero = (0,) * len(attrs.kernel)
+    conv = replace(node, inputs=(padded, *node.inputs[1:]), attrs=replace(attrs, pads_begin=zero, pads_end=zero))
+    return pad, conv
+
+
+def _unused_name(graph: Graph, name: str) -> str:
+    taken = {*graph.shapes, *graph.constants, *(n.name for n in graph.nodes)}
+    candidate, i = name, 1
+    while candidate in taken:
+        candidate, i = f"{name}_{i}", i + 1
+    return candidate
+
+
+def pixel_axis_applies(graph: Graph, node: Node, planar: set[str]) -> bool:
+    attrs = node.attrs
+    return (
+        node.op == "Conv"
+        and isinstance(attrs, ConvAttrs)
+        and attrs.algorithm == "direct"
+        and attrs.strides[-1] == 1
+        and node.inputs[0] in planar
+    )
+
+
+def chosen_by_cost_model(graph: Graph, node: Node, lanes: tuple[int, ...]) -> bool:
+    """Channels filling at most half the widest vector, rows of at least MIN_ROW_VECTORS of them.
+    Measured (robot conv1, 8 channels, rows of 80, consumer a MaxPool): avx512 conv1 32 -> 23 us, the
+    pool 2 -> 6.7 us, the model 6 % faster; on avx2 and ssse3 (8 channels fill 1 or 2 vectors) the
+    model took as long either way; pedestrian conv1 (12 channels, rows of 18) lost on avx512."""
+    widest = max(lanes)
+    c_out = graph.shape(node.inputs[1])[0] // node.attrs.group
+    return widest > 1 and 2 * c_out <= widest and graph.shape(node.outputs[0])[-1] >= MIN_ROW_VECTORS * widest
+
+
+def pixel_candidates(graph: Graph) -> list[str]:
+    """The layers the pixel axis applies to, if every earlier one took it (what --tune measures)."""
+    planar = {value.name for value in graph.inputs}
+    names = []
+    for node in graph.nodes:
+        if pixel_axis_applies(graph, node, planar):
+            names.append(node.name)
+            planar.add(node.outputs[0])
+    return names
