@@ -28,6 +28,7 @@ from nncg.ir.loops import (
     walk_stmts,
 )
 from nncg.passes import PassManager, default_pipeline
+from nncg.passes.register_block import reads_across_planes
 from nncg.passes.vectorize import vectorize
 from nncg.tune import with_layer_choices
 
@@ -203,3 +204,12 @@ def test_elementwise_loops_keep_their_scalar_tail():
     kernel = vectorized(Kernel("k", "Mul", (Loop("j", 19, body, parallel=True),)), (8,))
     vector, tail = kernel.body
     assert (vector.lanes, vector.extent, tail.lanes, tail.extent) == (8, 2, 1, 3)
+
+
+def test_a_channels_last_consumer_of_a_planar_tensor_jams_channels_only():
+    m = leaky_pool((1, 3, 8, 72), 8, pads=[1, 1, 1, 1])
+    for on, expected in ((True, {"Conv_0": False, "MaxPool_2": True}), (False, {"Conv_0": False, "MaxPool_2": False})):
+        specs = pipeline("avx512", Conv_0=on).split(",register-block")[0]
+        program = PassManager(specs).run(import_onnx(m))
+        strided = {k.name: reads_across_planes(k.body) for k in program.kernels if k.name in expected}
+        assert strided == expected

@@ -89,9 +89,10 @@ def pixel_axis_applies(graph: Graph, node: Node, planar: set[str]) -> bool:
 
 def chosen_by_cost_model(graph: Graph, node: Node, lanes: tuple[int, ...]) -> bool:
     """Channels filling at most half the widest vector, rows of at least MIN_ROW_VECTORS of them.
-    Measured (robot conv1, 8 channels, rows of 80, consumer a MaxPool): avx512 conv1 32 -> 23 us, the
-    pool 2 -> 6.7 us, the model 6 % faster; on avx2 and ssse3 (8 channels fill 1 or 2 vectors) the
-    model took as long either way; pedestrian conv1 (12 channels, rows of 18) lost on avx512."""
+    Measured on robot (conv1: 3 -> 8 channels, rows of 80, then a MaxPool; best of 15 interleaved
+    runs): avx512 conv1 29.5 -> 22.4 us, pool1 1.7 -> 2.4 us, the model 87.5 -> 82.5 us; where 8
+    channels fill the vectors the gain is small (avx2 96.1 -> 94.7, ssse3 181.0 -> 179.6), and
+    pedestrian's conv1 (12 channels, rows of 18) got slower on avx512."""
     widest = max(lanes)
     c_out = graph.shape(node.inputs[1])[0] // node.attrs.group
     return widest > 1 and 2 * c_out <= widest and graph.shape(node.outputs[0])[-1] >= MIN_ROW_VECTORS * widest
