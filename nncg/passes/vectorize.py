@@ -37,6 +37,7 @@ from ..ir.loops import (
     walk_exprs,
     walk_stmts,
 )
+from .register_block import is_accumulator
 from .substitute import interior, iterations, substitute_body
 
 
@@ -112,21 +113,14 @@ def vectorizable(loop: Loop, lanes: int, borders: bool = False) -> bool:
 
 def materialize(stmt: Stmt, widths: tuple[int, ...] = ()) -> Stmt | tuple[Stmt, ...]:
     """A marked loop as blocks of its width, then of each narrower width of `widths` that fits the
-    rest, then a scalar tail."""
+    rest, then a scalar tail; or, where that pays, blocks of its width and one more ending at the
+    last iteration."""
     if not isinstance(stmt, Loop) or stmt.kind != "vectorized":
         return stmt
     var, start = stmt.var, 0
     out: list[Stmt] = []
-    if _overlapped_tail_pays(stmt, widths):
-        blocks = stmt.extent // stmt.lanes
-        vector = _vector_body(stmt.body, var, stmt.lanes, set())
-        index = Affine.of(var) * stmt.lanes
-        if blocks > 1:
-            out.append(Loop(var, blocks, substitute_body(vector, {var: index}), parallel=True, lanes=stmt.lanes))
-        else:
-            out += substitute_body(vector, {var: Affine()})
-        return (*out, *substitute_body(vector, {var: Affine.of(stmt.extent - stmt.lanes)}))
-    for lanes in (stmt.lanes, *(w for w in widths if w < stmt.lanes)):
+    overlap = _overlapped_tail_pays(stmt, widths)
+    for lanes in (stmt.lanes,) if overlap else (stmt.lanes, *(w for w in widths if w < stmt.lanes)):
         blocks = (stmt.extent - start) // lanes
         if not blocks:
             continue
@@ -138,6 +132,8 @@ def materialize(stmt: Stmt, widths: tuple[int, ...] = ()) -> Stmt | tuple[Stmt, 
             index = Affine.of(var) * lanes + start
             out.append(Loop(var, blocks, substitute_body(vector, {var: index}), parallel=True, lanes=lanes))
         start += blocks * lanes
+    if overlap:
+        return (*out, *substitute_body(vector, {var: Affine.of(stmt.extent - stmt.lanes)}))
     tail = stmt.extent - start
     if tail == 1:
         out += substitute_body(stmt.body, {var: Affine.of(start)})
@@ -164,7 +160,7 @@ def _overlapped_tail_pays(loop: Loop, widths: tuple[int, ...]) -> bool:
     rest = loop.extent % loop.lanes
     if not rest or loop.extent < loop.lanes:
         return False
-    if not any(isinstance(s, Let) and any(isinstance(i, Loop) for i in walk_stmts(s.body)) for s in loop.body):
+    if not any(is_accumulator(s) for s in loop.body):
         return False
     if vector_instructions(rest, tuple(w for w in widths if w < loop.lanes)) <= 1:
         return False
