@@ -1,8 +1,14 @@
 """Errors a user can act on. The CLI prints them as one line and exits with status 2."""
 
+from .safe_text import terminal_line
+
 
 class NncgError(Exception):
-    """Bad input or an unsupported model: the message says what is wrong and how to fix it."""
+    """Bad input or an unsupported model: the message says what is wrong and how to fix it. It is
+    one printable line whatever outside text it quotes (see safe_text.terminal_line)."""
+
+    def __init__(self, message: object = ""):
+        super().__init__(terminal_line(str(message)))
 
 
 class UnsupportedOpsError(NncgError):

@@ -18,6 +18,7 @@ import numpy as np
 import onnx
 
 from nncg.errors import NncgError
+from nncg.safe_text import terminal_line
 
 SANITIZE_FLAGS = (
     "-fsanitize=address,undefined",
@@ -31,7 +32,11 @@ _SANITIZER_REPORT = re.compile(r"Sanitizer|runtime error:")
 
 
 class VerificationError(NncgError):
-    """The generated C did not compile cleanly, crashed, or broke the calling contract."""
+    """The generated C did not compile cleanly, crashed, or broke the calling contract. The message
+    keeps the lines of the compiler's or program's output (each made printable)."""
+
+    def __init__(self, message: object = ""):
+        Exception.__init__(self, "\n".join(terminal_line(line) for line in str(message).split("\n")))
 
 
 @dataclass(frozen=True)
