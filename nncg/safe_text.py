@@ -31,7 +31,7 @@ def escaped(text: str) -> str:
 
 
 def capped(text: str, limit: int = NAME_LIMIT) -> str:
-    """At most `limit` characters: a longer text keeps its head and tail around "...". """
+    """At most `limit` characters: a longer text keeps its head and tail around "..."."""
     if len(text) <= limit:
         return text
     head = (limit - 3) * 2 // 3
@@ -63,3 +63,8 @@ def c_comment(text: str) -> str:
     while "??" in safe:
         safe = safe.replace("??", "?\\?")
     return safe
+
+
+def comment_name(name: object) -> str:
+    """An outside name inside a C comment: quoted, safe (see c_comment) and capped."""
+    return "'" + capped(c_comment(str(name))) + "'"

@@ -156,7 +156,16 @@ def algorithm_layers(model, pipeline: str, input_shapes=None) -> dict[str, str]:
         return {}
     direct = with_layer_choices(pipeline, {}, {}, dict.fromkeys(names, False))
     program = ir_before(model, direct, "register-block", input_shapes)
-    return {k.name: layer_signature(program, k) for k in program.kernels if k.name in names}
+    return _signatures(program, names)
+
+
+def _signatures(program: Program, names: list[str]) -> dict[str, str]:
+    """Layer name -> its loop nest's signature; every layer a round tunes has a kernel of its name."""
+    kernels = {k.name: k for k in program.kernels}
+    missing = [name for name in names if name not in kernels]
+    if missing:
+        raise RuntimeError(f"tune: no kernel for the layers {missing}: graph and kernel names disagree")
+    return {name: layer_signature(program, kernels[name]) for name in names}
 
 
 def tunable_layers(model, pipeline: str, input_shapes=None) -> dict[str, tuple[tuple[int, int], str]]:

@@ -113,3 +113,25 @@ def test_pixel_axis_round_times_whole_models_and_is_cached(tmp_path):
     again = []
     assert tune(m, "ssse3", cache=tmp_path / "tune.json", batches=2, progress=again.append) == pipeline
     assert not any("builds" in line for line in again)
+
+
+def test_layers_named_like_torch_and_tf2onnx_exports_are_tuned(tmp_path):
+    """Per-layer choices key on the layer's C name, whatever characters the model's names hold:
+    torch's `/layer1/conv1/Conv`, tf2onnx's `model/act/Relu;model/bn/FusedBatchNormV3`."""
+    m = conv_pool_conv()
+    onnx_names = ["/layer1/layer1.0/conv1/Conv", "model/activation/Relu;model/bn/FusedBatchNormV3", "pool:1", "c{2}"]
+    for node, name in zip(m.graph.node, onnx_names):
+        node.name = name
+    lines = []
+    pipeline = tune(m, "ssse3", cache=tmp_path / "tune.json", batches=1, progress=lines.append)
+    assert "tune: direct or Winograd for c_2, layer1_layer1_0_conv1_Conv" in lines
+    assert set(layer_choices(pipeline, "winograd")) == {"layer1_layer1_0_conv1_Conv", "c_2"}
+    assert set(layer_choices(pipeline, "register-block")) == {"layer1_layer1_0_conv1_Conv", "pool_1", "c_2"}
+    check_against_onnxruntime(m, nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True))
+
+
+def test_per_layer_choices_name_layers_by_their_c_names():
+    m = conv_pool_conv()
+    pipeline = nncg.default_pipeline(4).replace("winograd{lanes=4}", "winograd{lanes=4,layers=a/b:true}")
+    with pytest.raises(nncg.NncgError, match="a layer name is a C identifier"):
+        nncg.compile(m, "ssse3", pipeline=pipeline)

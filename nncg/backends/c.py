@@ -31,6 +31,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from ..passes.substitute import rename_variables
+from ..safe_text import comment_name
 
 INDENT = "    "
 
@@ -227,7 +228,7 @@ class AnsiC:
         ]
         for buf in (*program.role("input"), *program.role("output")):
             shape = ",".join(map(str, buf.shape))
-            lines.append(f"/* {buf.role} '{buf.onnx_name}': float32[{shape}], row-major as in ONNX */")
+            lines.append(f"/* {buf.role} {comment_name(buf.onnx_name)}: float32[{shape}], row-major as in ONNX */")
             lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
         lines += [
             "",

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..ir.graph import Graph, Node
-from ..lowering.context import c_identifier
 
 
 def node_macs(graph: Graph, node: Node) -> int:
@@ -29,5 +28,5 @@ def total_macs(graph: Graph) -> int:
 
 
 def macs_by_layer(graph: Graph) -> dict[str, int]:
-    """MACs keyed by the C name a node's kernel gets (its name made a C identifier)."""
-    return {c_identifier(node.name): node_macs(graph, node) for node in graph.nodes}
+    """MACs keyed by layer: a node's name, which its kernel keeps."""
+    return {node.name: node_macs(graph, node) for node in graph.nodes}

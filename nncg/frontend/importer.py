@@ -5,6 +5,7 @@ converts every remaining node and assembles the graph IR with static shapes and 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 import onnx
@@ -15,7 +16,9 @@ from nncg.frontend.folding import Folded, NamedNode, fold_constants
 from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, real_inputs
 from nncg.frontend.names import node_reads, value_names
 from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
+from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
+from nncg.safe_text import shown
 
 
 def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] | None = None) -> Graph:
@@ -30,7 +33,7 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
 
 def check_supported(nodes: list[NamedNode]) -> None:
     """One error listing every node left after folding that has no converter."""
-    bad = [f"{node.op_type} (node '{name}')" for node, name in nodes if node.op_type not in CONVERTERS]
+    bad = [f"{shown(node.op_type)} (node {shown(name)})" for node, name in nodes if node.op_type not in CONVERTERS]
     if bad:
         raise UnsupportedOpsError(
             f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "
@@ -62,7 +65,14 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
         for name in node.inputs:
             if name in ctx.constants:
                 constants[name] = _float32(node, name, ctx.constants[name])
-    return Graph(graph.name or "model", inputs, outputs, nodes, constants, shapes)
+    return Graph(graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes)
+
+
+def _layer_named(nodes: tuple[Node, ...]) -> tuple[Node, ...]:
+    """Nodes renamed to their layers' C names (unique, ignoring case): the one identity a layer has
+    from here on, in pass parameters (`layers=`), kernels, the profile and --tune's choices."""
+    names = Namespace(layer_name)
+    return tuple(replace(node, name=names.claim(node.name)) for node in nodes)
 
 
 def _static_shape(ctx: Context, value: str, role: str) -> tuple[int, ...]:

@@ -6,6 +6,7 @@ activations get the layout their producer prefers (channels-last for Conv and Ma
 from __future__ import annotations
 
 from ..errors import NncgError
+from ..ir.c_names import program_name
 from ..ir.graph import Graph, Node
 from ..ir.loops import Program
 from .concat import lower_concat
@@ -74,8 +75,8 @@ def lower(graph: Graph, function_name: str | None = None, halos: bool = False) -
     """`halos`: store tensors that only padded Convs read inside a zero border (see halo.py). Off by
     default: it removes every border check, but on this machine gcc's code for the register-blocked
     layers came out as often slower as faster (robot avx2 -2 %, pedestrian ssse3 +23 %)."""
-    ctx = LoweringContext(graph, halos)
-    name = ctx.unique(function_name or graph.name)
+    name = program_name(function_name or graph.name)
+    ctx = LoweringContext(graph, name, halos)
     for value in graph.inputs:
         ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
     outputs = {}
@@ -87,7 +88,7 @@ def lower(graph: Graph, function_name: str | None = None, halos: bool = False) -
         _lower_node(ctx, node)
     for value, target in outputs.items():
         if ctx.refs[value] != target:
-            ctx.emit(f"copy_{value}", "Copy", copy_nest(ctx.refs[value], target))
+            ctx.emit_helper(f"copy_{value}", "Copy", copy_nest(ctx.refs[value], target))
     return Program(name, tuple(ctx.buffers), tuple(ctx.kernels), ctx.constants)
 
 
@@ -97,5 +98,5 @@ def _lower_node(ctx: LoweringContext, node: Node) -> None:
         raise NncgError(f"no lowering for op {node.op} (node '{node.name}'); supported: {', '.join(LOWERINGS)}")
     lowering(ctx, node)
     for value, temp, target in ctx.pending_copies:
-        ctx.emit(f"{node.name}_to_{value}", "Copy", copy_nest(temp, target))
+        ctx.emit_helper(f"{node.name}_to_{value}", "Copy", copy_nest(temp, target))
     ctx.pending_copies.clear()

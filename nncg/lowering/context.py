@@ -2,32 +2,15 @@
 
 from __future__ import annotations
 
-import keyword
-import re
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..ir.c_names import Namespace, buffer_name, layer_name
 from ..ir.graph import Graph
 from ..ir.loops import Affine, Buffer, Kernel, Loop, Stmt
 from .halo import conv_halos, zero_halo
-
-C_KEYWORDS = frozenset(
-    """auto break case char const continue default do double else enum extern float for goto if
-    inline int long register restrict return short signed sizeof static struct switch typedef union
-    unsigned void volatile while main exp log tanh""".split()
-)
-
-
-def c_identifier(name: str) -> str:
-    """A valid C identifier resembling `name` (may still collide; callers make it unique)."""
-    ident = re.sub(r"[^A-Za-z0-9_]", "_", name) or "t"
-    if ident[0].isdigit():
-        ident = "t_" + ident
-    if ident in C_KEYWORDS or keyword.iskeyword(ident) or ident.startswith("__"):
-        ident = "t_" + ident.lstrip("_")
-    return ident
 
 
 def row_major(rank: int) -> tuple[int, ...]:
@@ -118,31 +101,26 @@ def nest(
 
 
 class LoweringContext:
-    """Allocates buffers and remembers where each graph value lives."""
+    """Allocates buffers and remembers where each graph value lives. Buffers and layers have C names
+    of their own (nncg/ir/c_names.py); a node's kernel keeps the node's name, which --tune and the
+    per-layer pass parameters use as the layer's identity."""
 
-    def __init__(self, graph: Graph, halos: bool = False):
+    def __init__(self, graph: Graph, program: str, halos: bool = False):
         self.graph = graph
+        self.program = program
         self.buffers: list[Buffer] = []
         self.constants: dict[str, np.ndarray] = {}
         self.refs: dict[str, TensorRef] = {}
         self.kernels: list[Kernel] = []
-        self._names: set[str] = set()
+        self._buffer_names = Namespace(lambda name: buffer_name(name, program))
+        self._kernel_names = Namespace(layer_name)
+        self._layers = {node.name: self._kernel_names.claim(node.name) for node in graph.nodes}
         self.pending_copies: list[tuple[str, TensorRef, TensorRef]] = []
         self.halos = conv_halos(graph) if halos else {}
 
-    def unique(self, name: str) -> str:
-        """A C identifier for name, distinct from all given out so far, ignoring case (the header
-        derives upper-case macro names from them)."""
-        base = c_identifier(name)
-        ident, i = base, 1
-        while ident.lower() in self._names:
-            ident, i = f"{base}_{i}", i + 1
-        self._names.add(ident.lower())
-        return ident
-
     def add_buffer(self, name: str, role: str, shape, order, onnx_name: str = "") -> TensorRef:
         shape = tuple(int(d) for d in shape)
-        ident = self.unique(name)
+        ident = self._buffer_names.claim(name)
         size = int(np.prod(shape)) if shape else 1
         self.buffers.append(Buffer(ident, size, role, shape, layout_name(shape, order), onnx_name))
         return TensorRef(ident, shape, tuple(order))
@@ -178,11 +156,16 @@ class LoweringContext:
             halo = self.halos[value]
             stored = TensorRef("", shape, tuple(order), halo).stored_shape
             ref = replace(self.add_buffer("t_" + value, "internal", stored, order), shape=shape, halo=halo)
-            self.emit("halo_" + ref.buffer, "ZeroHalo", zero_halo(ref))
+            self.emit_helper("halo_" + ref.buffer, "ZeroHalo", zero_halo(ref))
         else:
             ref = self.add_buffer("t_" + value, "internal", shape, order)
         self.refs[value] = ref
         return ref
 
-    def emit(self, name: str, op: str, body: tuple[Stmt, ...]) -> None:
-        self.kernels.append(Kernel(self.unique(name), op, body))
+    def emit(self, node_name: str, op: str, body: tuple[Stmt, ...]) -> None:
+        """Adds the kernel of the node `node_name`, named as the node."""
+        self.kernels.append(Kernel(self._layers.pop(node_name), op, body))
+
+    def emit_helper(self, name: str, op: str, body: tuple[Stmt, ...]) -> None:
+        """Adds a kernel no node has (a copy, a zero halo), named apart from every layer."""
+        self.kernels.append(Kernel(self._kernel_names.claim(name), op, body))

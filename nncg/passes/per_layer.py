@@ -3,6 +3,7 @@ chose for each layer (register-block's block shapes, unroll's budgets, winograd'
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -11,6 +12,7 @@ from ..ir.graph import Graph
 from ..ir.loops import Program
 
 T = TypeVar("T")
+LAYER_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
 
 def parse_layer_map(text: str, parse_value: Callable[[str], T], example: str) -> dict[str, T]:
@@ -21,6 +23,8 @@ def parse_layer_map(text: str, parse_value: Callable[[str], T], example: str) ->
         try:
             if not sep or not name:
                 raise ValueError("no LAYER:VALUE")
+            if not LAYER_NAME.fullmatch(name):
+                raise ValueError("a layer name is a C identifier, as --print-ir-after-all shows it")
             out[name] = parse_value(value)
         except ValueError as exc:
             raise ValueError(f"'{item}' is not LAYER:VALUE as in {example} ({exc})") from None
