@@ -7,14 +7,16 @@ from __future__ import annotations
 import errno
 import os
 import secrets
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from .errors import NncgError
 from .safe_text import shown
 
+T = TypeVar("T")
 PATH_LIMIT = 240  # characters of a path shown in a message
 DEFAULT_NAME_MAX = 255  # bytes of a file name, where the file system does not say (os.pathconf)
 
@@ -151,14 +153,16 @@ def _stage(folder: Path, target: Path, data: bytes) -> Path:
 _CREATE_FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0) | getattr(os, "O_CLOEXEC", 0)
 
 
-def _new_file(folder: Path, create):
-    """A fresh short hidden name in `folder` and what `create(path)` returns for it."""
-    while True:
+def _new_file(folder: Path, create: Callable[[Path], T]) -> tuple[Path, T]:
+    """A fresh short hidden name in `folder` and what `create(path)` returns for it (create fails with
+    FileExistsError where the name is taken)."""
+    for _ in range(100):
         path = folder / f".nncg-{secrets.token_hex(4)}"
         try:
             return path, create(path)
         except FileExistsError:
             continue
+    raise FileExistsError(errno.EEXIST, "no unused temporary name", str(folder))
 
 
 def _write_all(fd: int, data: bytes) -> None:
@@ -202,7 +206,7 @@ def _backup(target: Path) -> Path | None:
         raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(target))
     try:  # a hard link: the target stays in place until the rename replaces it
         return _new_file(target.parent, lambda path: os.link(target, path, follow_symlinks=False))[0]
-    except OSError:  # no hard links on this file system: move the old file aside instead
+    except (OSError, NotImplementedError):  # no hard links here (or no link to a link): move the old file aside
         return _new_file(target.parent, lambda path: _rename_unless_taken(target, path))[0]
 
 
