@@ -90,7 +90,7 @@ def compile(
     replaces the default pass pipeline entirely; `profile` adds per-layer timers to the generated
     code (for `--profile`; they need POSIX clock_gettime); `weights` is embed (static const arrays),
     bin (NAME.weights, passed by pointer) or auto (bin when large); `code_budget` caps the
-    statements of the unrolled program (None: the paper's levels exactly). Wrong arguments raise NncgError."""
+    statements of the unrolled program (None: the paper's levels exactly)."""
     check_compile_arguments(
         model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights,
         code_budget,
