@@ -14,6 +14,7 @@ from .errors import NncgError
 from .passes.plan_memory import WEIGHTS_MODES
 from .safe_text import capped, shown
 
+DIM_MAX = 2**63 - 1  # ONNX dims are int64
 MODEL_TYPES = (str, os.PathLike, bytes, bytearray, memoryview, onnx.ModelProto)
 
 
@@ -86,9 +87,10 @@ def _check_input_shapes(shapes) -> None:
     for key, dims in shapes.items():
         if not isinstance(key, str):
             raise NncgError(f"input_shapes must be keyed by input name (str); {_got(key)}")
-        if not isinstance(dims, (tuple, list)) or not all(_whole(d) and d > 0 for d in dims):
+        if not isinstance(dims, (tuple, list)) or not all(_whole(d) and 0 < d <= DIM_MAX for d in dims):
             raise NncgError(
-                f"input_shapes[{shown(key)}] must be a tuple of ints >= 1, e.g. (1, 3, 60, 80); {_got(dims)}"
+                f"input_shapes[{shown(key)}] must be a tuple of ints from 1 to 2**63-1, e.g. (1, 3, 60, 80); "
+                f"{_got(dims)}"
             )
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from . import __version__
+from .arguments import DIM_MAX
 from .backends import BACKENDS
 from .errors import NncgError
 from .output_files import check_output_folder
@@ -30,9 +31,9 @@ def parse_input_shape(text: str) -> tuple[str, tuple[int, ...]]:
     if not sep or not name or not dims:
         raise argparse.ArgumentTypeError(f"{shown(text)} is not NAME=DIMxDIMx... (e.g. image=1x3x60x80)")
     sizes = dims.split("x")
-    if not all(re.fullmatch(r"[0-9]+", size) and int(size) > 0 for size in sizes):
+    if not all(re.fullmatch(r"[0-9]+", size) and 0 < int(size) <= DIM_MAX for size in sizes):
         raise argparse.ArgumentTypeError(
-            f"{shown(text)}: every dimension must be a whole number >= 1 (e.g. image=1x3x60x80)"
+            f"{shown(text)}: every dimension must be a whole number from 1 to 2**63-1 (e.g. image=1x3x60x80)"
         )
     return name, tuple(int(size) for size in sizes)
 
