@@ -6,32 +6,60 @@ import argparse
 import re
 import shlex
 import sys
+from pathlib import Path
+from typing import NoReturn
 
 from . import __version__
+from .arguments import DIM_MAX
 from .backends import BACKENDS
 from .errors import NncgError
+from .output_files import check_output_folder
 from .passes.unroll import CODE_BUDGET
+from .safe_text import shown, terminal_line
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with every usage error as one line on stderr and exit status 2 (the usage text stays
+    behind --help): a typo should not bury the error under forty lines."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {terminal_line(message)} (see {self.prog} --help)\n")
 
 
 def parse_input_shape(text: str) -> tuple[str, tuple[int, ...]]:
     name, sep, dims = text.rpartition("=")
-    if not sep or not name or not re.fullmatch(r"\d+(x\d+)*", dims):
-        raise argparse.ArgumentTypeError(f"'{text}' is not NAME=DIMxDIMx... (e.g. input=1x3x60x80)")
-    shape = tuple(int(d) for d in dims.split("x"))
-    if 0 in shape:
-        raise argparse.ArgumentTypeError(f"'{text}': dimensions must be at least 1")
-    return name, shape
+    if not sep or not name or not dims:
+        raise argparse.ArgumentTypeError(f"{shown(text)} is not NAME=DIMxDIMx... (e.g. image=1x3x60x80)")
+    sizes = dims.split("x")
+    if not all(re.fullmatch(r"[0-9]+", size) and 0 < int(size) <= DIM_MAX for size in sizes):
+        raise argparse.ArgumentTypeError(
+            f"{shown(text)}: every dimension must be a whole number from 1 to 2**63-1 (e.g. image=1x3x60x80)"
+        )
+    return name, tuple(int(size) for size in sizes)
+
+
+def whole_number(text: str) -> int:
+    """An int >= 0 (a code budget, a core number)."""
+    if not re.fullmatch(r"[0-9]+", text):
+        raise argparse.ArgumentTypeError(f"{shown(text)} is not a whole number >= 0")
+    return int(text)
+
+
+def non_empty(text: str) -> str:
+    if not text:
+        raise argparse.ArgumentTypeError("must not be empty")
+    return text
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="nncg-onnx",
         description="Compile an ONNX CNN into one plain C file and header (NAME.c, NAME.h).",
     )
     p.add_argument("model", nargs="?", help="the .onnx file")
     p.add_argument("--target", default="ansi-c", choices=sorted(BACKENDS), help="code to print (default: ansi-c)")
-    p.add_argument("-o", "--output-dir", default=".", help="where NAME.c and NAME.h go (default: .)")
-    p.add_argument("--name", help="C function and file name (default: the model file's stem)")
+    p.add_argument("-o", "--output-dir", default=".", type=non_empty, help="where NAME.c and NAME.h go (default: .)")
+    p.add_argument("--name", type=non_empty, help="C function and file name (default: the model file's stem)")
     p.add_argument(
         "--cmake",
         action="store_true",
@@ -56,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--code-budget",
-        type=int,
+        type=whole_number,
         default=CODE_BUDGET,
         metavar="N",
         help=f"statements of unrolled code in the whole model: loops whose unrolling would exceed it stay loops "
@@ -97,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
         "interleaved; print speed-up, GFLOP/s, %% of the ISA's peak, error and object sizes",
     )
     p.add_argument("--profile", action="store_true", help="time every layer of the generated C; print µs, %% and MACs")
-    p.add_argument("--cpu", type=int, help="pin --benchmark/--profile to this core")
+    p.add_argument("--cpu", type=whole_number, help="pin --benchmark/--profile to this core")
     p.add_argument("--cc", help="C compiler for --verify, --benchmark, --profile (default: cc, gcc or clang on PATH)")
     p.add_argument("--list-passes", action="store_true", help="list the passes and the default pipeline, then exit")
     p.add_argument("--debug", action="store_true", help="show the traceback of an internal error")
@@ -110,17 +138,28 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return run(args)
     except NncgError as exc:
-        print(f"nncg-onnx: error: {exc}", file=sys.stderr)
-        return 2
+        return fail(str(exc))
+    except OSError as exc:  # the file system's answer (a full disk, a vanished file): the user's to fix
+        if args.debug:
+            raise
+        return fail(f"{exc} (check the paths given, free space and permissions)")
     except Exception as exc:
         if args.debug:
             raise
         print(
-            f"nncg-onnx: internal error: {type(exc).__name__}: {exc} (a bug in NNCG: please report it "
-            "with the model; --debug shows the traceback)",
+            terminal_line(
+                f"nncg-onnx: internal error: {type(exc).__name__}: {exc} (a bug in NNCG: please report it "
+                "with the model; --debug shows the traceback)"
+            ),
             file=sys.stderr,
         )
         return 3
+
+
+def fail(message: str) -> int:
+    """Prints `message` as the one error line; returns exit status 2."""
+    print(terminal_line(f"nncg-onnx: error: {message}"), file=sys.stderr)
+    return 2
 
 
 def run(args: argparse.Namespace) -> int:
@@ -135,24 +174,35 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.model:
         raise NncgError("no model given: nncg-onnx MODEL.onnx --target ssse3 -o build/")
+    check_output_folder(Path(args.output_dir))  # before compiling (or tuning for a minute)
     args.pipeline = tune_command(args) if args.tune or args.tune_runner else args.pipeline
     compiled = compile(
         args.model,
         target=args.target,
         unroll=args.unroll,
         name=args.name,
-        input_shapes=dict(args.input_shape) or None,
+        input_shapes=input_shapes(args),
         pipeline=args.pipeline,
         print_ir_after_all=sys.stderr if args.print_ir_after_all else None,
         weights=args.weights,
         code_budget=args.code_budget or None,
     )
     paths = compiled.write(args.output_dir, cmake=args.cmake)
-    print(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}")
+    print(terminal_line(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}"))
     status = verify_command(args, compiled) if args.verify else 0
     if args.benchmark or args.profile:
         measure_command(args)
     return status
+
+
+def input_shapes(args: argparse.Namespace) -> dict[str, tuple[int, ...]] | None:
+    """The --input-shape options as compile() takes them; an input given twice is an error."""
+    shapes: dict[str, tuple[int, ...]] = {}
+    for name, shape in args.input_shape:
+        if name in shapes:
+            raise NncgError(f"--input-shape gives input {shown(name)} twice; give each input once")
+        shapes[name] = shape
+    return shapes or None
 
 
 def tune_command(args: argparse.Namespace) -> str:
@@ -164,7 +214,7 @@ def tune_command(args: argparse.Namespace) -> str:
         raise NncgError("--tune chooses unroll budgets per layer: leave --unroll at auto")
     return tune(
         args.model, args.target, cc=args.cc, runner=shlex.split(args.tune_runner or ""),
-        input_shapes=dict(args.input_shape) or None, weights=args.weights, code_budget=args.code_budget or None,
+        input_shapes=input_shapes(args), weights=args.weights, code_budget=args.code_budget or None,
         cpu=args.cpu,
     )  # fmt: skip
 
@@ -173,7 +223,7 @@ def verify_command(args: argparse.Namespace, compiled) -> int:
     from .frontend import load_model
     from .verify import verify
 
-    model = load_model(args.model, dict(args.input_shape) or None)
+    model = load_model(args.model, input_shapes(args))
     report = verify(model, compiled, tolerance=args.tolerance, cc=args.cc)
     print(report.format())
     return 0 if report.ok else 1
@@ -184,7 +234,7 @@ def measure_command(args: argparse.Namespace) -> None:
 
     options = dict(
         target=args.target, unroll=args.unroll, cc=args.cc, cpu=args.cpu,
-        input_shapes=dict(args.input_shape) or None, name=args.name, weights=args.weights,
+        input_shapes=input_shapes(args), name=args.name, weights=args.weights,
         code_budget=args.code_budget or None, pipeline=args.pipeline,
     )  # fmt: skip
     if args.benchmark:

@@ -7,6 +7,7 @@ the model as a static library target NAME, so that a CMake project takes it with
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -52,6 +53,19 @@ def cmake_file(compiled: CompiledModel, directory: Path) -> bytes:
     """The CMakeLists.txt bytes for `directory`; refuses to replace a CMakeLists.txt NNCG did not write
     (the output folder may be a project's own), before anything is written."""
     existing = directory / CMAKE_LISTS
-    if existing.exists() and not existing.read_bytes().startswith(_MARK.encode()):
+    if os.path.lexists(existing) and not _written_by_nncg(existing):
         raise NncgError(f"{existing} exists and was not written by NNCG: not replacing it (choose another -o)")
     return cmake_lists(compiled).encode()
+
+
+def _written_by_nncg(path: Path) -> bool:
+    """Whether the file at `path` starts with NNCG's mark (a folder or a dangling link does not)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(_MARK)) == _MARK.encode()
+    except (IsADirectoryError, FileNotFoundError):
+        return False
+    except OSError as exc:
+        raise NncgError(
+            f"cannot read {path}: {exc.strerror or exc} (NNCG replaces only its own CMakeLists.txt: choose another -o)"
+        ) from None

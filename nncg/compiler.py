@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TextIO
@@ -16,17 +15,20 @@ from typing import TextIO
 import onnx
 
 from . import __version__
+from .arguments import check_compile_arguments, check_write_arguments
 from .backends import get_backend
 from .backends.c import external_weights, weights_blob
 from .bench.macs import macs_by_layer
 from .cmake import CMAKE_LISTS, cmake_file
+from .errors import NncgError
 from .frontend import import_onnx
 from .ir.c_names import program_name
 from .ir.loops import Program
+from .output_files import write_files
 from .passes import PassManager, default_pipeline
 from .passes.plan_memory import plan_memory
 from .passes.unroll import CODE_BUDGET
-from .safe_text import c_comment, capped
+from .safe_text import c_comment, capped, shown
 
 
 @dataclass(frozen=True)
@@ -60,29 +62,14 @@ class CompiledModel:
 
     def write(self, directory: str | os.PathLike, cmake: bool = False) -> tuple[Path, ...]:
         """Writes NAME.c, NAME.h (and NAME.weights; with `cmake`, a CMakeLists.txt defining the static
-        library NAME, see nncg/cmake.py); on any failure none is left behind half-written."""
-        out = Path(directory)
-        out.mkdir(parents=True, exist_ok=True)
+        library NAME, see nncg/cmake.py) all or nothing (see output_files); failures raise NncgError."""
+        check_write_arguments(directory, cmake)
         files = {f"{self.name}.c": self.source.encode(), f"{self.name}.h": self.header.encode()}
         if self.weights is not None:
             files[f"{self.name}.weights"] = self.weights
         if cmake:
-            files[CMAKE_LISTS] = cmake_file(self, out)
-        paths = tuple(out / name for name in files)
-        temps = []
-        try:
-            for path, data in zip(paths, files.values()):
-                fd, temp = tempfile.mkstemp(prefix=f".{path.name}.", dir=out)
-                temps.append(temp)
-                with os.fdopen(fd, "wb") as f:
-                    f.write(data)
-            for temp, path in zip(temps, paths):
-                os.replace(temp, path)
-        finally:
-            for temp in temps:
-                if os.path.exists(temp):
-                    os.unlink(temp)
-        return paths
+            files[CMAKE_LISTS] = cmake_file(self, Path(directory))
+        return write_files(directory, files)
 
 
 def compile(
@@ -104,6 +91,10 @@ def compile(
     code (for `--profile`; they need POSIX clock_gettime); `weights` is embed (static const arrays),
     bin (NAME.weights, passed by pointer) or auto (bin when large); `code_budget` caps the
     statements of the unrolled program (None: the paper's levels exactly)."""
+    check_compile_arguments(
+        model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights,
+        code_budget,
+    )  # fmt: skip
     backend = get_backend(target)
     graph = import_onnx(model, input_shapes)
     level = "none" if unroll is None else str(unroll)
@@ -162,9 +153,12 @@ def _default_name(model, graph_name: str) -> str:
 
 def _sha256(model) -> str:
     if isinstance(model, (str, os.PathLike)):
-        data = Path(model).read_bytes()
-    elif isinstance(model, bytes):
-        data = model
+        try:  # read a second time: the file may have gone meanwhile
+            data = Path(model).read_bytes()
+        except OSError as exc:
+            raise NncgError(f"cannot read model file {shown(os.fspath(model), 240)}: {exc.strerror or exc}") from None
+    elif isinstance(model, (bytes, bytearray, memoryview)):
+        data = bytes(model)
     else:
         data = model.SerializeToString(deterministic=True)
     return hashlib.sha256(data).hexdigest()
