@@ -66,15 +66,15 @@ def is_reserved(ident: str) -> bool:
     )
 
 
-def c_identifier(name: str) -> str:
+def c_identifier(name: str, limit: int | None = MAX_LENGTH) -> str:
     """A valid, unreserved C identifier resembling `name`: runs of other characters become `_`, at most
-    MAX_LENGTH characters (a long name keeps its head and a hash of the whole), a reserved result
+    `limit` characters (a long name keeps its head and a hash of the whole), a reserved result
     gets a `t_` prefix (and a `_` suffix when still reserved). Callers make it unique."""
     trimmed = re.sub(r"^[^A-Za-z0-9_]+|[^A-Za-z0-9_]+$", "", name)  # `/conv1/Conv` -> `conv1_Conv`
     ident = re.sub(r"[^A-Za-z0-9_]+", "_", trimmed).lstrip("_") or "t"
-    if len(ident) > MAX_LENGTH:
+    if limit is not None and len(ident) > limit:
         digest = hashlib.sha256(name.encode("utf-8", "surrogatepass")).hexdigest()[:8]
-        ident = f"{ident[: MAX_LENGTH - 11].rstrip('_')}_{digest}"
+        ident = f"{ident[: limit - 11].rstrip('_')}_{digest}"
     if ident[0].isdigit() or is_reserved(ident):
         ident = "t_" + ident
     if is_reserved(ident):
@@ -84,10 +84,11 @@ def c_identifier(name: str) -> str:
 
 def program_name(name: str) -> str:
     """The C name of the generated function from `--name` or the model's name: an identifier whose
-    API names (NAME_run, NAMEU_ARENA_BYTES, ...) are not reserved either."""
-    ident = c_identifier(name)
+    API names (NAME_run, NAMEU_ARENA_BYTES, ...) are not reserved either. Not shortened: the user
+    chose it (a name too long for a file name is refused when the files are written)."""
+    ident = c_identifier(name, limit=None)
     if ident in GENERATED or ident.lower().startswith(GENERATED_PREFIX) or any(map(is_reserved, _api_probes(ident))):
-        ident = c_identifier("t_" + ident)
+        ident = c_identifier("t_" + ident, limit=None)
     return ident
 
 
