@@ -18,7 +18,7 @@ import numpy as np
 import onnx
 
 from nncg.errors import NncgError
-from nncg.safe_text import terminal_line
+from nncg.safe_text import capped, escaped, terminal_line
 
 SANITIZE_FLAGS = (
     "-fsanitize=address,undefined",
@@ -73,14 +73,19 @@ class VerifyReport:
     def format(self) -> str:
         """A small aligned table (output, shape, max abs err, max rel err) and a PASS/FAIL line."""
         rows = [("output", "shape", "max abs err", "max rel err")]
-        rows += [(s.name, str(s.shape), f"{s.max_abs:.3g}", f"{s.max_rel:.3g}") for s in self.stats]
+        rows += [(_shown(s.name), str(s.shape), f"{s.max_abs:.3g}", f"{s.max_rel:.3g}") for s in self.stats]
         widths = [max(len(row[i]) for row in rows) for i in range(4)]
         lines = [f"verify {self.name} (target {self.target}, seed {self.seed})"]
         lines += ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
-        lines += [f"{s.name}: {s.problem}" for s in self.stats if s.problem is not None]
+        lines += [f"{_shown(s.name)}: {terminal_line(s.problem)}" for s in self.stats if s.problem is not None]
         verdict = "PASS" if self.ok else "FAIL"
         lines.append(f"{verdict}: max rel err <= {self.tolerance:g} required")
         return "\n".join(lines)
+
+
+def _shown(name: str) -> str:
+    """An output's ONNX name for the report's table: printable, capped."""
+    return capped(escaped(name))
 
 
 def find_c_compiler(cc: str | None = None) -> str:

@@ -280,3 +280,14 @@ def test_errors_quote_hostile_names_on_one_printable_line(tmp_path, name):
     assert len(result.stderr.splitlines()) == 1 and result.stderr.endswith("\n")
     assert not re.search("[\x00-\x08\x0b-\x1f\x7f\u202a-\u202e\u2066-\u2069\u200b\u2028\ufeff]", result.stderr)
     assert not (tmp_path / "out").exists()
+
+
+def test_ir_printout_and_verify_report_are_printable(tmp_path):
+    path = tmp_path / "hostile.onnx"
+    onnx.save(hostile_model(NAME_SETS["hostile"]), path)
+    result = nncg_onnx(path, "-o", tmp_path / "out", "--verify", "--print-ir-after-all", "--name", "m")
+    assert result.returncode == 0, result.stderr
+    assert "PASS" in result.stdout and "// ----- IR after lower" in result.stderr
+    for text in (result.stdout, result.stderr):
+        assert not re.search("[\x00-\x08\x0b-\x1f\x7f\u202a-\u202e\u2066-\u2069\u200b\u2028\ufeff]", text)
+    assert max(len(line) for line in result.stdout.splitlines()) < 400

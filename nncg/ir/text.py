@@ -6,6 +6,7 @@ from dataclasses import fields, is_dataclass
 
 import numpy as np
 
+from ..safe_text import capped, escaped
 from .graph import Activation, Graph
 from .loops import (
     Assign,
@@ -27,18 +28,27 @@ from .loops import (
 
 
 def graph_to_text(graph: Graph) -> str:
+    """Value names as the model has them, made printable and capped (the text goes to a terminal)."""
+
     def sig(names):
         return ", ".join(
-            f"{n}: const{list(graph.shape(n))}" if graph.is_constant(n) else f"{n}{list(graph.shape(n))}" for n in names
+            f"{_name(n)}: const{list(graph.shape(n))}" if graph.is_constant(n) else f"{_name(n)}{list(graph.shape(n))}"
+            for n in names
         )
 
-    lines = [f"graph {graph.name}({sig(v.name for v in graph.inputs)}) -> ({sig(v.name for v in graph.outputs)}) {{"]
+    inputs, outputs = sig(v.name for v in graph.inputs), sig(v.name for v in graph.outputs)
+    lines = [f"graph {_name(graph.name)}({inputs}) -> ({outputs}) {{"]
     for node in graph.nodes:
         attrs = attrs_to_text(node.attrs) if node.attrs is not None else ""
         attrs = f" {{{attrs}}}" if attrs else ""
-        lines.append(f"  {', '.join(node.outputs)} = {node.op}({sig(node.inputs)}){attrs}  # {node.name}")
+        results = ", ".join(map(_name, node.outputs))
+        lines.append(f"  {results} = {node.op}({sig(node.inputs)}){attrs}  # {_name(node.name)}")
     lines.append("}")
     return "\n".join(lines)
+
+
+def _name(name: str) -> str:
+    return capped(escaped(name))
 
 
 def attrs_to_text(attrs) -> str:
