@@ -113,7 +113,7 @@ def bad_inputs(tmp_path):
         "truncated": ([truncated], "truncated"),
         "unsupported ops": (
             [unsupported_model(tmp_path / "u.onnx")],
-            r"'Sin' \(node 'squash'\).*'Mod' \(node 'wrap'\).*Conv",
+            r"Sin \(node 'squash'\).*Mod \(node 'wrap'\).*Conv",
         ),
         "dynamic input": ([float_model(tmp_path / "d.onnx", ["N", 3])], r"x\[N,3\].*--input-shape x=1x3"),
         "wrong input-shape": ([float_model(tmp_path / "d2.onnx", ["N", 3]), "--input-shape", "y=1x3"], "y"),

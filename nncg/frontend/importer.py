@@ -33,12 +33,16 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
 
 def check_supported(nodes: list[NamedNode]) -> None:
     """One error listing every node left after folding that has no converter."""
-    bad = [f"{shown(node.op_type)} (node {shown(name)})" for node, name in nodes if node.op_type not in CONVERTERS]
+    bad = [f"{_op_type(node)} (node {shown(name)})" for node, name in nodes if node.op_type not in CONVERTERS]
     if bad:
         raise UnsupportedOpsError(
             f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "
             f"(plus {FOLDED_OPS}, which are folded at compile time)"
         )
+
+
+def _op_type(node: onnx.NodeProto) -> str:
+    return node.op_type if node.op_type.isidentifier() and node.op_type.isascii() else shown(node.op_type)
 
 
 def _context(model: onnx.ModelProto, folded: Folded) -> Context:
