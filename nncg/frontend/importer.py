@@ -16,6 +16,8 @@ from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, rea
 from nncg.frontend.names import node_reads, value_names
 from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
 from nncg.ir.graph import Graph, Node, Value
+from nncg.limits import check_tensor_size
+from nncg.safe_text import shown
 
 
 def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] | None = None) -> Graph:
@@ -24,18 +26,61 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     folded = fold_constants(proto, shapes)
     check_supported(folded.nodes)
     ctx = _context(proto, folded)
+    check_computed_shapes(folded.nodes, ctx)
     nodes = tuple(CONVERTERS[node.op_type](OnnxOp.of(node, name), ctx) for node, name in folded.nodes)
-    return _assemble(proto.graph, nodes, ctx)
+    graph = _assemble(proto.graph, nodes, ctx)
+    check_constants(graph, _constant_origins(proto.graph, folded))
+    return graph
 
 
 def check_supported(nodes: list[NamedNode]) -> None:
     """One error listing every node left after folding that has no converter."""
-    bad = [f"{node.op_type} (node '{name}')" for node, name in nodes if node.op_type not in CONVERTERS]
+    bad = [f"{node.op_type} (node {shown(name)})" for node, name in nodes if node.op_type not in CONVERTERS]
     if bad:
         raise UnsupportedOpsError(
             f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "
             f"(plus {FOLDED_OPS}, which are folded at compile time)"
         )
+
+
+def check_computed_shapes(nodes: list[NamedNode], ctx: Context) -> None:
+    """Every tensor the C computes has at least one element and fits int indexing (nncg.limits)."""
+    for node, name in nodes:
+        for output in node.output:
+            if not ctx.is_used(output) or output not in ctx.shapes:
+                continue
+            shape = ctx.shapes[output]
+            what = f"output {shown(output)} of {node.op_type} node {shown(name)}"
+            if min(shape, default=1) < 1:
+                raise NncgError(
+                    f"{what} has the empty shape {list(shape)}; NNCG does not support empty tensors: "
+                    "change the node's parameters so that every dimension is at least 1, or remove it"
+                )
+            check_tensor_size(what, shape)
+
+
+def check_constants(graph: Graph, origins: dict[str, str]) -> None:
+    """The weights the C holds are finite or infinite floats, never NaN (a NaN weight makes every
+    output it reaches NaN; no trained model has one), and fit int indexing. `origins` says where
+    each came from, for the message."""
+    for name, array in graph.constants.items():
+        what = f"{origins.get(name, 'constant')} {shown(name)}"
+        check_tensor_size(what, array.shape, "NNCG cannot compile weights this large")
+        nan = np.isnan(array)
+        if nan.any():
+            first = [int(i) for i in np.argwhere(nan)[0]]
+            raise NncgError(
+                f"{what} holds NaN ({int(nan.sum()):,} of {array.size:,} values, the first at index {first}); "
+                "NNCG refuses NaN weights: the model is damaged or its training diverged: replace them "
+                "(e.g. numpy.nan_to_num on the tensor) and re-export"
+            )
+
+
+def _constant_origins(graph: onnx.GraphProto, folded: Folded) -> dict[str, str]:
+    origins = {t.name: "initializer" for t in graph.initializer}
+    origins |= {t.values.name: "sparse initializer" for t in graph.sparse_initializer}
+    origins |= {value: f"constant folded by node {shown(node)}" for value, node in folded.folded_by.items()}
+    return origins
 
 
 def _context(model: onnx.ModelProto, folded: Folded) -> Context:
@@ -56,7 +101,7 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
     shapes = {v.name: v.shape for v in (*inputs, *outputs)}
     for node in nodes:
         for output in node.outputs:
-            shapes[output] = _static_shape(ctx, output, f"output of {node.op} node '{node.name}'")
+            shapes[output] = _static_shape(ctx, output, f"output of {node.op} node {shown(node.name)}")
     constants = {}
     for node in nodes:
         for name in node.inputs:
@@ -68,7 +113,7 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
 def _static_shape(ctx: Context, value: str, role: str) -> tuple[int, ...]:
     if value not in ctx.shapes:
         raise NncgError(
-            f"no static shape could be inferred for '{value}' ({role}); fix the input shapes "
+            f"no static shape could be inferred for {shown(value)} ({role}); fix the input shapes "
             "or simplify the model (e.g. with onnxsim)"
         )
     return ctx.shapes[value]
@@ -80,7 +125,7 @@ def _float32(node: Node, name: str, array: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(array)
     if "float" not in array.dtype.name:
         raise NncgError(
-            f"{node.op} node '{node.name}' reads constant '{name}' of type {array.dtype.name}; "
+            f"{node.op} node {shown(node.name)} reads constant {shown(name)} of type {array.dtype.name}; "
             "NNCG needs float32 weights: re-export the model in float32"
         )
     return np.ascontiguousarray(array.astype(np.float32))

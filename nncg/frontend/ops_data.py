@@ -26,6 +26,7 @@ from nncg.ir.graph import (
     SplitAttrs,
     TransposeAttrs,
 )
+from nncg.safe_text import shown
 
 PAD_MODES = ("constant", "reflect", "edge", "wrap")
 COORDINATE_MODES = (
@@ -72,7 +73,7 @@ def convert_split(op: OnnxOp, ctx: Context) -> Node:
         if not ctx.is_used(name):
             continue
         if size == 0:
-            raise op.error(f"has its empty output '{name}' used; NNCG cannot compile empty tensors")
+            raise op.error(f"has its empty output {shown(name)} used; NNCG cannot compile empty tensors")
         ctx.set_shape(op, name, tuple(size if d == axis else n for d, n in enumerate(shape)))
         outputs.append(name)
         used_starts.append(start)
@@ -172,7 +173,7 @@ def convert_pad(op: OnnxOp, ctx: Context) -> Node:
     shape = ctx.shape(op.input(0))
     mode = op.attr("mode", "constant")
     if mode not in PAD_MODES:
-        raise op.error(f"has mode '{mode}'; NNCG supports {', '.join(PAD_MODES)}")
+        raise op.error(f"has mode {shown(mode)}; NNCG supports {', '.join(PAD_MODES)}")
     pads, value, axes = _pad_params(op, ctx, len(shape))
     if len(pads) != 2 * len(axes):
         raise op.error(f"has {len(pads)} pads for {len(axes)} axes; it needs two per axis")
@@ -241,11 +242,11 @@ def convert_resize(op: OnnxOp, ctx: Context) -> Node:
         raise op.error("has coordinate_transformation_mode tf_crop_and_resize, which NNCG does not support")
     if coordinates not in COORDINATE_MODES:
         raise op.error(
-            f"has coordinate_transformation_mode '{coordinates}'; NNCG supports {', '.join(COORDINATE_MODES)}"
+            f"has coordinate_transformation_mode {shown(coordinates)}; NNCG supports {', '.join(COORDINATE_MODES)}"
         )
     nearest = op.attr("nearest_mode", "round_prefer_floor")
     if mode == "nearest" and nearest not in NEAREST_MODES:
-        raise op.error(f"has nearest_mode '{nearest}'; NNCG supports {', '.join(NEAREST_MODES)}")
+        raise op.error(f"has nearest_mode {shown(nearest)}; NNCG supports {', '.join(NEAREST_MODES)}")
     axes = op.attr("axes")
     axes = None if axes is None else [axis_index(op, int(a), len(shape)) for a in axes]
     scales = _scales_input(op, ctx, 2, len(shape), axes) if op.input(2) else None
@@ -290,7 +291,7 @@ def _resize(op, ctx, scales, sizes, mode: str, coordinates: str, nearest: str) -
 def _resize_mode(op: OnnxOp) -> str:
     mode = op.attr("mode", "nearest")
     if mode not in RESIZE_MODES:
-        raise op.error(f"has mode '{mode}'; NNCG supports {' and '.join(RESIZE_MODES)} (cubic is not supported)")
+        raise op.error(f"has mode {shown(mode)}; NNCG supports {' and '.join(RESIZE_MODES)} (cubic is not supported)")
     return mode
 
 
@@ -299,7 +300,7 @@ def _refuse_resize_options(op: OnnxOp) -> None:
         raise op.error("has antialias=1, which NNCG does not support")
     policy = op.attr("keep_aspect_ratio_policy", "stretch")
     if policy != "stretch":
-        raise op.error(f"has keep_aspect_ratio_policy '{policy}'; NNCG supports only stretch")
+        raise op.error(f"has keep_aspect_ratio_policy {shown(policy)}; NNCG supports only stretch")
 
 
 def _scales_input(op: OnnxOp, ctx: Context, index: int, rank: int, axes: list[int] | None) -> list[float] | None:

@@ -56,6 +56,10 @@ def lower_resize(ctx: LoweringContext, node: Node) -> None:
 
 def dim_taps(attrs: ResizeAttrs, d: int, n_in: int, n_out: int) -> list[Taps]:
     scale = np.float32(attrs.scales[d])
+    if scale == 1:
+        # onnxruntime maps a dim of scale 1 onto itself, whatever the coordinate mode: only
+        # tf_half_pixel_for_nn would move it ((o + 0.5) / 1 rounds up to o + 1).
+        return [((o, 1.0),) for o in range(n_out)]
     taps = []
     for o in range(n_out):
         x = source_coordinate(attrs.coordinate_transformation_mode, np.float32(o), scale, n_in, n_out)
