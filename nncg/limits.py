@@ -34,22 +34,24 @@ def check_tensor_size(what: str, shape: tuple[int, ...], hint: str = SHAPE_HINT,
 
 
 def check_program_limits(program: Program) -> None:
-    """The planned program fits int offsets: every buffer, the arena (activations) and the weights
-    blob, in elements and in bytes. Run on the program after plan-memory, before printing C."""
+    """The planned program fits int offsets: the arena (activations), the weights blob and every
+    buffer, in elements and in bytes. Run on the program after plan-memory, before printing C."""
+    if program.arena is not None:
+        for what, floats in (
+            ("activation arena", program.arena.floats),
+            ("weights blob", program.arena.weights_floats),
+        ):
+            if floats * FLOAT_BYTES > INT32_MAX:
+                raise NncgError(
+                    f"the model needs a {what} of {_bytes(floats * FLOAT_BYTES)}, more than the {INT32_MAX:,} bytes "
+                    f"32-bit int offsets in the generated C reach: {SHAPE_HINT}, or split the model"
+                )
     for buf in program.buffers:
         end = buf.size + (buf.offset or 0)
         if end * FLOAT_BYTES > INT32_MAX:
             raise NncgError(
                 f"buffer {buf.name} ({buf.role}, {buf.size:,} floats at offset {buf.offset or 0:,}) ends at "
                 f"byte {_bytes(end * FLOAT_BYTES)}, beyond the 32-bit int offsets of the generated C: {SHAPE_HINT}"
-            )
-    if program.arena is None:
-        return
-    for what, floats in (("activation arena", program.arena.floats), ("weights blob", program.arena.weights_floats)):
-        if floats * FLOAT_BYTES > INT32_MAX:
-            raise NncgError(
-                f"the model needs a {what} of {_bytes(floats * FLOAT_BYTES)}, more than the {INT32_MAX:,} bytes "
-                f"32-bit int offsets in the generated C reach: {SHAPE_HINT}, or split the model"
             )
 
 

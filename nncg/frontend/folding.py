@@ -5,6 +5,7 @@ compile time (Constant, Shape/Size of static shapes, any node with only constant
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -240,7 +241,9 @@ def _evaluate(node: onnx.NodeProto, name: str, constants: dict, opset: int) -> l
             [onnx.ValueInfoProto(name=o) for o in outputs],
         )
         model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
-        results = ReferenceEvaluator(model).run(None, feeds)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the result is checked (e.g. for NaN) where it is used
+            results = ReferenceEvaluator(model).run(None, feeds)
     except Exception as exc:
         raise NncgError(
             f"cannot fold {node.op_type} node {shown(name)}, whose inputs are all constants: "

@@ -64,7 +64,7 @@ def check_constants(graph: Graph, origins: dict[str, str]) -> None:
     output it reaches NaN; no trained model has one), and fit int indexing. `origins` says where
     each came from, for the message."""
     for name, array in graph.constants.items():
-        what = f"{origins.get(name, 'constant')} {shown(name)}"
+        what = origins.get(name, f"constant {shown(name)}")
         check_tensor_size(what, array.shape, "NNCG cannot compile weights this large")
         nan = np.isnan(array)
         if nan.any():
@@ -77,9 +77,13 @@ def check_constants(graph: Graph, origins: dict[str, str]) -> None:
 
 
 def _constant_origins(graph: onnx.GraphProto, folded: Folded) -> dict[str, str]:
-    origins = {t.name: "initializer" for t in graph.initializer}
-    origins |= {t.values.name: "sparse initializer" for t in graph.sparse_initializer}
-    origins |= {value: f"constant folded by node {shown(node)}" for value, node in folded.folded_by.items()}
+    """How messages name each constant: as an initializer, or as the result of the node folded into it."""
+    origins = {t.name: f"initializer {shown(t.name)}" for t in graph.initializer}
+    origins |= {t.values.name: f"sparse initializer {shown(t.values.name)}" for t in graph.sparse_initializer}
+    origins |= {
+        value: f"constant {shown(value)} (computed at compile time by node {shown(node)})"
+        for value, node in folded.folded_by.items()
+    }
     return origins
 
 

@@ -36,6 +36,7 @@ def load_with_shapes(
     """load_model's result and the static shapes strict ONNX shape inference gives its values."""
     proto, where = _read(model)
     _check_structure(proto, where)
+    _check_ir_version(proto)
     _check_external_data(proto, where)
     _check_domains(proto)
     opset = opset_version(proto)
@@ -150,6 +151,21 @@ def _check_structure(model: onnx.ModelProto, where: str) -> None:
         raise NncgError(
             f"{where} is not a complete ONNX model ({problem}); "
             "the file is truncated or not ONNX: re-export or re-download it"
+        )
+
+
+def _check_ir_version(model: onnx.ModelProto) -> None:
+    """The IR version is one this onnx package reads, from the first with opset imports (IR 3)."""
+    newest = onnx.IR_VERSION
+    if model.ir_version > newest:
+        raise NncgError(
+            f"the model has ONNX IR version {model.ir_version}, newer than the {newest} the installed onnx "
+            f"{onnx.__version__} reads: upgrade onnx (pip install -U onnx) or export with an older IR version"
+        )
+    if model.ir_version < 3:
+        raise NncgError(
+            f"the model has ONNX IR version {model.ir_version}, from before opset imports (IR 3, ONNX 1.0); "
+            "re-export it with a current exporter"
         )
 
 
