@@ -47,7 +47,7 @@ def convert_concat(op: OnnxOp, ctx: Context) -> Node:
     inputs = [name for name in op.node.input if name]
     shapes = [ctx.shape(name) for name in inputs]
     if op.attr("axis") is None:
-        raise op.error("has no axis; the model is invalid: re-export it")
+        raise op.error("has no axis attribute, which Concat requires: add the axis to concatenate along")
     rank = len(shapes[0])
     axis = axis_index(op, int(op.attr("axis")), rank)
     for shape in shapes:
@@ -98,7 +98,7 @@ def _split_sizes(op: OnnxOp, ctx: Context, dim: int) -> list[int]:
     if ctx.opset >= 18:
         parts = int(op.attr("num_outputs", count))
         if parts != count:
-            raise op.error(f"has num_outputs={parts} but {count} outputs; the model is invalid: re-export it")
+            raise op.error(f"has num_outputs={parts} but {count} outputs: make them agree (or drop num_outputs)")
         chunk = -(-dim // count)
         last = dim - chunk * (count - 1)
         if last < 0:
@@ -146,7 +146,7 @@ def _slice_params(op: OnnxOp, ctx: Context) -> tuple[list[int], list[int], list[
     """starts, ends, axes, steps: attributes in opset 1 (no steps), constant inputs from opset 10."""
     if ctx.opset < 10:
         if op.attr("starts") is None or op.attr("ends") is None:
-            raise op.error("has no starts or ends; the model is invalid: re-export it")
+            raise op.error("has no starts or ends attribute, which Slice before opset 10 requires: add both")
         axes = op.attr("axes")
         return list(op.attr("starts")), list(op.attr("ends")), None if axes is None else list(axes), None
     params = []
@@ -194,7 +194,7 @@ def _pad_params(op: OnnxOp, ctx: Context, rank: int) -> tuple[list[int], float, 
     from 11 (axes from 18)."""
     if ctx.opset < 11:
         if op.attr("pads") is None:
-            raise op.error("has no pads; the model is invalid: re-export it")
+            raise op.error("has no pads attribute, which Pad before opset 11 requires: add the pads")
         return [int(p) for p in op.attr("pads")], float(op.attr("value", 0.0)), list(range(rank))
     pads = _ints(op, ctx.constant_input(op, 1, "pads", SHAPE_HINT), "pads").tolist()
     value = 0.0
@@ -234,7 +234,7 @@ def convert_resize(op: OnnxOp, ctx: Context) -> Node:
     if ctx.opset < 11:  # Resize-10: inputs X, scales; asymmetric coordinates, legacy rounding
         scales = _scales_input(op, ctx, 1, len(shape), None)
         if scales is None:
-            raise op.error("has empty scales; the model is invalid: re-export it")
+            raise op.error("has an empty scales input; Resize-10 needs one scale per input dim: give them")
         return _resize(op, ctx, scales, None, mode, "asymmetric", "simple")
     _refuse_resize_options(op)
     coordinates = op.attr("coordinate_transformation_mode", "half_pixel")
@@ -252,7 +252,10 @@ def convert_resize(op: OnnxOp, ctx: Context) -> Node:
     scales = _scales_input(op, ctx, 2, len(shape), axes) if op.input(2) else None
     sizes = _sizes_input(op, ctx, len(shape), axes) if op.input(3) else None
     if (scales is None) == (sizes is None):
-        raise op.error("must have exactly one of scales and sizes; the model is invalid: re-export it")
+        raise op.error(
+            f"has {'both' if scales is not None else 'neither'} scales and sizes; give exactly one of them "
+            "(the other empty, or left out)"
+        )
     return _resize(op, ctx, scales, sizes, mode, coordinates, nearest)
 
 
@@ -265,7 +268,7 @@ def convert_upsample(op: OnnxOp, ctx: Context) -> Node:
     elif op.attr("scales") is not None:
         scales = _checked_scales(op, [float(s) for s in op.attr("scales")], rank)
     else:
-        raise op.error("has no scales; the model is invalid: re-export it")
+        raise op.error("has no scales (neither an input nor an attribute); give one scale per input dim")
     if min(scales) < 1:
         raise op.error(f"has scales {scales}; Upsample needs scales >= 1")
     return _resize(op, ctx, scales, None, mode, "asymmetric", "simple")

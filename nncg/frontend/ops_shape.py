@@ -111,7 +111,7 @@ def _axes(op: OnnxOp, ctx: Context, required: bool) -> list[int] | None:
     else:
         axes = None
     if axes is None and required:
-        raise op.error("has no axes; the model is invalid: re-export it")
+        raise op.error(f"has no axes, which {op.type} requires: give the axes to insert")
     return None if axes is None else [int(a) for a in axes]
 
 

@@ -43,8 +43,8 @@ def infer(model: onnx.ModelProto) -> onnx.ModelProto:
         return onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
     except Exception as exc:  # onnx raises InferenceError, ValidationError or RuntimeError
         raise NncgError(
-            f"ONNX shape inference failed: {one_line(exc)}; the model is inconsistent, "
-            "check it with onnx.checker and onnxruntime or re-export it"
+            f"ONNX shape inference finds the model inconsistent: {one_line(exc)}; fix the node it names (its "
+            "attributes or its inputs' shapes, e.g. through --input-shape) or re-export the model"
         ) from None
 
 
