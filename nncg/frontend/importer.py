@@ -4,7 +4,7 @@ converts every remaining node and assembles the graph IR with static shapes and 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import onnx
@@ -26,9 +26,11 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     folded = fold_constants(proto, shapes)
     check_supported(folded.nodes)
     ctx = _context(proto, folded)
-    check_computed_shapes(folded.nodes, ctx)
+    computed = [(name, node.op_type, node.output) for node, name in folded.nodes]
+    check_computed_shapes(computed, ctx.shapes, ctx.is_used)  # before converters size anything by them
     nodes = tuple(CONVERTERS[node.op_type](OnnxOp.of(node, name), ctx) for node, name in folded.nodes)
     graph = _assemble(proto.graph, nodes, ctx)
+    check_computed_shapes([(n.name, n.op, n.outputs) for n in graph.nodes], graph.shapes)  # converters' own too
     check_constants(graph, _constant_origins(proto.graph, folded))
     return graph
 
@@ -43,14 +45,15 @@ def check_supported(nodes: list[NamedNode]) -> None:
         )
 
 
-def check_computed_shapes(nodes: list[NamedNode], ctx: Context) -> None:
-    """Every tensor the C computes has at least one element and fits int indexing (nncg.limits)."""
-    for node, name in nodes:
-        for output in node.output:
-            if not ctx.is_used(output) or output not in ctx.shapes:
+def check_computed_shapes(nodes: list[tuple[str, str, Sequence[str]]], shapes: dict, used=None) -> None:
+    """Every tensor the C computes (outputs of the (name, op, outputs) nodes that `used` accepts and
+    whose shape is known) has at least one element and fits int indexing (nncg.limits)."""
+    for name, op, outputs in nodes:
+        for output in outputs:
+            if output not in shapes or (used is not None and not used(output)):
                 continue
-            shape = ctx.shapes[output]
-            what = f"output {shown(output)} of {node.op_type} node {shown(name)}"
+            shape = shapes[output]
+            what = f"output {shown(output)} of {op} node {shown(name)}"
             if min(shape, default=1) < 1:
                 raise NncgError(
                     f"{what} has the empty shape {list(shape)}; NNCG does not support empty tensors: "

@@ -145,8 +145,9 @@ def _check_no_negative_dims(model: onnx.ModelProto, shapes: dict[str, Shape]) ->
             inputs = ", ".join(f"{shown(i)} {list(known[i])}" for i in node.input if i in known)
             raise NncgError(
                 f"{node.op_type} node {shown(name)} gives its output {shown(output)} the shape {list(shape)}: a "
-                f"negative dimension, from inputs {inputs or 'of unknown shape'} too small for its kernel, pads or "
-                "strides (onnxruntime refuses the model too); fix the node's attributes or give a larger --input-shape"
+                f"negative dimension, as its attributes do not fit inputs {inputs or 'of unknown shape'} (a kernel "
+                "larger than the padded input, or pads that crop away its whole output); onnxruntime refuses it "
+                "too: fix the node's attributes or give a larger --input-shape"
             )
 
 
