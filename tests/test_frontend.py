@@ -862,7 +862,9 @@ def test_node_reading_its_own_output_is_a_cycle():
 
 def test_operator_newer_than_the_models_opset_is_named():
     proto = one_op("Gelu", [1, 4], opset=13)
-    fails(proto, "opset 13 does not have: Gelu (node 'Gelu_0')", error=UnsupportedOpsError)
+    fails(proto, "opset 13 does not have", "Gelu (node 'Gelu_0')", error=UnsupportedOpsError)
+    proto = one_op("Upsample", [1, 1, 2, 2], extra_inputs=["s"], inits=[const("s", np.ones(4, np.float32))], opset=10)
+    fails(proto, "deprecated", "Upsample (node 'Upsample_0')", "Resize", error=UnsupportedOpsError)
 
 
 def test_input_without_type_and_negative_declared_dim():

@@ -8,6 +8,8 @@ does); every operator exists in the model's opset and every node fits its schema
 
 from __future__ import annotations
 
+import heapq
+
 import onnx
 from onnx import defs
 
@@ -39,12 +41,13 @@ def check_operators(graph: onnx.GraphProto, opset: int, ir_version: int) -> None
     unknown = [
         f"{capped(escaped(node.op_type))} (node {shown(name)})"
         for node, name in zip(graph.node, names, strict=True)
-        if _schema(node.op_type, opset) is None
+        if _schema(node.op_type, opset) is None or _schema(node.op_type, opset).deprecated
     ]
     if unknown:
         raise UnsupportedOpsError(
-            f"operators that ONNX opset {opset} does not have: {', '.join(unknown)}; NNCG compiles standard "
-            f"ONNX operators ({ONNX_OPERATORS_URL}): replace them or re-export the model"
+            f"operators that ONNX opset {opset} does not have (or has deprecated, as Upsample from opset 10): "
+            f"{', '.join(unknown)}; NNCG compiles standard ONNX operators ({ONNX_OPERATORS_URL}): replace them "
+            "(Upsample by Resize) or re-export the model"
         )
     context = onnx.checker.C.CheckerContext()
     context.ir_version = ir_version
@@ -137,16 +140,16 @@ def _topological_order(graph: onnx.GraphProto, producers: dict[str, int]) -> lis
         for dep in deps:
             readers.setdefault(dep, []).append(index)
     waiting = [len(deps) for deps in needs]
-    ready = sorted(i for i in range(len(needs)) if not waiting[i] and i not in self_loops)
+    ready = [i for i in range(len(needs)) if not waiting[i] and i not in self_loops]
+    heapq.heapify(ready)
     order = []
     while ready:
-        index = ready.pop(0)
+        index = heapq.heappop(ready)
         order.append(index)
         for reader in readers.get(index, []):
             waiting[reader] -= 1
             if not waiting[reader] and reader not in self_loops:
-                ready.append(reader)
-        ready.sort()
+                heapq.heappush(ready, reader)
     return order
 
 
