@@ -917,3 +917,12 @@ def test_outside_names_are_escaped_and_capped_in_messages():
     proto = model(nodes, [("x", [1, 12])], [("y", None)], [const("s", np.array([5, 5], np.int64))])
     message = fails(proto, "Reshape 'evil\\n\\x1b[31mred", "12 elements", "25 elements")
     assert "\x1b" not in message and "x" * 100 not in message
+
+
+@pytest.mark.parametrize("import_domain", ["ai.onnx", ""])
+def test_ai_onnx_is_the_default_domain(import_domain):
+    """onnx's checker knows ONNX's operators only under "": the alias is normalised."""
+    proto = one_op("Relu", [1, 2])
+    proto.graph.node[0].domain = "ai.onnx"
+    proto.opset_import[0].domain = import_domain
+    assert only(import_onnx(proto)).op == "Relu"

@@ -38,6 +38,7 @@ def load_with_shapes(
     _check_structure(proto, where)
     _check_ir_version(proto)
     _check_external_data(proto, where)
+    _normalise_default_domain(proto)
     _check_domains(proto)
     opset = opset_version(proto)
     # Inputs, outputs, wiring and operators first: onnx.checker would reject them with messages that
@@ -180,6 +181,20 @@ def _check_external_data(model: onnx.ModelProto, where: str) -> None:
             f"tensor {shown(external[0])} of {where} keeps its data in an external file; "
             "pass the model as a file path so NNCG can find the data"
         )
+
+
+def _normalise_default_domain(model: onnx.ModelProto) -> None:
+    """Spell the default domain "" everywhere: onnx's checker and shape inference know ONNX's
+    operators only under "", not under its alias "ai.onnx" (onnxruntime accepts both)."""
+    for node in model.graph.node:
+        if node.domain == "ai.onnx":
+            node.domain = ""
+    aliases = [o for o in model.opset_import if o.domain == "ai.onnx"]
+    if aliases and not any(o.domain == "" for o in model.opset_import):
+        aliases[0].domain = ""
+        aliases = aliases[1:]
+    for alias in aliases:
+        model.opset_import.remove(alias)
 
 
 def _check_domains(model: onnx.ModelProto) -> None:

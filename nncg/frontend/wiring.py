@@ -51,7 +51,7 @@ def check_operators(graph: onnx.GraphProto, opset: int, ir_version: int) -> None
         )
     context = onnx.checker.C.CheckerContext()
     context.ir_version = ir_version
-    context.opset_imports = {"": opset}
+    context.opset_imports = {"": opset, "ai.onnx": opset}
     for node, name in zip(graph.node, names, strict=True):
         if any(a.type in (onnx.AttributeProto.GRAPH, onnx.AttributeProto.GRAPHS) for a in node.attribute):
             continue
