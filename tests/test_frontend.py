@@ -926,3 +926,11 @@ def test_ai_onnx_is_the_default_domain(import_domain):
     proto.graph.node[0].domain = "ai.onnx"
     proto.opset_import[0].domain = import_domain
     assert only(import_onnx(proto)).op == "Relu"
+
+
+@pytest.mark.parametrize(
+    ("op", "attrs", "field"),
+    [("LeakyRelu", {"alpha": float("nan")}, "alpha"), ("Clip", {"min": float("nan")}, "low")],
+)
+def test_nan_parameters_are_refused_naming_the_node(op, attrs, field):
+    fails(one_op(op, [1, 4], opset=10, **attrs), f"{op} node '{op}_0' has {field} NaN")

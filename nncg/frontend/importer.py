@@ -4,6 +4,8 @@ converts every remaining node and assembles the graph IR with static shapes and 
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -32,6 +34,7 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     graph = _assemble(proto.graph, nodes, ctx)
     check_computed_shapes([(n.name, n.op, n.outputs) for n in graph.nodes], graph.shapes)  # converters' own too
     check_constants(graph, _constant_origins(proto.graph, folded))
+    check_attributes(graph)
     return graph
 
 
@@ -77,6 +80,28 @@ def check_constants(graph: Graph, origins: dict[str, str]) -> None:
                 "NNCG refuses NaN weights: the model is damaged or its training diverged: replace them "
                 "(e.g. numpy.nan_to_num on the tensor) and re-export"
             )
+
+
+def check_attributes(graph: Graph) -> None:
+    """No float attribute the C prints (alpha, clip bounds, pad value, epsilon, scales) is NaN."""
+    for node in graph.nodes:
+        if not dataclasses.is_dataclass(node.attrs):
+            continue
+        for field in dataclasses.fields(node.attrs):
+            if any(math.isnan(v) for v in _floats(getattr(node.attrs, field.name))):
+                raise NncgError(
+                    f"{node.op} node {shown(node.name)} has {field.name} NaN; NNCG refuses NaN parameters, which "
+                    "make every output they reach NaN: give it a number"
+                )
+
+
+def _floats(value: object):
+    """The floats in an attribute value, nested tuples included."""
+    if isinstance(value, float):
+        yield value
+    elif isinstance(value, tuple):
+        for item in value:
+            yield from _floats(item)
 
 
 def _constant_origins(graph: onnx.GraphProto, folded: Folded) -> dict[str, str]:
