@@ -77,6 +77,11 @@ def broken_graphs() -> dict:
         model(big_kernel, [("x", [1, 1, 3, 3])], inits=[("w", np.ones((1, 1, 5, 5), np.float32))]),
         ["Conv node 'conv'", "[1, 1, -1, -1]", "negative", "--input-shape"],
     )
+    strided = [helper.make_node("Conv", ["x", "w"], ["y"], strides=[2, 2], name="conv")]
+    cases["conv_window_past_padding"] = (
+        model(strided, [("x", [1, 1, 2, 2])], inits=[("w", np.ones((1, 1, 3, 3), np.float32))]),
+        ["Conv 'conv'", "window of 3", "padded input (2 + pads 0 + 0)"],
+    )
     cases["empty_pool_output"] = (
         model([helper.make_node("MaxPool", ["x"], ["y"], kernel_shape=[3], name="pool")], [("x", [1, 1, 2])]),
         ["'pool'", "[1, 1, 0]", "empty tensors"],

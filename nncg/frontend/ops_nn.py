@@ -8,7 +8,13 @@ from dataclasses import replace
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_conv import bias_input, check_groups, weight_kernel
-from nncg.frontend.windows import checked_pool_output_shape, pool_attrs, resolve_pads, window_steps
+from nncg.frontend.windows import (
+    check_window_fits,
+    checked_pool_output_shape,
+    pool_attrs,
+    resolve_pads,
+    window_steps,
+)
 from nncg.ir.graph import (
     Activation,
     BatchNormAttrs,
@@ -28,6 +34,7 @@ def convert_conv(op: OnnxOp, ctx: Context) -> Node:
     kernel = weight_kernel(op, w_shape)
     strides, dilations = window_steps(op, len(kernel))
     begin, end = resolve_pads(op, x_shape[2:], kernel, strides, dilations)
+    check_window_fits(op, x_shape[2:], kernel, dilations, begin, end)
     attrs = ConvAttrs(kernel, strides, dilations, begin, end, group)
     return op.ir_node("Conv", [x, w, *bias_input(op, ctx, w_shape[0])], attrs)
 

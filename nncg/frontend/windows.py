@@ -129,6 +129,19 @@ def checked_pool_output_shape(op: OnnxOp, attrs: PoolAttrs, in_shape: Shape) -> 
     return out
 
 
+def check_window_fits(op: OnnxOp, in_spatial: Shape, kernel: Shape, dilations: Shape, begin: Shape, end: Shape) -> None:
+    """A convolution window must fit its padded input: the spec's output is empty otherwise (ONNX
+    shape inference says one position, and onnxruntime refuses the model)."""
+    for axis, (size, k, d, b, e) in enumerate(zip(in_spatial, kernel, dilations, begin, end)):
+        extent = (k - 1) * d + 1
+        if extent > size + b + e:
+            raise op.error(
+                f"has a window of {extent} along spatial axis {axis}, larger than its padded input ({size} + pads "
+                f"{b} + {e}); its output would be empty (onnxruntime refuses the model): pad the input so the "
+                "window fits, or give a larger --input-shape"
+            )
+
+
 def window_extents(attrs: PoolAttrs) -> Shape:
     return tuple((k - 1) * d + 1 for k, d in zip(attrs.kernel, attrs.dilations))
 
