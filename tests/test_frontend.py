@@ -159,7 +159,7 @@ def test_cut_before_opset_import_parses_but_is_detected():
 
 def test_model_failing_the_checker():
     node = helper.make_node("Relu", ["x", "x"], ["y"])  # Relu takes one input
-    fails(model([node], [("x", [1, 2])], [("y", [1, 2])]), "ONNX checker")
+    fails(model([node], [("x", [1, 2])], [("y", [1, 2])]), "Relu node 'Relu_0'", "Relu-13 schema", "input size 2")
 
 
 def test_non_default_domain_is_refused():
@@ -832,3 +832,105 @@ def test_elementwise_ops_keep_both_inputs(op):
     graph = import_onnx(model(nodes, [("x", [2, 3])], [("y", None)], [const("c", rand(3))]))
     assert graph.nodes == (Node(op, "first", ("c", "x"), ("t",)), Node(op, "second", ("t", "x"), ("y",)))
     assert graph.shapes["t"] == (2, 3) and graph.constants["c"].shape == (3,)
+
+
+# --- malformed graphs: messages that name what is wrong -------------------------------------------
+
+
+def test_value_with_two_sources_is_refused():
+    nodes = [helper.make_node("Relu", ["x"], ["x"], name="loop")]
+    fails(model(nodes, [("x", [1, 2])], [("x", None)]), "value 'x' is both a graph input and", "'loop'")
+
+
+def test_three_node_cycle_names_every_node():
+    nodes = [
+        helper.make_node("Relu", ["x"], ["r"], name="entry"),
+        helper.make_node("Add", ["r", "c"], ["a"], name="first"),
+        helper.make_node("Sigmoid", ["a"], ["b"], name="second"),
+        helper.make_node("Tanh", ["b"], ["c"], name="third"),
+    ]
+    message = fails(model(nodes, [("x", [1, 2])], [("a", None)]), "cycle")
+    assert "'entry'" not in message  # not on the cycle
+    for part in ("Add node 'first' reads 'c' from Tanh node 'third'", "reads 'b' from Sigmoid node 'second'"):
+        assert part in message
+
+
+def test_node_reading_its_own_output_is_a_cycle():
+    nodes = [helper.make_node("Add", ["x", "y"], ["y"], name="self")]
+    fails(model(nodes, [("x", [1, 2])], [("y", None)]), "cycle", "Add node 'self' reads 'y' from Add node 'self'")
+
+
+def test_operator_newer_than_the_models_opset_is_named():
+    proto = one_op("Gelu", [1, 4], opset=13)
+    fails(proto, "opset 13 does not have", "Gelu (node 'Gelu_0')", error=UnsupportedOpsError)
+    proto = one_op("Upsample", [1, 1, 2, 2], extra_inputs=["s"], inits=[const("s", np.ones(4, np.float32))], opset=10)
+    fails(proto, "deprecated", "Upsample (node 'Upsample_0')", "Resize", error=UnsupportedOpsError)
+
+
+def test_input_without_type_and_negative_declared_dim():
+    proto = one_op("Relu", [1, 4])
+    proto.graph.input[0].ClearField("type")
+    fails(proto, "graph input 'x' has no type")
+    proto = one_op("Relu", [1, 4])
+    proto.graph.input[0].type.tensor_type.shape.dim[1].dim_value = -4
+    fails(proto, "input 'x' has a dimension below 1", "empty tensors")
+
+
+def test_negative_output_dims_name_the_node_and_its_input_shapes():
+    proto = conv_model(x_shape=(1, 2, 4, 4), w_shape=(3, 2, 5, 5), bias=False)
+    fails(proto, "Conv node 'conv'", "[1, 3, 0, 0]")  # a 5x5 kernel on 4x4: empty, not negative
+    proto = conv_model(x_shape=(1, 2, 4, 4), w_shape=(3, 2, 6, 6), bias=False)
+    fails(proto, "Conv node 'conv'", "[1, 3, -1, -1]", "'x' [1, 2, 4, 4], 'w' [3, 2, 6, 6]")
+
+
+def test_sparse_constant_too_large_to_make_dense_is_refused_before_allocating():
+    sparse = helper.make_sparse_tensor(const("sv", np.array([1.0], np.float32)), const("si", [5]), [100000, 100000])
+    nodes = [
+        helper.make_node("Constant", [], ["c"], sparse_value=sparse),
+        helper.make_node("ReduceSum", ["c"], ["r"], keepdims=0),
+        helper.make_node("Add", ["x", "r"], ["y"]),
+    ]
+    proto = model(nodes, [("x", [1])], [("y", None)])
+    fails(proto, "sparse tensor 'sv'", "10,000,000,000 elements", "MAX_FOLDED_ELEMENTS")
+
+
+def test_fold_cap_uses_the_nodes_own_shape_inference_when_the_model_has_none(monkeypatch):
+    from nncg.frontend import folding
+
+    monkeypatch.setattr(folding, "_evaluate", lambda *args: pytest.fail("the node was evaluated"))
+    node = helper.make_node("ConstantOfShape", ["s"], ["c"], name="big")
+    add = helper.make_node("Add", ["x", "c"], ["y"])
+    proto = model([node, add], [("x", [1])], [("y", None)], [const("s", np.array([20000, 20000], np.int64))])
+    with pytest.raises(NncgError, match=r"ConstantOfShape node 'big' would fold to a constant 'c' of shape \[20000"):
+        folding.fold_constants(proto, shapes={})  # no whole-model shapes: the node's own inference
+
+
+def test_infinite_weights_are_kept():
+    w = np.array([np.inf, -np.inf], np.float32)
+    proto = model([helper.make_node("Add", ["x", "w"], ["y"])], [("x", [1, 2])], [("y", None)], [const("w", w)])
+    np.testing.assert_array_equal(import_onnx(proto).constants["w"], np.array([np.inf, -np.inf], np.float32))
+
+
+def test_outside_names_are_escaped_and_capped_in_messages():
+    name = "evil\n\x1b[31mred" + "x" * 200
+    nodes = [helper.make_node("Reshape", ["x", "s"], ["y"], name=name)]
+    proto = model(nodes, [("x", [1, 12])], [("y", None)], [const("s", np.array([5, 5], np.int64))])
+    message = fails(proto, "Reshape 'evil\\n\\x1b[31mred", "12 elements", "25 elements")
+    assert "\x1b" not in message and "x" * 100 not in message
+
+
+@pytest.mark.parametrize("import_domain", ["ai.onnx", ""])
+def test_ai_onnx_is_the_default_domain(import_domain):
+    """onnx's checker knows ONNX's operators only under "": the alias is normalised."""
+    proto = one_op("Relu", [1, 2])
+    proto.graph.node[0].domain = "ai.onnx"
+    proto.opset_import[0].domain = import_domain
+    assert only(import_onnx(proto)).op == "Relu"
+
+
+@pytest.mark.parametrize(
+    ("op", "attrs", "field"),
+    [("LeakyRelu", {"alpha": float("nan")}, "alpha"), ("Clip", {"min": float("nan")}, "low")],
+)
+def test_nan_parameters_are_refused_naming_the_node(op, attrs, field):
+    fails(one_op(op, [1, 4], opset=10, **attrs), f"{op} node '{op}_0' has {field} NaN")

@@ -5,6 +5,7 @@ the others read the row-major graph input directly."""
 
 from __future__ import annotations
 
+import itertools
 import re
 
 import numpy as np
@@ -19,7 +20,7 @@ from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops import CONVERTERS
 from nncg.ir.graph import PadAttrs, ResizeAttrs, SliceAttrs, SplitAttrs
 from nncg.ir.loops import Store, walk_stmts
-from nncg.lowering.resize import dim_taps, periodic_pieces
+from nncg.lowering.resize import dim_taps, periodic_pieces, windowed_pieces
 from nncg.passes import PassManager
 
 RNG = np.random.default_rng(7)
@@ -482,6 +483,64 @@ def test_resize_nearest_integer_scale_is_a_loop_over_periods():
     compile_and_check(m, "ssse3", unroll=None)
 
 
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("nearest", ["ceil", "round_prefer_ceil"])
+@pytest.mark.parametrize("sizes", [[1, 2, 3, 3], [1, 2, 3, 2], [2, 2, 3, 3]])
+def test_resize_tf_half_pixel_for_nn_keeps_the_dims_it_does_not_resize(sizes, nearest, target):
+    """(o + 0.5) / 1 rounds up to o + 1: a dim of scale 1 (channels, batch) must still map onto
+    itself, as onnxruntime does, not read the next channel."""
+    m = resize_model(
+        (sizes[0], 2, 2, 2),
+        sizes=sizes,
+        mode="nearest",
+        coordinate_transformation_mode="tf_half_pixel_for_nn",
+        nearest_mode=nearest,
+    )
+    compile_and_check(m, target, unroll=None)
+
+
+def odd_ratio_resize(mode, with_conv=False, **attrs):
+    """60x80 -> 97x131: no period shorter than the dims themselves."""
+    return resize_model(
+        (1, 3, 60, 80), sizes=[1, 6 if with_conv else 3, 97, 131], with_conv=with_conv, mode=mode, **attrs
+    )
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("with_conv", [False, True])
+def test_resize_odd_ratio_is_small_code_with_loops(with_conv, target):
+    """Periodic coordinates with weight tables, one dim at a time: with --unroll none the C stays
+    small (one statement per position would be 2.25 MB); the unroll pass still decides the rest."""
+    m = odd_ratio_resize("linear", with_conv)
+    compiled = compile_and_check(m, target, unroll=None)
+    assert len(compiled.source) < 50_000
+    assert kernel_ops(compiled).count("Resize") == 2
+    compile_and_check(m, target, unroll="auto")
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize(
+    "attrs",
+    [
+        dict(mode="nearest", coordinate_transformation_mode="asymmetric", nearest_mode="floor"),
+        dict(mode="nearest", coordinate_transformation_mode="half_pixel", nearest_mode="round_prefer_ceil"),
+        dict(mode="linear", coordinate_transformation_mode="align_corners"),
+        dict(mode="linear", coordinate_transformation_mode="pytorch_half_pixel"),
+    ],
+)
+def test_resize_odd_ratio_modes(attrs, target):
+    compiled = compile_and_check(odd_ratio_resize(**attrs), target, unroll=None)
+    assert len(compiled.source) < 50_000
+
+
+def test_resize_odd_ratios_shrinking_and_growing_under_sanitizers():
+    """Windows must never read outside the input: 37x29 -> 23x61 (shrinks one dim, grows the other)."""
+    m = resize_model((1, 3, 37, 29), sizes=[1, 6, 23, 61], with_conv=True, mode="linear")
+    for target in TARGETS:
+        for unroll in (None, "auto"):
+            compile_and_check(m, target, unroll=unroll, sanitize=True)
+
+
 @pytest.mark.parametrize("unroll", [None, 0])
 def test_resize_under_sanitizers(unroll):
     m = resize_model((1, 3, 4, 5), scales=[1, 1, 2.5, 1.5], with_conv=True, mode="linear")
@@ -607,6 +666,30 @@ def test_slice_split_concat_transpose_errors():
 
 
 # --- Resize's compile-time index tables ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", ["nearest", "linear"])
+@pytest.mark.parametrize("coordinates", ["half_pixel", "asymmetric", "align_corners", "pytorch_half_pixel"])
+def test_resize_windowed_pieces_reproduce_every_output_coordinate(mode, coordinates):
+    """Windows at periodic coordinates with tabled weights stand for exactly the taps of every
+    output coordinate (zero weights where a window is wider), and stay inside the input."""
+    for n_in, n_out in [(60, 97), (80, 131), (131, 80), (7, 100), (100, 7), (33, 34), (1000, 1617), (5, 12)]:
+        attrs = ResizeAttrs((n_out / n_in,), mode, coordinates)
+        taps = dim_taps(attrs, 0, n_in, n_out)
+        pieces, weights = windowed_pieces(taps, n_in)
+        rebuilt = {}
+        for piece in pieces:
+            for b, (r, residue) in itertools.product(range(piece.blocks), enumerate(piece.taps)):
+                if piece.table is None:
+                    reads = {c + piece.step * b: w for c, w in residue}
+                else:
+                    reads = {c + piece.step * b: weights[b * piece.table_step + k] for c, k in residue}
+                assert all(0 <= c < n_in for c in reads)
+                rebuilt[piece.start + piece.period * b + r] = {c: w for c, w in reads.items() if w}
+        assert sorted(rebuilt) == list(range(n_out))
+        for o, expected in enumerate(taps):
+            assert sorted(rebuilt[o]) == sorted(c for c, _ in expected)
+            np.testing.assert_array_equal([rebuilt[o][c] for c, _ in expected], [np.float32(w) for _, w in expected])
 
 
 @pytest.mark.parametrize("mode", ["nearest", "linear"])

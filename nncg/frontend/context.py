@@ -13,6 +13,7 @@ from onnx import helper
 from nncg.errors import NncgError
 from nncg.frontend.names import unique
 from nncg.ir.graph import Node, Shape
+from nncg.safe_text import shown
 
 WEIGHT_HINT = "runtime weights are not supported yet: export the model with constant weights"
 SHAPE_HINT = "NNCG needs it constant: simplify the model (e.g. with onnxsim) after fixing the input shapes"
@@ -48,7 +49,7 @@ class OnnxOp:
         return outputs[index] if index < len(outputs) and outputs[index] else None
 
     def error(self, message: str) -> NncgError:
-        return NncgError(f"{self.type} '{self.name}' {message}")
+        return NncgError(f"{self.type} {shown(self.name)} {message}")
 
     def ir_node(self, op: str, inputs: tuple[str, ...] | list[str], attrs: object = None) -> Node:
         """The graph IR node for this op; only the first ONNX output survives conversion."""
@@ -73,7 +74,7 @@ class Context:
         if value in self.constants:
             return tuple(self.constants[value].shape)
         if value not in self.shapes:
-            raise NncgError(f"no static shape is known for value '{value}'; check the model with onnxruntime")
+            raise NncgError(f"no static shape is known for value {shown(value)}; check the model with onnxruntime")
         return self.shapes[value]
 
     def const(self, value: str | None) -> np.ndarray | None:
@@ -83,7 +84,7 @@ class Context:
         """Input `index` of `op`, which must be a compile-time constant."""
         value = self.const(op.input(index))
         if value is None:
-            raise op.error(f"has its {role} '{op.input(index)}' computed at runtime; {hint}")
+            raise op.error(f"has its {role} {shown(op.input(index))} computed at runtime; {hint}")
         return value
 
     def is_used(self, value: str | None) -> bool:

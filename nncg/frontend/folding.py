@@ -4,6 +4,8 @@ compile time (Constant, Shape/Size of static shapes, any node with only constant
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,8 +16,18 @@ from onnx.reference import ReferenceEvaluator
 from nncg.errors import NncgError
 from nncg.frontend.load import opset_version, real_inputs
 from nncg.frontend.names import node_names, node_reads
-from nncg.frontend.shapes import inferred_shapes, one_line
+from nncg.frontend.shapes import inferred_shapes, one_line, static_shapes
 from nncg.ir.graph import Shape
+from nncg.safe_text import shown
+
+# Folding evaluates constant subgraphs with numpy at compile time, so it could be made to allocate
+# any amount of memory: a 231-byte model with ConstantOfShape([28000, 28000]) asks for 3 GB. No real
+# CNN folds anything near this many elements (VGG's largest weight, 103M floats, fits); a node whose
+# result would be larger is refused before it is evaluated.
+MAX_FOLDED_ELEMENTS = 2**27
+FOLD_CAP = f"{MAX_FOLDED_ELEMENTS:,} elements (nncg.frontend.folding.MAX_FOLDED_ELEMENTS)"
+SMALL_CONSTANT = 16  # constant inputs up to this many elements are quoted in messages, and their
+# values fed to ONNX shape inference when it has to find a node's output shape alone
 
 # Folding these would freeze one random draw into the compiled model.
 NONDETERMINISTIC = {
@@ -32,11 +44,13 @@ NamedNode = tuple[onnx.NodeProto, str]
 
 @dataclass
 class Folded:
-    """The live nodes left after folding (with their stable names), all constants, static shapes."""
+    """The live nodes left after folding (with their stable names), all constants, static shapes,
+    and for each folded constant the name of the node it was folded from."""
 
     nodes: list[NamedNode]
     constants: dict[str, np.ndarray]
     shapes: dict[str, Shape]
+    folded_by: dict[str, str]
 
 
 def fold_constants(model: onnx.ModelProto, shapes: dict[str, Shape]) -> Folded:
@@ -48,14 +62,15 @@ def fold_constants(model: onnx.ModelProto, shapes: dict[str, Shape]) -> Folded:
     outputs = [v.name for v in model.graph.output]
     constants = initializer_arrays(model.graph)
     nodes = live_nodes(list(zip(model.graph.node, node_names(model.graph), strict=True)), outputs)
+    folded_by: dict[str, str] = {}
     while True:
-        remaining = [n for n in nodes if not _fold_node(n, constants, shapes, opset)]
+        remaining = [n for n in nodes if not _fold_node(n, constants, shapes, opset, folded_by)]
         _check_outputs_computed(outputs, constants)
         if len(remaining) == len(nodes):
             break
         nodes = live_nodes(remaining, outputs)
         shapes = inferred_shapes(_rebuild(model, nodes, constants))
-    return Folded(nodes, constants, shapes)
+    return Folded(nodes, constants, shapes, folded_by)
 
 
 def live_nodes(nodes: list[NamedNode], outputs: list[str]) -> list[NamedNode]:
@@ -79,19 +94,31 @@ def tensor_array(tensor: onnx.TensorProto) -> np.ndarray:
     try:
         return numpy_helper.to_array(tensor)
     except Exception as exc:  # e.g. raw_data shorter than dims say
-        raise NncgError(
-            f"tensor '{tensor.name}' is corrupt ({one_line(exc, 120)}); the model file is damaged: re-export it"
-        ) from None
+        raise _corrupt(tensor.name, exc) from None
 
 
 def sparse_array(sparse: onnx.SparseTensorProto) -> np.ndarray:
     """Dense copy of a sparse tensor; indices are either linear [NNZ] or coordinates [NNZ, rank]."""
     values, indices = tensor_array(sparse.values), tensor_array(sparse.indices)
-    dims = tuple(sparse.dims)
-    dense = np.zeros(int(np.prod(dims)), dtype=values.dtype)
-    flat = indices if indices.ndim == 1 else np.ravel_multi_index(tuple(indices.T), dims)
-    dense[flat] = values
+    dims = tuple(int(d) for d in sparse.dims)
+    elements = math.prod(dims)
+    if min(dims, default=0) < 0 or elements > MAX_FOLDED_ELEMENTS:
+        raise NncgError(
+            f"sparse tensor {shown(sparse.values.name)} has dims {list(dims)}: made dense it would have "
+            f"{elements:,} elements, more than the {FOLD_CAP} NNCG materialises; the model is damaged or "
+            "not a CNN NNCG can compile: fix its dims"
+        )
+    try:
+        dense = np.zeros(elements, dtype=values.dtype)
+        flat = indices if indices.ndim == 1 else np.ravel_multi_index(tuple(indices.T), dims)
+        dense[flat] = values
+    except (IndexError, ValueError) as exc:  # indices outside the dims, or not matching the values
+        raise _corrupt(sparse.values.name, exc) from None
     return dense.reshape(dims)
+
+
+def _corrupt(name: str, exc: BaseException) -> NncgError:
+    return NncgError(f"tensor {shown(name)} is corrupt ({one_line(exc, 120)}); the model file is damaged: re-export it")
 
 
 def constant_value(node: onnx.NodeProto) -> np.ndarray:
@@ -110,14 +137,17 @@ def constant_value(node: onnx.NodeProto) -> np.ndarray:
         "value_strings": lambda: np.array([s.decode() for s in attr.strings], dtype=object),
     }
     if attr.name not in simple:
-        raise NncgError(f"Constant node '{node.name}' has unknown attribute '{attr.name}'; re-export the model")
+        raise NncgError(
+            f"Constant node {shown(node.name)} has unknown attribute {shown(attr.name)}; give it one of value, "
+            "value_float(s), value_int(s), value_string(s) or sparse_value, or re-export the model"
+        )
     return simple[attr.name]()
 
 
 # --- one node ------------------------------------------------------------------------------------
 
 
-def _fold_node(named: NamedNode, constants: dict, shapes: dict[str, Shape], opset: int) -> bool:
+def _fold_node(named: NamedNode, constants: dict, shapes: dict[str, Shape], opset: int, folded_by: dict) -> bool:
     """Store the node's outputs in `constants` if they are computable now; says whether it folded."""
     node, name = named
     values = _node_values(node, name, constants, shapes, opset)
@@ -126,6 +156,7 @@ def _fold_node(named: NamedNode, constants: dict, shapes: dict[str, Shape], opse
     for output, value in zip(node.output, values, strict=True):
         if output:
             constants[output] = value
+            folded_by[output] = name
     return True
 
 
@@ -139,7 +170,55 @@ def _node_values(node, name, constants, shapes, opset) -> list[np.ndarray] | Non
         return None
     if any(a.type in (onnx.AttributeProto.GRAPH, onnx.AttributeProto.GRAPHS) for a in node.attribute):
         return None  # subgraphs may read outer values that a one-node model would not have
-    return _evaluate(node, name, constants, opset)
+    for output, shape in _output_shapes(node, constants, shapes, opset).items():
+        if shape is not None:
+            _check_fold_size(node, name, output, shape, constants)
+    values = _evaluate(node, name, constants, opset)
+    for output, value in zip(node.output, values or (), strict=False):
+        if value is not None:  # inference did not know the shape: too late not to allocate, still refused
+            _check_fold_size(node, name, output, value.shape, constants)
+    return values
+
+
+def _output_shapes(node, constants: dict, shapes: dict[str, Shape], opset: int) -> dict[str, Shape | None]:
+    """The shapes of the node's outputs: from the whole model's inference, else from inferring the
+    node alone with its small constant inputs' values known (None where ONNX cannot tell)."""
+    outputs = [o for o in node.output if o]
+    if all(o in shapes for o in outputs):
+        return {o: shapes[o] for o in outputs}
+    feeds = {i: constants[i] for i in dict.fromkeys(node.input) if i}
+    small = [numpy_helper.from_array(a, i) for i, a in feeds.items() if a.size <= SMALL_CONSTANT and a.dtype != object]
+    graph = helper.make_graph(
+        [node],
+        "fold_shapes",
+        [helper.make_tensor_value_info(i, _elem_type(a), a.shape) for i, a in feeds.items()],
+        [onnx.ValueInfoProto(name=o) for o in outputs],
+        initializer=small,
+    )
+    try:
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
+        inferred = onnx.shape_inference.infer_shapes(model, data_prop=True)
+    except Exception:  # evaluating the node will report what is wrong with it
+        return dict.fromkeys(outputs)
+    found = static_shapes(inferred)
+    return {o: found.get(o) for o in outputs}
+
+
+def _check_fold_size(node, name: str, output: str, shape: Shape, constants: dict) -> None:
+    elements = math.prod(shape)
+    if elements <= MAX_FOLDED_ELEMENTS:
+        return
+    inputs = [
+        f"{shown(i)} = {np.asarray(constants[i]).tolist()}"
+        for i in node.input
+        if i in constants and constants[i].size <= SMALL_CONSTANT and constants[i].dtype != object
+    ]
+    given = f" (from {', '.join(inputs)})" if inputs else ""
+    raise NncgError(
+        f"{node.op_type} node {shown(name)} would fold to a constant {shown(output)} of shape {list(shape)}{given}: "
+        f"{elements:,} elements, more than the {FOLD_CAP} NNCG computes at compile time; no CNN needs a constant "
+        "this large: check the node's inputs (a shape or size far too big?) and fix the model"
+    )
 
 
 def _shape_value(node: onnx.NodeProto, shape: Shape) -> np.ndarray:
@@ -162,10 +241,12 @@ def _evaluate(node: onnx.NodeProto, name: str, constants: dict, opset: int) -> l
             [onnx.ValueInfoProto(name=o) for o in outputs],
         )
         model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
-        results = ReferenceEvaluator(model).run(None, feeds)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the result is checked (e.g. for NaN) where it is used
+            results = ReferenceEvaluator(model).run(None, feeds)
     except Exception as exc:
         raise NncgError(
-            f"cannot fold {node.op_type} node '{name}', whose inputs are all constants: "
+            f"cannot fold {node.op_type} node {shown(name)}, whose inputs are all constants: "
             f"{one_line(exc, 200)}; simplify the model (e.g. with onnxsim) and retry"
         ) from None
     if not all(isinstance(r, (np.ndarray, np.generic)) for r in results):
@@ -204,6 +285,6 @@ def _check_outputs_computed(outputs: list[str], constants: dict) -> None:
     for name in outputs:
         if name in constants:
             raise NncgError(
-                f"graph output '{name}' is a constant (it does not depend on any input); "
+                f"graph output {shown(name)} is a constant (it does not depend on any input); "
                 "NNCG compiles only outputs computed from the inputs: remove it from the outputs"
             )

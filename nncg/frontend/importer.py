@@ -11,6 +11,7 @@ import numpy as np
 import onnx
 
 from nncg.errors import NncgError, UnsupportedOpsError
+from nncg.frontend.checks import check_attributes, check_computed_shapes, check_constants, constant_origins
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.folding import Folded, NamedNode, fold_constants
 from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, real_inputs
@@ -27,8 +28,14 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     folded = fold_constants(proto, shapes)
     check_supported(folded.nodes)
     ctx = _context(proto, folded)
+    computed = [(name, node.op_type, node.output) for node, name in folded.nodes]
+    check_computed_shapes(computed, ctx.shapes, ctx.is_used)  # before converters size anything by them
     nodes = tuple(CONVERTERS[node.op_type](OnnxOp.of(node, name), ctx) for node, name in folded.nodes)
-    return _assemble(proto.graph, nodes, ctx)
+    graph = _assemble(proto.graph, nodes, ctx)
+    check_computed_shapes([(n.name, n.op, n.outputs) for n in graph.nodes], graph.shapes)  # converters' own too
+    check_constants(graph, constant_origins(proto.graph, folded))
+    check_attributes(graph)
+    return graph
 
 
 def check_supported(nodes: list[NamedNode]) -> None:
@@ -63,7 +70,7 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
     shapes = {v.name: v.shape for v in (*inputs, *outputs)}
     for node in nodes:
         for output in node.outputs:
-            shapes[output] = _static_shape(ctx, output, f"output of {node.op} node '{node.name}'")
+            shapes[output] = _static_shape(ctx, output, f"output of {node.op} node {shown(node.name)}")
     constants = {}
     for node in nodes:
         for name in node.inputs:
@@ -82,7 +89,7 @@ def _layer_named(nodes: tuple[Node, ...]) -> tuple[Node, ...]:
 def _static_shape(ctx: Context, value: str, role: str) -> tuple[int, ...]:
     if value not in ctx.shapes:
         raise NncgError(
-            f"no static shape could be inferred for '{value}' ({role}); fix the input shapes "
+            f"no static shape could be inferred for {shown(value)} ({role}); fix the input shapes "
             "or simplify the model (e.g. with onnxsim)"
         )
     return ctx.shapes[value]
@@ -94,7 +101,7 @@ def _float32(node: Node, name: str, array: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(array)
     if "float" not in array.dtype.name:
         raise NncgError(
-            f"{node.op} node '{node.name}' reads constant '{name}' of type {array.dtype.name}; "
+            f"{node.op} node {shown(node.name)} reads constant {shown(name)} of type {array.dtype.name}; "
             "NNCG needs float32 weights: re-export the model in float32"
         )
     return np.ascontiguousarray(array.astype(np.float32))

@@ -14,8 +14,11 @@ from onnx.external_data_helper import load_external_data_for_model, uses_externa
 
 from nncg.errors import NncgError, UnsupportedOpsError
 from nncg.frontend.names import node_names
-from nncg.frontend.shapes import dtype_name, format_shape, inferred_shapes, one_line
+from nncg.frontend.shapes import dtype_name, format_shape, inferred_shapes, one_line, static_shape
+from nncg.frontend.wiring import check_operators, check_wiring
 from nncg.ir.graph import Shape
+from nncg.limits import check_tensor_size
+from nncg.safe_text import capped, escaped, shown
 
 ModelSource = str | os.PathLike | bytes | onnx.ModelProto
 MIN_OPSET = 7
@@ -33,14 +36,19 @@ def load_with_shapes(
     """load_model's result and the static shapes strict ONNX shape inference gives its values."""
     proto, where = _read(model)
     _check_structure(proto, where)
+    _check_ir_version(proto)
     _check_external_data(proto, where)
+    _normalise_default_domain(proto)
     _check_domains(proto)
-    opset_version(proto)
-    # Inputs first: the checker would reject an unknown-rank input before we can say how to fix it.
+    opset = opset_version(proto)
+    # Inputs, outputs, wiring and operators first: onnx.checker would reject them with messages that
+    # do not say how to fix them.
     fix_input_shapes(proto.graph, dict(input_shapes or {}))
-    _run_checker(proto)
     for value in proto.graph.output:
         _check_float32(value, "output")
+    check_wiring(proto.graph)
+    check_operators(proto.graph, opset, proto.ir_version)
+    _run_checker(proto)
     # Exporters' value_info can contradict ONNX inference (ceil-mode MaxPool before opset 22) and
     # adds nothing once the inputs are static, so shapes are inferred from scratch.
     proto.graph.ClearField("value_info")
@@ -84,7 +92,7 @@ def _read(model: ModelSource) -> tuple[onnx.ModelProto, str]:
 
 
 def _read_file(path: str) -> tuple[onnx.ModelProto, str]:
-    where = f"'{path}'"
+    where = shown(path, 200)
     if not os.path.exists(path):
         raise NncgError(f"model file {where} does not exist; check the path")
     if not os.path.isfile(path):
@@ -139,11 +147,26 @@ def _check_structure(model: onnx.ModelProto, where: str) -> None:
         known |= {out for node in graph.node for out in node.output}
         missing = [v.name for v in graph.output if v.name not in known]
         if missing:
-            problem = f"graph output '{missing[0]}' is produced by nothing"
+            problem = f"graph output {shown(missing[0])} is produced by nothing"
     if problem:
         raise NncgError(
             f"{where} is not a complete ONNX model ({problem}); "
             "the file is truncated or not ONNX: re-export or re-download it"
+        )
+
+
+def _check_ir_version(model: onnx.ModelProto) -> None:
+    """The IR version is one this onnx package reads, from the first with opset imports (IR 3)."""
+    newest = onnx.IR_VERSION
+    if model.ir_version > newest:
+        raise NncgError(
+            f"the model has ONNX IR version {model.ir_version}, newer than the {newest} the installed onnx "
+            f"{onnx.__version__} reads: upgrade onnx (pip install -U onnx) or export with an older IR version"
+        )
+    if model.ir_version < 3:
+        raise NncgError(
+            f"the model has ONNX IR version {model.ir_version}, from before opset imports (IR 3, ONNX 1.0); "
+            "re-export it with a current exporter"
         )
 
 
@@ -155,15 +178,29 @@ def _check_external_data(model: onnx.ModelProto, where: str) -> None:
     external = _external_tensors(model)
     if external:
         raise NncgError(
-            f"tensor '{external[0]}' of {where} keeps its data in an external file; "
+            f"tensor {shown(external[0])} of {where} keeps its data in an external file; "
             "pass the model as a file path so NNCG can find the data"
         )
+
+
+def _normalise_default_domain(model: onnx.ModelProto) -> None:
+    """Spell the default domain "" everywhere: onnx's checker and shape inference know ONNX's
+    operators only under "", not under its alias "ai.onnx" (onnxruntime accepts both)."""
+    for node in model.graph.node:
+        if node.domain == "ai.onnx":
+            node.domain = ""
+    aliases = [o for o in model.opset_import if o.domain == "ai.onnx"]
+    if aliases and not any(o.domain == "" for o in model.opset_import):
+        aliases[0].domain = ""
+        aliases = aliases[1:]
+    for alias in aliases:
+        model.opset_import.remove(alias)
 
 
 def _check_domains(model: onnx.ModelProto) -> None:
     names = node_names(model.graph)
     foreign = [
-        f"{node.domain}.{node.op_type} (node '{name}')"
+        f"{capped(escaped(node.domain))}.{capped(escaped(node.op_type))} (node {shown(name)})"
         for node, name in zip(model.graph.node, names, strict=True)
         if node.domain not in DEFAULT_DOMAINS
     ]
@@ -178,7 +215,10 @@ def _run_checker(model: onnx.ModelProto) -> None:
     try:
         onnx.checker.check_model(_with_output_shapes(model))
     except Exception as exc:  # ValidationError, or C++ errors surfacing as others
-        raise NncgError(f"the model fails the ONNX checker: {one_line(exc)}; fix or re-export it") from None
+        raise NncgError(
+            f"the model is not valid ONNX (onnx.checker: {one_line(exc)}); fix what the checker names "
+            "(onnx.checker.check_model(model) shows it) or re-export the model"
+        ) from None
 
 
 def _with_output_shapes(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -211,6 +251,7 @@ def fix_input_shapes(graph: onnx.GraphProto, input_shapes: dict[str, tuple[int, 
             _set_shape(value, input_shapes[value.name])
         else:
             _require_static(value)
+        check_tensor_size(f"input {shown(value.name)}", static_shape(value))
 
 
 def _check_shape_keys(graph: onnx.GraphProto, inputs: list, input_shapes: dict) -> None:
@@ -221,21 +262,26 @@ def _check_shape_keys(graph: onnx.GraphProto, inputs: list, input_shapes: dict) 
             continue
         what = "a constant (it has an initializer)" if key in constants else "not an input of the model"
         raise NncgError(
-            f"input_shapes names '{key}', which is {what}; the model's inputs are " + ", ".join(f"'{n}'" for n in names)
+            f"input_shapes names {shown(key)}, which is {what}; the model's inputs are " + ", ".join(map(shown, names))
         )
 
 
 def _check_float32(value: onnx.ValueInfoProto, kind: str) -> None:
-    if not value.type.HasField("tensor_type"):
-        actual = str(value.type.WhichOneof("value")).removesuffix("_type")
+    kind_of = value.type.WhichOneof("value")
+    if kind_of is None:
         raise NncgError(
-            f"{kind} '{value.name}' is not a tensor (its type is {actual}); "
+            f"graph {kind} {shown(value.name)} has no type; declare it a float32 tensor (with onnx.helper: "
+            f"make_tensor_value_info({shown(value.name)}, TensorProto.FLOAT, None) leaves the shape to inference)"
+        )
+    if kind_of != "tensor_type":
+        raise NncgError(
+            f"{kind} {shown(value.name)} is not a tensor (its type is {kind_of.removesuffix('_type')}); "
             "NNCG compiles models whose inputs and outputs are float32 tensors"
         )
     elem = value.type.tensor_type.elem_type
     if elem != onnx.TensorProto.FLOAT:
         raise NncgError(
-            f"NNCG compiles float32 models; {kind} '{value.name}' is {dtype_name(elem)}: "
+            f"NNCG compiles float32 models; {kind} {shown(value.name)} is {dtype_name(elem)}: "
             f"re-export the model with a float32 {kind}"
         )
 
@@ -248,16 +294,19 @@ def _require_static(value: onnx.ValueInfoProto) -> None:
     ttype = value.type.tensor_type
     if ttype.HasField("shape") and all(_is_static(d) for d in ttype.shape.dim):
         return
-    shown = format_shape(value.name, value)
+    declared = format_shape(value.name, value)
     if ttype.HasField("shape") and all(d.HasField("dim_value") for d in ttype.shape.dim):
-        raise NncgError(f"input '{value.name}' has an empty dim {shown}; NNCG needs inputs with at least one element")
+        raise NncgError(
+            f"input {shown(value.name)} has a dimension below 1 {declared}; NNCG does not support empty tensors: "
+            "give every dimension a size of at least 1 (--input-shape)"
+        )
     if not ttype.HasField("shape"):
-        example = f"{value.name}=1x3x224x224"
+        dims = "1x3x224x224"
     else:
-        example = value.name + "=" + "x".join(str(d.dim_value) if _is_static(d) else "1" for d in ttype.shape.dim)
+        dims = "x".join(str(d.dim_value) if _is_static(d) else "1" for d in ttype.shape.dim)
     raise NncgError(
-        f"input '{value.name}' has a dynamic shape {shown}; fix it with --input-shape {example} "
-        "(input_shapes in Python), using the sizes you need"
+        f"input {shown(value.name)} has a dynamic shape {declared}; fix it with --input-shape "
+        f"{capped(escaped(value.name))}={dims} (input_shapes in Python), using the sizes you need"
     )
 
 
@@ -265,22 +314,22 @@ def _set_shape(value: onnx.ValueInfoProto, dims: tuple[int, ...]) -> None:
     """Replace the declared shape by `dims` after checking they agree with its static dims."""
     name = value.name
     if not isinstance(dims, (tuple, list)) or not all(_positive_int(d) for d in dims):
-        raise NncgError(f"input_shapes['{name}'] must be a tuple of positive ints, got {dims!r}")
+        raise NncgError(f"input_shapes[{shown(name)}] must be a tuple of positive ints, got {shown(repr(dims))}")
     dims = tuple(int(d) for d in dims)
     ttype = value.type.tensor_type
     if ttype.HasField("shape"):
         declared = ttype.shape.dim
-        shown = format_shape(name, value)
+        given = format_shape(name, value)
         if len(declared) != len(dims):
             raise NncgError(
-                f"input_shapes gives input '{name}' {len(dims)} dims {tuple(dims)} but the model "
-                f"declares {shown} with {len(declared)}; give all {len(declared)} dims"
+                f"input_shapes gives input {shown(name)} {len(dims)} dims {tuple(dims)} but the model "
+                f"declares {given} with {len(declared)}; give all {len(declared)} dims"
             )
         for i, (dim, size) in enumerate(zip(declared, dims, strict=True)):
             if _is_static(dim) and dim.dim_value != size:
                 raise NncgError(
-                    f"input_shapes gives input '{name}' dim {i} = {size}, but the model fixes it "
-                    f"at {dim.dim_value} ({shown}); use {dim.dim_value} there"
+                    f"input_shapes gives input {shown(name)} dim {i} = {size}, but the model fixes it "
+                    f"at {dim.dim_value} ({given}); use {dim.dim_value} there"
                 )
     ttype.ClearField("shape")
     ttype.shape.SetInParent()  # rank 0 still needs a (dimensionless) shape

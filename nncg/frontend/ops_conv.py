@@ -8,6 +8,7 @@ from __future__ import annotations
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.windows import conv_transpose_geometry, window_steps
 from nncg.ir.graph import ConvTransposeAttrs, Node, Shape
+from nncg.safe_text import shown
 
 
 def weight_kernel(op: OnnxOp, w_shape: Shape) -> Shape:
@@ -34,7 +35,7 @@ def bias_input(op: OnnxOp, ctx: Context, c_out: int) -> list[str]:
     if not bias:
         return []
     if ctx.shape(bias) != (c_out,):
-        raise op.error(f"has bias '{bias}' of shape {list(ctx.shape(bias))}; expected [{c_out}]")
+        raise op.error(f"has bias {shown(bias)} of shape {list(ctx.shape(bias))}; expected [{c_out}]")
     return [bias]
 
 

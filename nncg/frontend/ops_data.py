@@ -26,6 +26,7 @@ from nncg.ir.graph import (
     SplitAttrs,
     TransposeAttrs,
 )
+from nncg.safe_text import shown
 
 PAD_MODES = ("constant", "reflect", "edge", "wrap")
 COORDINATE_MODES = (
@@ -46,7 +47,7 @@ def convert_concat(op: OnnxOp, ctx: Context) -> Node:
     inputs = [name for name in op.node.input if name]
     shapes = [ctx.shape(name) for name in inputs]
     if op.attr("axis") is None:
-        raise op.error("has no axis; the model is invalid: re-export it")
+        raise op.error("has no axis attribute, which Concat requires: add the axis to concatenate along")
     rank = len(shapes[0])
     axis = axis_index(op, int(op.attr("axis")), rank)
     for shape in shapes:
@@ -72,7 +73,7 @@ def convert_split(op: OnnxOp, ctx: Context) -> Node:
         if not ctx.is_used(name):
             continue
         if size == 0:
-            raise op.error(f"has its empty output '{name}' used; NNCG cannot compile empty tensors")
+            raise op.error(f"has its empty output {shown(name)} used; NNCG cannot compile empty tensors")
         ctx.set_shape(op, name, tuple(size if d == axis else n for d, n in enumerate(shape)))
         outputs.append(name)
         used_starts.append(start)
@@ -97,7 +98,7 @@ def _split_sizes(op: OnnxOp, ctx: Context, dim: int) -> list[int]:
     if ctx.opset >= 18:
         parts = int(op.attr("num_outputs", count))
         if parts != count:
-            raise op.error(f"has num_outputs={parts} but {count} outputs; the model is invalid: re-export it")
+            raise op.error(f"has num_outputs={parts} but {count} outputs: make them agree (or drop num_outputs)")
         chunk = -(-dim // count)
         last = dim - chunk * (count - 1)
         if last < 0:
@@ -145,7 +146,7 @@ def _slice_params(op: OnnxOp, ctx: Context) -> tuple[list[int], list[int], list[
     """starts, ends, axes, steps: attributes in opset 1 (no steps), constant inputs from opset 10."""
     if ctx.opset < 10:
         if op.attr("starts") is None or op.attr("ends") is None:
-            raise op.error("has no starts or ends; the model is invalid: re-export it")
+            raise op.error("has no starts or ends attribute, which Slice before opset 10 requires: add both")
         axes = op.attr("axes")
         return list(op.attr("starts")), list(op.attr("ends")), None if axes is None else list(axes), None
     params = []
@@ -172,7 +173,7 @@ def convert_pad(op: OnnxOp, ctx: Context) -> Node:
     shape = ctx.shape(op.input(0))
     mode = op.attr("mode", "constant")
     if mode not in PAD_MODES:
-        raise op.error(f"has mode '{mode}'; NNCG supports {', '.join(PAD_MODES)}")
+        raise op.error(f"has mode {shown(mode)}; NNCG supports {', '.join(PAD_MODES)}")
     pads, value, axes = _pad_params(op, ctx, len(shape))
     if len(pads) != 2 * len(axes):
         raise op.error(f"has {len(pads)} pads for {len(axes)} axes; it needs two per axis")
@@ -193,7 +194,7 @@ def _pad_params(op: OnnxOp, ctx: Context, rank: int) -> tuple[list[int], float, 
     from 11 (axes from 18)."""
     if ctx.opset < 11:
         if op.attr("pads") is None:
-            raise op.error("has no pads; the model is invalid: re-export it")
+            raise op.error("has no pads attribute, which Pad before opset 11 requires: add the pads")
         return [int(p) for p in op.attr("pads")], float(op.attr("value", 0.0)), list(range(rank))
     pads = _ints(op, ctx.constant_input(op, 1, "pads", SHAPE_HINT), "pads").tolist()
     value = 0.0
@@ -233,7 +234,7 @@ def convert_resize(op: OnnxOp, ctx: Context) -> Node:
     if ctx.opset < 11:  # Resize-10: inputs X, scales; asymmetric coordinates, legacy rounding
         scales = _scales_input(op, ctx, 1, len(shape), None)
         if scales is None:
-            raise op.error("has empty scales; the model is invalid: re-export it")
+            raise op.error("has an empty scales input; Resize-10 needs one scale per input dim: give them")
         return _resize(op, ctx, scales, None, mode, "asymmetric", "simple")
     _refuse_resize_options(op)
     coordinates = op.attr("coordinate_transformation_mode", "half_pixel")
@@ -241,17 +242,20 @@ def convert_resize(op: OnnxOp, ctx: Context) -> Node:
         raise op.error("has coordinate_transformation_mode tf_crop_and_resize, which NNCG does not support")
     if coordinates not in COORDINATE_MODES:
         raise op.error(
-            f"has coordinate_transformation_mode '{coordinates}'; NNCG supports {', '.join(COORDINATE_MODES)}"
+            f"has coordinate_transformation_mode {shown(coordinates)}; NNCG supports {', '.join(COORDINATE_MODES)}"
         )
     nearest = op.attr("nearest_mode", "round_prefer_floor")
     if mode == "nearest" and nearest not in NEAREST_MODES:
-        raise op.error(f"has nearest_mode '{nearest}'; NNCG supports {', '.join(NEAREST_MODES)}")
+        raise op.error(f"has nearest_mode {shown(nearest)}; NNCG supports {', '.join(NEAREST_MODES)}")
     axes = op.attr("axes")
     axes = None if axes is None else [axis_index(op, int(a), len(shape)) for a in axes]
     scales = _scales_input(op, ctx, 2, len(shape), axes) if op.input(2) else None
     sizes = _sizes_input(op, ctx, len(shape), axes) if op.input(3) else None
     if (scales is None) == (sizes is None):
-        raise op.error("must have exactly one of scales and sizes; the model is invalid: re-export it")
+        raise op.error(
+            f"has {'both' if scales is not None else 'neither'} scales and sizes; give exactly one of them "
+            "(the other empty, or left out)"
+        )
     return _resize(op, ctx, scales, sizes, mode, coordinates, nearest)
 
 
@@ -264,7 +268,7 @@ def convert_upsample(op: OnnxOp, ctx: Context) -> Node:
     elif op.attr("scales") is not None:
         scales = _checked_scales(op, [float(s) for s in op.attr("scales")], rank)
     else:
-        raise op.error("has no scales; the model is invalid: re-export it")
+        raise op.error("has no scales (neither an input nor an attribute); give one scale per input dim")
     if min(scales) < 1:
         raise op.error(f"has scales {scales}; Upsample needs scales >= 1")
     return _resize(op, ctx, scales, None, mode, "asymmetric", "simple")
@@ -290,7 +294,7 @@ def _resize(op, ctx, scales, sizes, mode: str, coordinates: str, nearest: str) -
 def _resize_mode(op: OnnxOp) -> str:
     mode = op.attr("mode", "nearest")
     if mode not in RESIZE_MODES:
-        raise op.error(f"has mode '{mode}'; NNCG supports {' and '.join(RESIZE_MODES)} (cubic is not supported)")
+        raise op.error(f"has mode {shown(mode)}; NNCG supports {' and '.join(RESIZE_MODES)} (cubic is not supported)")
     return mode
 
 
@@ -299,7 +303,7 @@ def _refuse_resize_options(op: OnnxOp) -> None:
         raise op.error("has antialias=1, which NNCG does not support")
     policy = op.attr("keep_aspect_ratio_policy", "stretch")
     if policy != "stretch":
-        raise op.error(f"has keep_aspect_ratio_policy '{policy}'; NNCG supports only stretch")
+        raise op.error(f"has keep_aspect_ratio_policy {shown(policy)}; NNCG supports only stretch")
 
 
 def _scales_input(op: OnnxOp, ctx: Context, index: int, rank: int, axes: list[int] | None) -> list[float] | None:

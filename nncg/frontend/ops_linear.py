@@ -12,6 +12,7 @@ import numpy as np
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.ir.graph import DenseAttrs, Node
+from nncg.safe_text import shown
 
 
 def convert_gemm(op: OnnxOp, ctx: Context) -> Node:
@@ -68,7 +69,7 @@ def convert_matmul(op: OnnxOp, ctx: Context) -> Node:
     """A @ B with either operand computed at runtime; batch dims broadcast (NumPy rules)."""
     for index, role in enumerate("AB"):
         if len(ctx.shape(op.input(index))) < 2:
-            raise op.error(f"has a 1-D input {role} '{op.input(index)}'; only inputs of rank >= 2 are supported")
+            raise op.error(f"has a 1-D input {role} {shown(op.input(index))}; only inputs of rank >= 2 are supported")
     return op.ir_node("Dense", [op.input(0), op.input(1)], DenseAttrs())
 
 

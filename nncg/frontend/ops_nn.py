@@ -8,7 +8,13 @@ from dataclasses import replace
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_conv import bias_input, check_groups, weight_kernel
-from nncg.frontend.windows import pool_attrs, pool_output_shape, resolve_pads, window_steps
+from nncg.frontend.windows import (
+    check_window_fits,
+    checked_pool_output_shape,
+    pool_attrs,
+    resolve_pads,
+    window_steps,
+)
 from nncg.ir.graph import (
     Activation,
     BatchNormAttrs,
@@ -17,6 +23,7 @@ from nncg.ir.graph import (
     PoolAttrs,
     SoftmaxAttrs,
 )
+from nncg.safe_text import shown
 
 
 def convert_conv(op: OnnxOp, ctx: Context) -> Node:
@@ -27,6 +34,7 @@ def convert_conv(op: OnnxOp, ctx: Context) -> Node:
     kernel = weight_kernel(op, w_shape)
     strides, dilations = window_steps(op, len(kernel))
     begin, end = resolve_pads(op, x_shape[2:], kernel, strides, dilations)
+    check_window_fits(op, x_shape[2:], kernel, dilations, begin, end)
     attrs = ConvAttrs(kernel, strides, dilations, begin, end, group)
     return op.ir_node("Conv", [x, w, *bias_input(op, ctx, w_shape[0])], attrs)
 
@@ -36,13 +44,13 @@ def convert_maxpool(op: OnnxOp, ctx: Context) -> Node:
         raise op.error("has storage_order=1 (column-major indices); only storage_order=0 is supported")
     if ctx.is_used(op.output(1)):
         raise op.error(
-            f"has its Indices output '{op.output(1)}' used; NNCG computes only the pooled values: "
+            f"has its Indices output {shown(op.output(1))} used; NNCG computes only the pooled values: "
             "remove the use of the indices"
         )
     x = op.input(0)
     in_shape = ctx.shape(x)
     attrs = pool_attrs(op, in_shape)
-    ctx.set_shape(op, op.node.output[0], pool_output_shape(attrs, in_shape))
+    ctx.set_shape(op, op.node.output[0], checked_pool_output_shape(op, attrs, in_shape))
     return op.ir_node("MaxPool", [x], attrs)
 
 
@@ -50,7 +58,7 @@ def convert_averagepool(op: OnnxOp, ctx: Context) -> Node:
     x = op.input(0)
     in_shape = ctx.shape(x)
     attrs = replace(pool_attrs(op, in_shape), count_include_pad=bool(op.attr("count_include_pad", 0)))
-    ctx.set_shape(op, op.node.output[0], pool_output_shape(attrs, in_shape))
+    ctx.set_shape(op, op.node.output[0], checked_pool_output_shape(op, attrs, in_shape))
     return op.ir_node("AveragePool", [x], attrs)
 
 
@@ -91,7 +99,7 @@ def convert_batchnorm(op: OnnxOp, ctx: Context) -> Node:
     for index, output in enumerate(op.node.output[1:], start=1):
         if ctx.is_used(output):
             raise op.error(
-                f"has its output {index} ('{output}', running statistics) used; only the normalized "
+                f"has its output {index} ({shown(output)}, running statistics) used; only the normalized "
                 "output may be used: export the model in eval mode"
             )
     x = op.input(0)

@@ -8,8 +8,10 @@ import math
 
 import numpy as np
 
+from nncg.errors import NncgError
 from nncg.frontend.context import SHAPE_HINT, Context, OnnxOp
 from nncg.ir.graph import Node, ReshapeAttrs, Shape
+from nncg.safe_text import shown
 
 
 def convert_identity(op: OnnxOp, ctx: Context) -> Node:
@@ -19,7 +21,7 @@ def convert_identity(op: OnnxOp, ctx: Context) -> Node:
 def convert_dropout(op: OnnxOp, ctx: Context) -> Node:
     """Inference Dropout is the identity; its ratio (attribute < 12, input >= 12) does not matter."""
     if ctx.is_used(op.output(1)):
-        raise op.error(f"has its mask output '{op.output(1)}' used; only the first output may be used")
+        raise op.error(f"has its mask output {shown(op.output(1))} used; only the first output may be used")
     if op.input(2):
         mode = ctx.constant_input(op, 2, "training_mode", "NNCG compiles inference: make it a constant false")
         if bool(np.asarray(mode).reshape(-1)[0]):
@@ -67,24 +69,31 @@ def convert_unsqueeze(op: OnnxOp, ctx: Context) -> Node:
 
 def reshape_target(op: OnnxOp, in_shape: Shape, dims: list[int], allowzero: bool) -> Shape:
     """Reshape's output shape: 0 copies the input dim (unless allowzero), one -1 is inferred."""
-    bad = op.error(f"cannot reshape {list(in_shape)} to {dims}")
+    total = math.prod(in_shape)
+
+    def bad(reason: str) -> NncgError:
+        return op.error(
+            f"cannot reshape {list(in_shape)} ({total:,} elements) to {dims}: {reason}; a reshape keeps the "
+            "element count: fix its shape input (0 copies the input's dim, one -1 takes what is left), or the "
+            "--input-shape if the model was exported for another input size"
+        )
+
     out = []
     for i, d in enumerate(dims):
         if d == 0 and not allowzero:
             if i >= len(in_shape):
-                raise bad
+                raise bad(f"its 0 at position {i} copies an input dim the rank-{len(in_shape)} input lacks")
             d = in_shape[i]
         out.append(d)
     if out.count(-1) > 1 or any(d < -1 for d in out):
-        raise bad
-    total = math.prod(in_shape)
+        raise bad("it may have one -1 and no other negative dim")
     if -1 in out:
         known = math.prod(d for d in out if d != -1)
         if known == 0 or total % known:
-            raise bad
+            raise bad(f"the dims other than -1 make {known:,} elements, which do not divide {total:,}")
         out[out.index(-1)] = total // known
     if math.prod(out) != total:
-        raise bad
+        raise bad(f"that has {math.prod(out):,} elements")
     return tuple(out)
 
 
@@ -102,7 +111,7 @@ def _axes(op: OnnxOp, ctx: Context, required: bool) -> list[int] | None:
     else:
         axes = None
     if axes is None and required:
-        raise op.error("has no axes; the model is invalid: re-export it")
+        raise op.error(f"has no axes, which {op.type} requires: give the axes to insert")
     return None if axes is None else [int(a) for a in axes]
 
 

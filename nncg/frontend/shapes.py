@@ -13,20 +13,25 @@ from nncg.frontend.context import OnnxOp
 from nncg.frontend.names import node_names
 from nncg.frontend.windows import pool_attrs, pool_output_shape
 from nncg.ir.graph import Shape
+from nncg.safe_text import capped, escaped, shown
+
+POOLS = ("MaxPool", "AveragePool")
 
 
 def inferred_shapes(model: onnx.ModelProto) -> dict[str, Shape]:
-    """Static shapes of all values by strict ONNX inference, ceil-mode MaxPool outputs fixed.
+    """Static shapes of all values by strict ONNX inference, ceil-mode pool outputs fixed.
 
-    ONNX's MaxPool inference before opset 22 ignores the spec rule that drops a window starting in
-    the end padding (onnxruntime follows it); such outputs are pinned to the right shape, fed in as
-    inputs, and inference re-runs so everything downstream (and Shape folding) sees the real shape.
+    ONNX's MaxPool and AveragePool inference before opset 22 ignores the spec rule that drops a
+    window starting in the end padding (onnxruntime follows it); such outputs are pinned to the right
+    shape, fed in as inputs, and inference re-runs so everything downstream (and Shape folding) sees
+    the real shape. A negative dimension anywhere is refused, naming the node that makes it.
     """
     pinned: dict[str, Shape] = {}
     while True:
         shapes = static_shapes(infer(_inference_model(model, pinned)))
         wrong = _misinferred_pool(model, shapes, pinned)
         if wrong is None:
+            _check_no_negative_dims(model, shapes)
             _check_declared_outputs(model, shapes)
             return shapes
         pinned[wrong[0]] = wrong[1]
@@ -38,8 +43,8 @@ def infer(model: onnx.ModelProto) -> onnx.ModelProto:
         return onnx.shape_inference.infer_shapes(model, check_type=True, strict_mode=True, data_prop=True)
     except Exception as exc:  # onnx raises InferenceError, ValidationError or RuntimeError
         raise NncgError(
-            f"ONNX shape inference failed: {one_line(exc)}; the model is inconsistent, "
-            "check it with onnx.checker and onnxruntime or re-export it"
+            f"ONNX shape inference finds the model inconsistent: {one_line(exc)}; fix the node it names (its "
+            "attributes or its inputs' shapes, e.g. through --input-shape) or re-export the model"
         ) from None
 
 
@@ -83,31 +88,38 @@ def static_shapes(model: onnx.ModelProto) -> dict[str, Shape]:
 
 
 def format_shape(name: str, value: onnx.ValueInfoProto) -> str:
-    """`x[N,3,224,224]` with dim_params as names and unknown dims as '?'."""
+    """`x[N,3,224,224]` with dim_params as names and unknown dims as '?' (outside text escaped)."""
     ttype = value.type.tensor_type
+    shown_name = capped(escaped(name))
     if not ttype.HasField("shape"):
-        return f"{name}[unknown rank]"
-    dims = [str(d.dim_value) if d.HasField("dim_value") else (d.dim_param or "?") for d in ttype.shape.dim]
-    return f"{name}[{','.join(dims)}]"
+        return f"{shown_name}[unknown rank]"
+    dims = [_dim_text(d) for d in ttype.shape.dim]
+    return f"{shown_name}[{','.join(dims)}]"
+
+
+def _dim_text(dim: onnx.TensorShapeProto.Dimension) -> str:
+    if dim.HasField("dim_value"):
+        return str(dim.dim_value)
+    return capped(escaped(dim.dim_param), 20) or "?"
 
 
 def _misinferred_pool(model: onnx.ModelProto, shapes: dict[str, Shape], pinned: dict) -> tuple[str, Shape] | None:
     for node, name in zip(model.graph.node, node_names(model.graph), strict=True):
-        if node.op_type != "MaxPool" or node.output[0] in pinned or node.input[0] not in shapes:
+        if node.op_type not in POOLS or node.output[0] in pinned or node.input[0] not in shapes:
             continue
         op, in_shape = OnnxOp.of(node, name), shapes[node.input[0]]
         if op.attr("ceil_mode", 0):
             expected = pool_output_shape(pool_attrs(op, in_shape), in_shape)
-            if shapes.get(node.output[0]) != expected:
+            if shapes.get(node.output[0]) != expected and min(expected) >= 1:
                 return node.output[0], expected
     return None
 
 
 def _inference_model(model: onnx.ModelProto, pinned: dict[str, Shape]) -> onnx.ModelProto:
     """A copy for inference: outputs without declared shapes (checked afterwards instead), and the
-    MaxPools producing pinned values cut out, those values becoming inputs of the pinned shape."""
+    pools producing pinned values cut out, those values becoming inputs of the pinned shape."""
     graph = model.graph
-    cut = [n for n in graph.node if n.op_type == "MaxPool" and n.output[0] in pinned]
+    cut = [n for n in graph.node if n.op_type in POOLS and n.output[0] in pinned]
     extra = [helper.make_tensor_value_info(n.output[0], onnx.TensorProto.FLOAT, pinned[n.output[0]]) for n in cut]
     extra += [  # a cut MaxPool's Indices would otherwise be undefined
         helper.make_tensor_value_info(n.output[1], onnx.TensorProto.INT64, pinned[n.output[0]])
@@ -115,10 +127,28 @@ def _inference_model(model: onnx.ModelProto, pinned: dict[str, Shape]) -> onnx.M
         if len(n.output) > 1 and n.output[1]
     ]
     outputs = [helper.make_tensor_value_info(v.name, v.type.tensor_type.elem_type, None) for v in graph.output]
-    nodes = [n for n in graph.node if not (n.op_type == "MaxPool" and n.output[0] in pinned)]
+    nodes = [n for n in graph.node if not (n.op_type in POOLS and n.output[0] in pinned)]
     copy = helper.make_graph(nodes, graph.name, [*graph.input, *extra], outputs, list(graph.initializer))
     copy.sparse_initializer.extend(graph.sparse_initializer)
     return helper.make_model(copy, opset_imports=list(model.opset_import), ir_version=model.ir_version)
+
+
+def _check_no_negative_dims(model: onnx.ModelProto, shapes: dict[str, Shape]) -> None:
+    """ONNX inference lets a kernel larger than its padded input make negative dimensions (onnxruntime
+    then refuses to run the model); say which node does it, from which input shapes."""
+    for node, name in zip(model.graph.node, node_names(model.graph), strict=True):
+        for output in node.output:
+            shape = shapes.get(output)
+            if shape is None or min(shape, default=1) >= 0:
+                continue
+            known = shapes | {t.name: tuple(t.dims) for t in model.graph.initializer}
+            inputs = ", ".join(f"{shown(i)} {list(known[i])}" for i in node.input if i in known)
+            raise NncgError(
+                f"{node.op_type} node {shown(name)} gives its output {shown(output)} the shape {list(shape)}: a "
+                f"negative dimension, as its attributes do not fit inputs {inputs or 'of unknown shape'} (a kernel "
+                "larger than the padded input, or pads that crop away its whole output); onnxruntime refuses it "
+                "too: fix the node's attributes or give a larger --input-shape"
+            )
 
 
 def _check_declared_outputs(model: onnx.ModelProto, shapes: dict[str, Shape]) -> None:
@@ -126,6 +156,6 @@ def _check_declared_outputs(model: onnx.ModelProto, shapes: dict[str, Shape]) ->
         declared = static_shape(value)
         if declared is not None and value.name in shapes and shapes[value.name] != declared:
             raise NncgError(
-                f"output '{value.name}' is declared with shape {list(declared)} but computes "
+                f"output {shown(value.name)} is declared with shape {list(declared)} but computes "
                 f"{list(shapes[value.name])}; fix the declared output shape or the input shapes"
             )

@@ -9,6 +9,7 @@ import math
 
 from nncg.frontend.context import OnnxOp
 from nncg.ir.graph import PoolAttrs, Shape
+from nncg.safe_text import shown
 
 
 def window_steps(op: OnnxOp, n: int) -> tuple[Shape, Shape]:
@@ -35,7 +36,7 @@ def resolve_pads(op: OnnxOp, in_spatial: Shape, kernel: Shape, strides: Shape, d
 def _auto_pad(op: OnnxOp) -> str:
     auto_pad = op.attr("auto_pad", "NOTSET")
     if auto_pad not in ("NOTSET", "VALID", "SAME_UPPER", "SAME_LOWER"):
-        raise op.error(f"has unknown auto_pad '{auto_pad}'; expected NOTSET, VALID, SAME_UPPER or SAME_LOWER")
+        raise op.error(f"has unknown auto_pad {shown(auto_pad)}; expected NOTSET, VALID, SAME_UPPER or SAME_LOWER")
     return auto_pad
 
 
@@ -110,6 +111,39 @@ def pool_output_shape(attrs: PoolAttrs, in_shape: Shape) -> Shape:
         in_shape[2:], attrs.kernel, attrs.strides, attrs.dilations, attrs.pads_begin, attrs.pads_end, strict=True
     )
     return tuple(in_shape[:2]) + tuple(pool_output_size(*d, attrs.ceil_mode) for d in dims)
+
+
+def checked_pool_output_shape(op: OnnxOp, attrs: PoolAttrs, in_shape: Shape) -> Shape:
+    """pool_output_shape, refusing a window larger than the padded input: the spec's output is then
+    empty (onnxruntime's integer division makes it one window reaching past the padding instead)."""
+    out = pool_output_shape(attrs, in_shape)
+    for axis, (size, extent) in enumerate(zip(in_shape[2:], window_extents(attrs))):
+        padded = size + attrs.pads_begin[axis] + attrs.pads_end[axis]
+        if out[2 + axis] < 1:
+            raise op.error(
+                f"has a window of {extent} along spatial axis {axis}, larger than its padded input ({size} + pads "
+                f"{attrs.pads_begin[axis]} + {attrs.pads_end[axis]} = {padded}): the ONNX spec makes the output "
+                "empty, which NNCG does not support (onnxruntime computes one window reaching past the padding): "
+                "pad the input so the window fits, or set ceil_mode=1 to keep that one clipped window"
+            )
+    return out
+
+
+def check_window_fits(op: OnnxOp, in_spatial: Shape, kernel: Shape, dilations: Shape, begin: Shape, end: Shape) -> None:
+    """A convolution window must fit its padded input: the spec's output is empty otherwise (ONNX
+    shape inference says one position, and onnxruntime refuses the model)."""
+    for axis, (size, k, d, b, e) in enumerate(zip(in_spatial, kernel, dilations, begin, end)):
+        extent = (k - 1) * d + 1
+        if extent > size + b + e:
+            raise op.error(
+                f"has a window of {extent} along spatial axis {axis}, larger than its padded input ({size} + pads "
+                f"{b} + {e}); its output would be empty (onnxruntime refuses the model): pad the input so the "
+                "window fits, or give a larger --input-shape"
+            )
+
+
+def window_extents(attrs: PoolAttrs) -> Shape:
+    return tuple((k - 1) * d + 1 for k, d in zip(attrs.kernel, attrs.dilations))
 
 
 def pool_output_size(size: int, kernel: int, stride: int, dilation: int, begin: int, end: int, ceil_mode: bool) -> int:

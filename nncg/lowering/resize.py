@@ -1,14 +1,21 @@
-"""Resize lowering (nearest and linear; Upsample too) with every source index and weight fixed at
-compile time.
+"""Resize lowering (nearest and linear; Upsample too) with every source index fixed at compile time.
 
-Per dim, each output coordinate o reads a few input coordinates ("taps") with constant weights:
-one tap for nearest, two for linear (one at the clamped borders). The map o -> taps is not affine
-in general (e.g. floor(o / 2)), but it is periodic: taps(o + P) = taps(o) shifted by Q input
-positions, over most of the dim. So a dim is cut into pieces: a loop over blocks of P outputs whose
-body has one statement per residue r < P, with source index Q * block + constant — affine — plus
-single positions before and after where clamping breaks the period. A dim that is not resized is
-one piece with P = Q = 1: a plain loop. Output element = the sum over the cross product of its
-dims' taps of weight product * input element.
+Per dim, each output coordinate o reads a few input coordinates ("taps") with weights: one tap for
+nearest, two for linear (one at the clamped borders). The map o -> taps is not affine in general
+(e.g. floor(o / 2)), but it is periodic: taps(o + P) = taps(o) shifted by Q input positions, over
+most of the dim. So a dim is cut into pieces: a loop over blocks of P outputs whose body has one
+statement per residue r < P, with source index Q * block + constant (affine), plus single positions
+before and after where clamping breaks the period. A dim that is not resized is one piece with
+P = Q = 1: a plain loop. Output element = the sum over the cross product of its dims' taps of
+weight product * input element.
+
+A ratio such as 60 -> 97 repeats only after the whole dim, which would make one statement per
+output position. There the coordinates are made periodic and the weights are not: residue r of
+block b reads a window of input positions first[r] + Q * b + k (k < width[r]) with weights from a
+constant table (zero where the window is wider than the taps), with P and Q chosen so the windows
+stay narrow, usually the two taps themselves. Such a resize runs one dim at a time (intermediate
+buffers between), so the code grows with the sum of the dims' pieces, not their product; loops
+stay loops and the unroll pass decides about them as everywhere else.
 
 The output keeps the input's layout, so with a channels-last input the channel loop is innermost,
 contiguous and vectorised. Coordinates are computed in float32 like onnxruntime, so nearest
@@ -18,7 +25,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -28,25 +35,85 @@ from .context import LoweringContext, TensorRef, dim_vars
 
 Taps = tuple[tuple[int, float], ...]  # (input coordinate, weight) pairs of one output coordinate
 WEIGHT_TOLERANCE = 1e-6  # weights this close count as equal when looking for a period
+DIRECT_STATEMENTS = 64  # statements of one nest over all dims; above, the dims are resized one at a time
+MAX_PERIOD = 64  # longest period (statements per block) tried, exact or windowed
 
 
 @dataclass(frozen=True)
 class Piece:
     """Output coordinates start + period * b + r (b < blocks, r < period); residue r reads input
-    coordinate c + step * b with weight w for each (c, w) in taps[r]."""
+    coordinate c + step * b with weight w for each (c, w) in taps[r]. With a weight `table`, w is
+    instead an index into it, advancing by table_step per block."""
 
     start: int
     blocks: int
     period: int
     step: int
-    taps: tuple[Taps, ...]
+    taps: tuple[tuple, ...]
+    table: str | None = None
+    table_step: int = 0
 
 
 def lower_resize(ctx: LoweringContext, node: Node) -> None:
     attrs: ResizeAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
-    out = ctx.output(node.outputs[0], x.order)
-    pieces = [periodic_pieces(dim_taps(attrs, d, x.shape[d], out.shape[d])) for d in range(len(x.shape))]
+    out_shape = ctx.graph.shape(node.outputs[0])
+    taps = [dim_taps(attrs, d, x.shape[d], out_shape[d]) for d in range(len(x.shape))]
+    exact = [periodic_pieces(t, MAX_PERIOD) for t in taps]
+    if math.prod(statements(p) for p in exact) <= DIRECT_STATEMENTS:
+        _emit(ctx, node, x, ctx.output(node.outputs[0], x.order), exact)
+    else:
+        _lower_dim_by_dim(ctx, node, x, taps, exact)
+
+
+def _lower_dim_by_dim(ctx: LoweringContext, node: Node, x: TensorRef, taps: list, exact: list) -> None:
+    """One nest per resized dim, the shrinking ones first so the intermediate tensors stay small."""
+    out_shape = ctx.graph.shape(node.outputs[0])
+    rank = len(out_shape)
+    resized = [d for d in range(rank) if not _is_identity(taps[d])]
+    resized.sort(key=lambda d: out_shape[d] / x.shape[d])
+    source = x
+    for i, d in enumerate(resized):
+        shape = tuple(out_shape[k] if k in resized[: i + 1] else x.shape[k] for k in range(rank))
+        if d == resized[-1]:
+            target = ctx.output(node.outputs[0], x.order)
+        else:
+            target = ctx.add_buffer(f"t_{node.outputs[0]}_{i}", "internal", shape, x.order)
+        pieces = [_plain(shape[k]) for k in range(rank)]
+        pieces[d] = _dim_cover(ctx, node, d, taps[d], exact[d])
+        _emit(ctx, node, source, target, pieces)
+        source = target
+
+
+def statements(pieces: list[Piece]) -> int:
+    """Statements a dim's pieces put into the nest: one per residue."""
+    return sum(p.period for p in pieces)
+
+
+def cover_cost(pieces: list[Piece]) -> int:
+    """Taps computed along one line of the dim plus taps printed: the work and the code of a cover."""
+    return sum((p.blocks + 1) * sum(len(r) for r in p.taps) for p in pieces)
+
+
+def _dim_cover(ctx: LoweringContext, node: Node, d: int, taps: list[Taps], exact: list[Piece]) -> list[Piece]:
+    """The exact pieces, or windowed ones with their weight table when those are cheaper."""
+    window = windowed_pieces(taps, ctx.graph.shape(node.inputs[0])[d])
+    if window is None or cover_cost(exact) <= cover_cost(window[0]):
+        return exact
+    pieces, weights = window
+    table = ctx.add_constant(f"resize_weights_{node.name}_{d}", weights).buffer
+    return [replace(p, table=table) if p.table is not None else p for p in pieces]
+
+
+def _plain(n: int) -> list[Piece]:
+    return periodic_pieces([((o, 1.0),) for o in range(n)])
+
+
+def _is_identity(taps: list[Taps]) -> bool:
+    return all(t == ((o, 1.0),) for o, t in enumerate(taps))
+
+
+def _emit(ctx: LoweringContext, node: Node, x: TensorRef, out: TensorRef, pieces: list[list[Piece]]) -> None:
     builder = _NestBuilder(x, out, pieces, dim_vars(len(x.shape)))
     ctx.emit(node.name, node.op, builder.dims(0, (Affine(),) * len(x.shape), ((),) * len(x.shape)))
 
@@ -56,6 +123,10 @@ def lower_resize(ctx: LoweringContext, node: Node) -> None:
 
 def dim_taps(attrs: ResizeAttrs, d: int, n_in: int, n_out: int) -> list[Taps]:
     scale = np.float32(attrs.scales[d])
+    if scale == 1:
+        # onnxruntime maps a dim of scale 1 onto itself, whatever the coordinate mode: only
+        # tf_half_pixel_for_nn would move it ((o + 0.5) / 1 rounds up to o + 1).
+        return [((o, 1.0),) for o in range(n_out)]
     taps = []
     for o in range(n_out):
         x = source_coordinate(attrs.coordinate_transformation_mode, np.float32(o), scale, n_in, n_out)
@@ -113,12 +184,12 @@ def _linear(x: np.float32, n_in: int) -> Taps:
 # ---------------------------------------------------------------------------- periodic pieces
 
 
-def periodic_pieces(taps: list[Taps]) -> list[Piece]:
+def periodic_pieces(taps: list[Taps], max_period: int | None = None) -> list[Piece]:
     """The cheapest cover of the dim (fewest statements: one per residue plus one per single
-    position) by single positions and at most one periodic piece."""
+    position) by single positions and at most one periodic piece of at most `max_period` residues."""
     n = len(taps)
     best_cost, best = n, None
-    for period in range(1, n):
+    for period in range(1, n if max_period is None else min(n, max_period + 1)):
         if period >= best_cost:  # the period alone costs as much as the best cover so far
             break
         run = _longest_shift_run(taps, period)
@@ -161,6 +232,71 @@ def _single(taps: list[Taps], o: int) -> Piece:
     return Piece(o, 1, 1, 0, (taps[o],))
 
 
+# ---------------------------------------------------------------------------- windowed pieces
+
+
+def windowed_pieces(taps: list[Taps], n_in: int) -> tuple[list[Piece], np.ndarray] | None:
+    """The cheapest cover (cover_cost) by single positions around one periodic piece whose residues
+    read windows at periodic coordinates with weights from a table, and that table [blocks, row]:
+    its piece's taps are (coordinate, table column) pairs. None when no period fits twice."""
+    n = len(taps)
+    lead = _clamped_run(taps, range(n), 0)
+    interior = n - lead - _clamped_run(taps, range(n - 1, lead - 1, -1), n_in - 1)
+    best = None
+    for period in range(1, MAX_PERIOD + 1):
+        blocks = interior // period
+        if blocks < 2:
+            break
+        for step in _steps(taps, lead, blocks, period):
+            window = _window(taps, lead, blocks, period, step, n_in)
+            if window is None:
+                continue
+            end = lead + blocks * period
+            pieces = [*(_single(taps, o) for o in range(lead)), window[0], *(_single(taps, o) for o in range(end, n))]
+            if best is None or cover_cost(pieces) < cover_cost(best[0]):
+                best = (pieces, window[1])
+    return best
+
+
+def _clamped_run(taps: list[Taps], positions: range, coordinate: int) -> int:
+    """How many of `positions`, from the first, only read `coordinate` (clamped to the border)."""
+    count = 0
+    for o in positions:
+        if taps[o] != ((coordinate, 1.0),):
+            break
+        count += 1
+    return count
+
+
+def _steps(taps: list[Taps], lead: int, blocks: int, period: int) -> set[int]:
+    """The input steps per block worth trying: the average advance of `period` outputs, rounded."""
+    first, last = taps[lead][0][0], taps[lead + (blocks - 1) * period][0][0]
+    slope = (last - first) / (blocks - 1)
+    return {max(0, math.floor(slope)), max(0, math.ceil(slope))}
+
+
+def _window(taps: list[Taps], lead: int, blocks: int, period: int, step: int, n_in: int):
+    """The windowed piece over outputs [lead, lead + blocks * period) with this step and its weight
+    table, or None when a window would reach outside the input."""
+    firsts, widths = [], []
+    for r in range(period):
+        rows = [taps[lead + b * period + r] for b in range(blocks)]
+        firsts.append(min(c - b * step for b, row in enumerate(rows) for c, _ in row))
+        last = max(c - b * step for b, row in enumerate(rows) for c, _ in row)
+        widths.append(last - firsts[-1] + 1)
+        if firsts[-1] < 0 or last + (blocks - 1) * step >= n_in:
+            return None
+    columns = list(itertools.accumulate([0, *widths[:-1]]))
+    weights = np.zeros((blocks, sum(widths)), np.float32)
+    for b, r in itertools.product(range(blocks), range(period)):
+        for c, w in taps[lead + b * period + r]:
+            weights[b, columns[r] + c - b * step - firsts[r]] += np.float32(w)
+    residues = tuple(
+        tuple((first + k, column + k) for k in range(width)) for first, width, column in zip(firsts, widths, columns)
+    )
+    return Piece(lead, blocks, period, step, residues, table="", table_step=sum(widths)), weights.reshape(-1)
+
+
 # ---------------------------------------------------------------------------- loop nest
 
 
@@ -185,19 +321,27 @@ class _NestBuilder:
             inner: list[Stmt] = []
             for r, residue in enumerate(piece.taps):
                 here = block * piece.period + (piece.start + r)
-                reads = tuple((block * piece.step + c, w) for c, w in residue)
+                reads = tuple((block * piece.step + c, self._weight(piece, block, w)) for c, w in residue)
                 inner += self.dims(level + 1, _put(at, d, here), _put(taps, d, reads))
             body += [Loop(self.names[d], piece.blocks, tuple(inner), parallel=True)] if piece.blocks > 1 else inner
         return tuple(body)
+
+    @staticmethod
+    def _weight(piece: Piece, block: Affine, w) -> float | Load:
+        """A tap's weight: a constant, or the load of its column in this block's row of the table."""
+        return w if piece.table is None else Load(piece.table, block * piece.table_step + w)
 
     def _blend(self, taps: tuple[tuple, ...]) -> Expr:
         """Sum over the cross product of the dims' taps of weight product * input element."""
         total: Expr | None = None
         for combo in itertools.product(*taps):
-            weight = float(np.prod([np.float32(w) for _, w in combo], dtype=np.float32))
+            constant = [np.float32(w) for _, w in combo if not isinstance(w, Load)]
+            weight = float(np.prod(constant, dtype=np.float32))
             term: Expr = Load(self.x.buffer, self.x.at([c for c, _ in combo]))
             if weight != 1.0:
                 term = Binary("*", Const.splat(weight), term)
+            for table_weight in (w for _, w in combo if isinstance(w, Load)):
+                term = Binary("*", table_weight, term)
             total = term if total is None else Binary("+", total, term)
         return total
 
