@@ -163,8 +163,12 @@ class LoweringContext:
         return ref
 
     def emit(self, node_name: str, op: str, body: tuple[Stmt, ...]) -> None:
-        """Adds the kernel of the node `node_name`, named as the node."""
-        self.kernels.append(Kernel(self._layers.pop(node_name), op, body))
+        """Adds a kernel of the node `node_name`: the first is named as the node, any further one (a
+        resize done one dim at a time) gets a name of its own."""
+        layer = self._layers[node_name]
+        if any(k.name == layer for k in self.kernels):
+            layer = self._kernel_names.claim(layer)
+        self.kernels.append(Kernel(layer, op, body))
 
     def emit_helper(self, name: str, op: str, body: tuple[Stmt, ...]) -> None:
         """Adds a kernel no node has (a copy, a zero halo), named apart from every layer."""
