@@ -1,0 +1,68 @@
+"""`python -m nncg.fuzz`: a fuzz run, per-outcome counts at the end, the saved path of every failure."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .campaign import Settings, default_jobs, replay, run
+from .options import CROSS, cross_available, host_targets
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m nncg.fuzz", description=__doc__)
+    parser.add_argument("--count", type=int, help="number of cases (default 100, or unlimited with --minutes)")
+    parser.add_argument("--minutes", type=float, help="stop starting new cases after this many minutes")
+    parser.add_argument("--seed", type=int, default=0, help="case i of seed S is always the same case")
+    parser.add_argument("--targets", help="comma-separated targets (default: every host target; neon runs under qemu)")
+    parser.add_argument("--jobs", type=int, default=default_jobs(), help="worker processes (default: CPU count)")
+    parser.add_argument("--out", type=Path, default=Path("fuzz-out"), help="where failures are saved")
+    parser.add_argument("--sanitize-fraction", type=float, default=0.1, help="share of cases built with ASan+UBSan")
+    parser.add_argument("--no-shrink", action="store_true", help="save failures without shrinking them")
+    parser.add_argument("--replay", type=Path, help="re-run a saved case (its folder or .json) and print the outcome")
+    return parser.parse_args(argv)
+
+
+def targets(text: str | None) -> list[str]:
+    if not text:
+        return host_targets()
+    chosen = [t.strip() for t in text.split(",") if t.strip()]
+    for target in chosen:
+        if target in CROSS and not cross_available(target):
+            raise SystemExit(f"target {target} needs {CROSS[target][0]} and {CROSS[target][2][0]} on PATH")
+        if target not in CROSS and target not in host_targets():
+            raise SystemExit(f"target {target} does not run on this machine; host targets: {', '.join(host_targets())}")
+    return chosen
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.replay:
+        outcome = replay(args.replay)
+        print(f"{outcome.kind}: {outcome.message}")
+        return 0 if outcome.kind == "pass" else 1
+    count = args.count if args.count is not None else (None if args.minutes else 100)
+    settings = Settings(
+        args.seed,
+        count,
+        args.minutes,
+        targets(args.targets),
+        max(args.jobs, 1),
+        args.out,
+        args.sanitize_fraction,
+        not args.no_shrink,
+    )
+    print(
+        f"fuzzing: seed {settings.seed}, {count or 'unlimited'} cases"
+        + (f", {args.minutes} minutes" if args.minutes else "")
+        + f", targets {','.join(settings.targets)}, {settings.jobs} jobs, failures to {settings.out}",
+        flush=True,
+    )
+    summary = run(settings, lambda line: print(line, flush=True))
+    print(summary.format(), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
