@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from .campaign import Settings, default_jobs, replay, run
+from .ops import OPS
 from .options import CROSS, cross_available, host_targets
 
 
@@ -19,6 +20,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--jobs", type=int, default=default_jobs(), help="worker processes (default: CPU count)")
     parser.add_argument("--out", type=Path, default=Path("fuzz-out"), help="where failures are saved")
     parser.add_argument("--sanitize-fraction", type=float, default=0.1, help="share of cases built with ASan+UBSan")
+    parser.add_argument(
+        "--focus", default="", help="comma-separated step kinds to propose 10x as often, e.g. Resize,MaxPool"
+    )
     parser.add_argument("--no-shrink", action="store_true", help="save failures without shrinking them")
     parser.add_argument("--replay", type=Path, help="re-run a saved case (its folder or .json) and print the outcome")
     return parser.parse_args(argv)
@@ -36,6 +40,14 @@ def targets(text: str | None) -> list[str]:
     return chosen
 
 
+def focus(text: str) -> tuple[str, ...]:
+    chosen = tuple(op.strip() for op in text.split(",") if op.strip())
+    unknown = [op for op in chosen if op not in OPS]
+    if unknown:
+        raise SystemExit(f"unknown step kinds {', '.join(unknown)}; kinds: {', '.join(OPS)}")
+    return chosen
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.replay:
@@ -44,14 +56,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if outcome.kind == "pass" else 1
     count = args.count if args.count is not None else (None if args.minutes else 100)
     settings = Settings(
-        args.seed,
-        count,
-        args.minutes,
-        targets(args.targets),
-        max(args.jobs, 1),
-        args.out,
-        args.sanitize_fraction,
-        not args.no_shrink,
+        seed=args.seed,
+        count=count,
+        minutes=args.minutes,
+        targets=targets(args.targets),
+        jobs=max(args.jobs, 1),
+        out=args.out,
+        sanitize_fraction=args.sanitize_fraction,
+        focus=focus(args.focus),
+        shrink=not args.no_shrink,
     )
     print(
         f"fuzzing: seed {settings.seed}, {count or 'unlimited'} cases"

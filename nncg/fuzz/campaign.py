@@ -22,6 +22,7 @@ from .runner import OUTCOMES, Outcome
 from .shrinker import MAX_EVALUATIONS, MAX_SECONDS, Shrunk, shrink
 
 PROGRESS_SECONDS = 30
+SHRINKS_PER_SIGNATURE = 3
 
 
 @dataclass
@@ -33,6 +34,7 @@ class Settings:
     jobs: int = 1
     out: Path = Path("fuzz-out")
     sanitize_fraction: float = 0.1
+    focus: tuple[str, ...] = ()  # step kinds proposed more often (nncg.fuzz.generator.FOCUS_WEIGHT)
     shrink: bool = True
     shrink_evaluations: int = MAX_EVALUATIONS
     shrink_seconds: float = MAX_SECONDS
@@ -57,15 +59,16 @@ def run(settings: Settings, log: Callable[[str], None] = print) -> Summary:
     results = _evaluate_all(settings, log, start)
     summary = Summary(Counter(outcome.kind for _, outcome in results.values()))
     failures = {i: r for i, r in sorted(results.items()) if r[1].kind != "pass"}
-    firsts: dict[str, int] = {}
-    for index, (_, outcome) in failures.items():
-        firsts.setdefault(outcome.signature(), index)
-    to_shrink = [i for i in firsts.values() if failures[i][1].is_bug and failures[i][0] is not None]
-    shrunk = _shrink_all(settings, {i: failures[i] for i in to_shrink}, log) if settings.shrink else {}
+    groups: dict[str, list[int]] = {}
     for index, (case, outcome) in failures.items():
-        first = firsts[outcome.signature()]
-        same_as = _case_dir(settings, first, failures[first][1]) if first != index else None
-        path = save(settings.out, index, settings.seed, case, outcome, shrunk.get(index), same_as)
+        if outcome.is_bug and case is not None and settings.shrink:
+            groups.setdefault(outcome.signature(), []).append(index)
+    cases = {signature: [(i, failures[i][0]) for i in indices] for signature, indices in groups.items()}
+    shrunk, same_as = _shrink_groups(settings, cases, log)
+    for index, (case, outcome) in failures.items():
+        first = same_as.get(index)
+        twin = _case_dir(settings, first, failures[first][1]) if first is not None else None
+        path = save(settings.out, index, settings.seed, case, outcome, shrunk.get(index), twin)
         summary.saved.append((index, outcome.kind, path))
     summary.seconds = time.monotonic() - start
     return summary
@@ -86,12 +89,12 @@ def _evaluate_all(settings: Settings, log, start: float) -> dict[int, tuple[Case
     indices = _indices(settings, start)
     if settings.jobs <= 1:
         for index in indices:
-            report(*evaluate_index(settings.seed, index, settings.targets, settings.sanitize_fraction))
+            report(*evaluate_index(settings, index))
         return results
     with ProcessPoolExecutor(max_workers=settings.jobs) as pool:
         pending: set[Future] = set()
         for index in indices:
-            pending.add(pool.submit(evaluate_index, settings.seed, index, settings.targets, settings.sanitize_fraction))
+            pending.add(pool.submit(evaluate_index, settings, index))
             if len(pending) >= 2 * settings.jobs:
                 done, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for future in done:
@@ -116,30 +119,47 @@ def _progress(results, start: float) -> str:
     return f"[{len(results)} cases, {time.monotonic() - start:.0f} s] {shown}"
 
 
-def evaluate_index(
-    seed: int, index: int, targets: list[str], sanitize_fraction: float
-) -> tuple[int, Case | None, Outcome]:
+def evaluate_index(settings: Settings, index: int) -> tuple[int, Case | None, Outcome]:
     """Case `index` of the run: drawn, built, checked, run (in a worker process)."""
-    case = make_case(seed, index, targets, sanitize_fraction)
+    case = make_case(settings.seed, index, settings.targets, settings.sanitize_fraction, settings.focus)
     if isinstance(case, Outcome):
         return index, None, case
     return index, case, evaluate(case.recipe, case.options)
 
 
-def _shrink_all(settings: Settings, failures, log) -> dict[int, tuple[Shrunk, Outcome]]:
-    if not failures:
-        return {}
-    log(f"shrinking {len(failures)} distinct failures")
-    jobs = [
-        (case.recipe, case.options, outcome.signature(), settings.shrink_evaluations, settings.shrink_seconds)
-        for case, outcome in failures.values()
-    ]
+def _shrink_groups(settings: Settings, groups: dict[str, list[tuple[int, Case]]], log):
+    """Shrink failures group by group (a group: one signature), groups in parallel. Returns the
+    shrunk cases by index, and for each case not shrunk the index of the case it repeats."""
+    if not groups:
+        return {}, {}
+    log(f"shrinking failures of {len(groups)} kinds")
+    limits = (settings.shrink_evaluations, settings.shrink_seconds)
     if settings.jobs <= 1:
-        results = [shrink_case(*job) for job in jobs]
+        results = [shrink_group(signature, group, *limits) for signature, group in groups.items()]
     else:
         with ProcessPoolExecutor(max_workers=settings.jobs) as pool:
-            results = list(pool.map(shrink_case, *zip(*jobs)))
-    return dict(zip(failures, results))
+            jobs = [pool.submit(shrink_group, signature, group, *limits) for signature, group in groups.items()]
+            results = [job.result() for job in jobs]
+    shrunk, same_as = {}, {}
+    for done, repeats in results:
+        shrunk |= done
+        same_as |= repeats
+    return shrunk, same_as
+
+
+def shrink_group(signature: str, group: list[tuple[int, Case]], evaluations: int, seconds: float):
+    """Shrink the first case of a group of same-signature failures, then each later one whose step
+    kinds do not include a minimal case's (likely another bug), up to SHRINKS_PER_SIGNATURE."""
+    shrunk: dict[int, tuple[Shrunk, Outcome]] = {}
+    same_as: dict[int, int] = {}
+    for index, case in group:
+        kinds = {step.op for step in case.recipe.steps}
+        explained = [i for i, (s, _) in shrunk.items() if {step.op for step in s.recipe.steps} <= kinds]
+        if explained or len(shrunk) >= SHRINKS_PER_SIGNATURE:
+            same_as[index] = explained[0] if explained else group[0][0]
+            continue
+        shrunk[index] = shrink_case(case.recipe, case.options, signature, evaluations, seconds)
+    return shrunk, same_as
 
 
 def shrink_case(

@@ -17,7 +17,7 @@ from .runner import Outcome, run_case, validate
 
 BASE_BYTES = 32 << 10  # header, helpers, the function's frame
 BYTES_PER_NODE = 16 << 10  # one layer's loop nests with vector blocks, tails and border splits
-BYTES_PER_WEIGHT = 24  # a float printed as a C literal, in an array or inlined
+BYTES_PER_WEIGHT = 48  # a float printed as a C literal; Winograd and vector padding up to double the count
 BYTES_PER_STATEMENT = 200  # an unrolled statement (vector intrinsics are the longest)
 AUTO_STATEMENTS_PER_NODE = 8 * 64  # unroll auto: a few nests per layer, each unrolled to 64 statements
 
@@ -34,9 +34,11 @@ class Case:
         return f"s{self.seed}-{self.index}"
 
 
-def make_case(seed: int, index: int, targets: list[str], sanitize_fraction: float) -> Case | Outcome:
+def make_case(
+    seed: int, index: int, targets: list[str], sanitize_fraction: float, focus: tuple[str, ...] = ()
+) -> Case | Outcome:
     """Case `index` of the run with `seed`: the same arguments give the same case."""
-    recipe = generate([seed, index])
+    recipe = generate([seed, index], focus=focus)
     try:
         model = build(recipe)
     except Invalid as exc:

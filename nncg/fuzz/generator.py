@@ -16,11 +16,14 @@ from .recipe import Recipe, Shape, Step
 OPSETS = (9, 11, 13, 17, 18, 19)
 OPSET_WEIGHTS = (0.08, 0.22, 0.3, 0.1, 0.15, 0.15)
 MAX_STEPS = 8
+FOCUS_WEIGHT = 10
 INPUT_ELEMENTS = 4096
+SCALAR_OPS = ("Unary", "Binary", "Variadic", "Unsqueeze", "Reshape", "Identity")  # ops that take rank-0 values
 
 
-def generate(seed: int | Sequence[int], max_steps: int = MAX_STEPS) -> Recipe:
-    """The recipe of one random valid graph; the same seed gives the same recipe."""
+def generate(seed: int | Sequence[int], max_steps: int = MAX_STEPS, focus: Sequence[str] = ()) -> Recipe:
+    """The recipe of one random valid graph; the same seed gives the same recipe. Ops in `focus`
+    (step kinds of nncg.fuzz.ops.OPS) are proposed FOCUS_WEIGHT times as often."""
     d = Draw(np.random.default_rng(seed), 0)
     d.opset = d.pick(OPSETS, OPSET_WEIGHTS)
     inputs = {"x": input_shape(d)}
@@ -33,7 +36,7 @@ def generate(seed: int | Sequence[int], max_steps: int = MAX_STEPS) -> Recipe:
     for _ in range(wanted * 12):
         if len(steps) == wanted:
             break
-        step = _propose_step(d, len(steps))
+        step = _propose_step(d, len(steps), focus)
         if step is None:
             continue
         try:
@@ -65,11 +68,13 @@ def input_shape(d: Draw) -> Shape:
     return (1, 3, 5, 5)
 
 
-def _propose_step(d: Draw, index: int) -> Step | None:
+def _propose_step(d: Draw, index: int, focus: Sequence[str]) -> Step | None:
     names = list(d.shapes)
     x = d.pick(names[::-1], [0.5**i for i in range(len(names))])
     ops = [name for name, spec in OPS.items() if spec.min_opset <= d.opset <= spec.max_opset]
-    op = d.pick(ops, [OPS[name].weight for name in ops])
+    op = d.pick(ops, [OPS[name].weight * (FOCUS_WEIGHT if name in focus else 1) for name in ops])
+    if not d.shapes[x] and op not in SCALAR_OPS:
+        return None
     proposal = OPS[op].propose(d, x)
     if proposal is None:
         return None
