@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .campaign import Settings, default_jobs, replay, run
+from .campaign import Settings, default_jobs, promote, replay, run
 from .ops import OPS
 from .options import CROSS, cross_available, host_targets
 
@@ -25,6 +25,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--no-shrink", action="store_true", help="save failures without shrinking them")
     parser.add_argument("--replay", type=Path, help="re-run a saved case (its folder or .json) and print the outcome")
+    parser.add_argument(
+        "--promote",
+        nargs=2,
+        type=Path,
+        metavar=("FOUND", "DEST"),
+        help="make a saved failure a regression case of tests/test_fuzz.py in DEST (tests/fuzz_regressions/NAME)",
+    )
+    parser.add_argument("--description", default="", help="with --promote: what the case checks, one line")
+    parser.add_argument("--xfail", help="with --promote: the reason it still fails (the test is xfail strict)")
     return parser.parse_args(argv)
 
 
@@ -54,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         outcome = replay(args.replay)
         print(f"{outcome.kind}: {outcome.message}")
         return 0 if outcome.kind == "pass" else 1
+    if args.promote:
+        print(promote(*args.promote, args.description, args.xfail))
+        return 0
     count = args.count if args.count is not None else (None if args.minutes else 100)
     settings = Settings(
         seed=args.seed,

@@ -18,7 +18,7 @@ from .build import build
 from .case import Case, evaluate, make_case
 from .options import Options
 from .recipe import Recipe
-from .runner import OUTCOMES, Outcome
+from .runner import OUTCOMES, SHRINKABLE, Outcome
 from .shrinker import MAX_EVALUATIONS, MAX_SECONDS, Shrunk, shrink
 
 PROGRESS_SECONDS = 30
@@ -61,7 +61,7 @@ def run(settings: Settings, log: Callable[[str], None] = print) -> Summary:
     failures = {i: r for i, r in sorted(results.items()) if r[1].kind != "pass"}
     groups: dict[str, list[int]] = {}
     for index, (case, outcome) in failures.items():
-        if outcome.is_bug and case is not None and settings.shrink:
+        if outcome.kind in SHRINKABLE and case is not None and settings.shrink:
             groups.setdefault(outcome.signature(), []).append(index)
     cases = {signature: [(i, failures[i][0]) for i in indices] for signature, indices in groups.items()}
     shrunk, same_as = _shrink_groups(settings, cases, log)
@@ -148,18 +148,28 @@ def _shrink_groups(settings: Settings, groups: dict[str, list[tuple[int, Case]]]
 
 
 def shrink_group(signature: str, group: list[tuple[int, Case]], evaluations: int, seconds: float):
-    """Shrink the first case of a group of same-signature failures, then each later one whose step
-    kinds do not include a minimal case's (likely another bug), up to SHRINKS_PER_SIGNATURE."""
+    """Shrink the first case of a group of same-signature failures, then each later one whose
+    features do not include a minimal case's (likely another bug), up to SHRINKS_PER_SIGNATURE."""
     shrunk: dict[int, tuple[Shrunk, Outcome]] = {}
     same_as: dict[int, int] = {}
     for index, case in group:
-        kinds = {step.op for step in case.recipe.steps}
-        explained = [i for i, (s, _) in shrunk.items() if {step.op for step in s.recipe.steps} <= kinds]
+        kinds = features(case.recipe)
+        explained = [i for i, (s, _) in shrunk.items() if features(s.recipe) <= kinds]
         if explained or len(shrunk) >= SHRINKS_PER_SIGNATURE:
             same_as[index] = explained[0] if explained else group[0][0]
             continue
         shrunk[index] = shrink_case(case.recipe, case.options, signature, evaluations, seconds)
     return shrunk, same_as
+
+
+def features(recipe: Recipe) -> set[str]:
+    """Step kinds and their text parameters (modes, ops): a failure whose case has all of a minimal
+    case's features is taken for the same bug."""
+    out = set()
+    for step in recipe.steps:
+        out.add(step.op)
+        out |= {f"{step.op}.{key}={value}" for key, value in step.params.items() if isinstance(value, str)}
+    return out
 
 
 def shrink_case(
@@ -244,3 +254,19 @@ def replay(path: Path) -> Outcome:
 
 def default_jobs() -> int:
     return os.cpu_count() or 1
+
+
+def promote(found: Path, dest: Path, description: str, xfail: str | None = None) -> Path:
+    """Turn a saved failure (its minimal case if shrunk) into a regression case for
+    tests/test_fuzz.py: DEST/model.onnx and DEST/case.json (options, what it checks, xfail reason)."""
+    path = found / "minimal.json" if (found / "minimal.json").exists() else found / "case.json"
+    data = json.loads(path.read_text())
+    recipe, options = Recipe.from_json(data["recipe"]), Options.from_json(data["options"])
+    dest.mkdir(parents=True, exist_ok=True)
+    (dest / "model.onnx").write_bytes(build(recipe).SerializeToString())
+    record: dict[str, Any] = {"description": description, "options": options.to_json(), "recipe": recipe.to_json()}
+    record |= {"found_as": data.get("outcome", {}).get("kind"), "command": options.command()}
+    if xfail:
+        record["xfail"] = xfail
+    (dest / "case.json").write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
+    return dest

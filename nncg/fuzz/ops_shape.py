@@ -77,6 +77,8 @@ def build_reshape(c: StepContext) -> list[tuple[int, ...]]:
 def propose_reshape(d: Draw, x: str) -> Proposal:
     shape = d.shapes[x]
     rank = len(shape)
+    if rank == 0:
+        return Proposal([x], {"target": d.pick(([1], [1, 1], ["-1"]))})
     kind = d.pick(("merge", "split", "flat", "rank2"))
     tokens: list = [f"d{i}" for i in range(rank)]
     if kind == "merge" and rank >= 2:
@@ -443,7 +445,8 @@ def propose_resize(d: Draw, x: str) -> Proposal:
         params["axes"] = listed
     factors = (0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 1.3)
     if d.opset >= 11 and d.chance(0.4):
-        grow = [max(1, round(shape[a] * d.pick(factors)) + d.int(0, 1)) for a in listed]
+        # sizes one off a multiple give ratios that do not repeat along the axis (no periodic pieces)
+        grow = [max(1, round(shape[a] * d.pick(factors)) + d.pick((0, 1, -1))) for a in listed]
         params["sizes"] = [g if a in resized else shape[a] for a, g in zip(listed, grow)]
     else:
         params["scales"] = [float(d.pick(factors)) if a in resized else 1.0 for a in listed]

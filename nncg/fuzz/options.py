@@ -23,7 +23,7 @@ from .draw import Draw
 HOST_ISA_TARGETS = {"ssse3": "sse", "avx2": "avx2-fma", "avx512": "avx512-fma"}
 CROSS = {"neon": ("aarch64-linux-gnu-gcc", ("-static",), ("qemu-aarch64",))}  # cc, flags, runner
 UNROLLS = ("auto", "auto", "0", "1", "2", "none")
-BUDGETS = (CODE_BUDGET, CODE_BUDGET, 256, 1024, 4096, 64, None)  # None: no cap (--code-budget 0)
+BUDGETS = (CODE_BUDGET, 256, 1024, 4096, 64, None)  # None: no cap (--code-budget 0)
 LAYER_BUDGETS = (64, 0, 16, 256, 1024)
 UNCAPPED_MAX_ELEMENTS = 4096  # no code budget with full unrolling only on small models
 

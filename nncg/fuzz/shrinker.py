@@ -131,7 +131,7 @@ def _cuts(recipe: Recipe) -> Iterator[Recipe]:
             name = f"in_{value}"
             cut = replace(recipe.renamed(value, name), inputs={**recipe.inputs, name: shapes[value]})
             trimmed = cut.without_dead_steps()
-            if len(trimmed.steps) < len(recipe.steps) - 1:
+            if len(trimmed.steps) < len(recipe.steps):
                 yield trimmed
 
 
