@@ -48,7 +48,7 @@ class Summary:
 
     def format(self) -> str:
         lines = [f"{sum(self.counts.values())} cases in {self.seconds:.0f} s"]
-        lines += [f"  {kind:16} {self.counts[kind]}" for kind in OUTCOMES if self.counts[kind]]
+        lines += [f"  {kind:20} {self.counts[kind]}" for kind in OUTCOMES if self.counts[kind]]
         lines += [f"{kind}: {path}" for _, kind, path in sorted(self.saved)]
         return "\n".join(lines)
 

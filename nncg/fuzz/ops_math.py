@@ -255,7 +255,7 @@ def propose_gemm(d: Draw, x: str) -> Proposal | None:
         return None
     params: dict = {"n": d.pick((1, 3, 7, 10, 16, 17, 33)), "seed": d.seed()}
     params["transB"] = d.pick((0, 1))
-    if d.chance(0.15):
+    if d.chance(0.3):
         params["transA"] = 1
     if d.chance(0.3):
         params["alpha"] = d.pick((0.5, 2.0))

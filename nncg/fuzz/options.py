@@ -170,11 +170,13 @@ def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
 
 
 def _block_choice(d: Draw, shape: tuple[int, int], registers: int) -> tuple[int, int]:
-    """A block shape --tune would time, or now and then any shape (the pass clamps or refuses it)."""
+    """A block shape --tune would time, or now and then another one that fits the register file
+    (pixels may exceed the loop, channels the vectors there are: the pass must cope)."""
     if d.chance(0.85):
         return d.pick(block_candidates(shape, registers))
     extent, vectors = shape
-    return d.int(1, extent + 2), d.int(1, vectors + 1)
+    channels = d.int(1, vectors + 1)
+    return d.int(1, max(1, min(extent + 2, registers // channels))), channels
 
 
 def options_rng(seed: int, index: int) -> Draw:
