@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
-from . import ops_conv, ops_math, ops_shape
+from . import ops_conv, ops_math, ops_resize, ops_shape
 from .build import StepContext
 from .draw import Draw, Proposal
 from .recipe import Shape
@@ -52,8 +52,8 @@ OPS: dict[str, OpSpec] = {
     "Pad": OpSpec(ops_shape.build_pad, ops_shape.propose_pad, 0.8),
     "Split": OpSpec(ops_shape.build_split, ops_shape.propose_split, 0.6),
     "Concat": OpSpec(ops_shape.build_concat, ops_shape.propose_concat, 1.2),
-    "Resize": OpSpec(ops_shape.build_resize, ops_shape.propose_resize, 2.0, min_opset=10),
-    "Upsample": OpSpec(ops_shape.build_upsample, ops_shape.propose_upsample, 1.5, max_opset=9),
+    "Resize": OpSpec(ops_resize.build_resize, ops_resize.propose_resize, 2.0, min_opset=10),
+    "Upsample": OpSpec(ops_resize.build_upsample, ops_resize.propose_upsample, 1.5, max_opset=9),
     "Dropout": OpSpec(ops_shape.build_dropout, ops_shape.propose_dropout, 0.3),
     "Identity": OpSpec(ops_shape.build_identity, ops_shape.propose_identity, 0.2),
 }

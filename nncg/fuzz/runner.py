@@ -50,6 +50,8 @@ NOISE_ULPS = 4  # input perturbation (in float32 ulps) that estimates the model'
 
 @dataclass(frozen=True)
 class Outcome:
+    """What one case gave: its class (OUTCOMES), the message, the worst error, the C's size."""
+
     kind: str
     message: str = ""
     max_rel: float = 0.0
