@@ -23,7 +23,8 @@ BYTES_PER_NODE = 8 << 10  # one layer's loop nests with vector blocks, tails and
 WINOGRAD_NODE_BYTES = 256 << 10
 BYTES_PER_WEIGHT = 48  # a float printed as a C literal; Winograd and vector padding up to double the count
 BYTES_PER_STATEMENT = 200  # an unrolled statement (~100 bytes measured; vector intrinsics are the longest)
-AUTO_STATEMENTS_PER_NODE = 4 * 64  # unroll auto: a few nests per layer, each unrolled to 64 statements
+NESTS_PER_LAYER = 4  # a layer's loop nests: border and interior splits, vector and tail blocks
+AUTO_STATEMENTS_PER_NODE = NESTS_PER_LAYER * 64  # unroll auto: a few nests per layer, each unrolled to 64 statements
 
 
 @dataclass(frozen=True)
@@ -73,13 +74,16 @@ def size_limit(model: onnx.ModelProto, options: Options) -> int | None:
     winograd = sum(1 for n in model.graph.node if _winograd_shaped(n, weights))
     fixed = BASE_BYTES + BYTES_PER_NODE * nodes + WINOGRAD_NODE_BYTES * winograd
     fixed += BYTES_PER_WEIGHT * sum(w.size for w in weights.values())
-    if options.unroll == "none" and "unroll" not in options.layers:
+    layer_budgets = options.layers.get("unroll", {})
+    if options.unroll == "none" and not layer_budgets:
         return fixed
     if options.code_budget is None:
         return None
     statements = options.code_budget
-    if options.unroll == "auto" and "unroll" not in options.layers:
+    if options.unroll == "auto":
         statements = min(statements, AUTO_STATEMENTS_PER_NODE * nodes)
+    # per-layer budgets cap each of the layer's nests and are exempt from the total (passes/unroll.py)
+    statements += NESTS_PER_LAYER * sum(layer_budgets.values())
     return fixed + BYTES_PER_STATEMENT * statements
 
 

@@ -244,6 +244,8 @@ def build_pool(c: StepContext, op: str) -> list[tuple[int, ...]]:
     if "dilations" in p and c.opset < (10 if op == "MaxPool" else 19):
         raise c.invalid(f"{op} dilations need a newer opset")
     _, kernel, _, _ = _spatial(c)
+    if len(kernel) > 3:
+        raise c.invalid("onnxruntime pools 1 to 3 spatial dims")
     pads = _pads(c)
     d = len(kernel)
     if any(pads[i] >= kernel[i] or pads[i + d] >= kernel[i] for i in range(d)):
@@ -268,7 +270,7 @@ def build_pool(c: StepContext, op: str) -> list[tuple[int, ...]]:
 
 def propose_pool(d: Draw, x: str, op: str) -> Proposal | None:
     shape = d.shapes[x]
-    if len(shape) < 3:
+    if not 3 <= len(shape) <= 5:  # onnxruntime pools 1 to 3 spatial dims
         return None
     dilation = d.opset >= (10 if op == "MaxPool" else 19)
     params = _propose_window(d, shape[2:], kernel_max=3, pads=False, dilation=dilation)

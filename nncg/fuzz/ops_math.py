@@ -241,6 +241,8 @@ def build_gemm(c: StepContext) -> list[tuple[int, ...]]:
     w = c.weights(*((n, k) if trans_b else (k, n)), fan_in=k)
     inputs = [c.input(), c.weight_operand(w, bool(p.get("runtime_b")), "B")]
     bias = p.get("c", "none")
+    if bias == "none" and c.opset < 11:
+        raise c.invalid("Gemm needs its C input before opset 11")
     if bias != "none":
         shapes = {"vector": (n,), "row": (1, n), "scalar": (), "one": (1,)}
         inputs.append(c.const(c.weights(*shapes[bias], fan_in=4) if shapes[bias] else np.float32(0.3), role="C"))
@@ -261,7 +263,8 @@ def propose_gemm(d: Draw, x: str) -> Proposal | None:
         params["alpha"] = d.pick((0.5, 2.0))
     if d.chance(0.2):
         params["beta"] = d.pick((0.0, 0.5, 2.0))
-    params["c"] = d.pick(("none", "vector", "vector", "row", "scalar", "one"))
+    biases = ("none", "vector", "vector", "row", "scalar", "one") if d.opset >= 11 else ("vector", "row", "one")
+    params["c"] = d.pick(biases)  # C is optional from opset 11 on
     if d.chance(0.06):
         params["runtime_b"] = True
     return Proposal([x], params)
