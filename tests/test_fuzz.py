@@ -6,10 +6,9 @@ import json
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
 import onnx
 import pytest
-from onnx import TensorProto, helper, numpy_helper
+from onnx import TensorProto, helper
 
 from nncg.frontend.ops import CONVERTERS
 from nncg.fuzz.__main__ import main
@@ -231,4 +230,3 @@ def test_regression_models_match_their_recipes():
         rebuilt = build(Recipe.from_json(record["recipe"]))
         saved = onnx.load(folder / "model.onnx")
         assert rebuilt.SerializeToString() == saved.SerializeToString(), folder.name
-        assert all(numpy_helper.to_array(t).dtype != np.float64 for t in saved.graph.initializer)
