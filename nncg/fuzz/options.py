@@ -1,0 +1,184 @@
+"""Random compile options for a fuzz case: target, unroll level, code budget, where the weights go,
+and pipelines with per-layer choices as `--tune` writes them (Winograd, pixel vectorisation, block
+shapes, unroll budgets), mostly legal for the layer, now and then not (the pass must refuse those)."""
+
+from __future__ import annotations
+
+import shlex
+import shutil
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import onnx
+
+from ..backends import get_backend
+from ..bench.peak import supported_isas
+from ..errors import NncgError
+from ..passes import default_pipeline
+from ..passes.unroll import CODE_BUDGET
+from ..tune import algorithm_layers, block_candidates, tunable_layers, with_layer_choices
+from .draw import Draw
+
+HOST_ISA_TARGETS = {"ssse3": "sse", "avx2": "avx2-fma", "avx512": "avx512-fma"}
+CROSS = {"neon": ("aarch64-linux-gnu-gcc", ("-static",), ("qemu-aarch64",))}  # cc, flags, runner
+UNROLLS = ("auto", "auto", "0", "1", "2", "none")
+BUDGETS = (CODE_BUDGET, 256, 1024, 4096, 64, None)  # None: no cap (--code-budget 0)
+LAYER_BUDGETS = (64, 0, 16, 256, 1024)
+UNCAPPED_MAX_ELEMENTS = 4096  # no code budget with full unrolling only on small models
+
+
+@dataclass(frozen=True)
+class Options:
+    """One way to compile a model: what nncg.compile gets, plus whether to build under sanitizers."""
+
+    target: str = "ansi-c"
+    unroll: str = "auto"
+    code_budget: int | None = CODE_BUDGET
+    weights: str = "auto"
+    layers: dict[str, dict[str, Any]] = field(default_factory=dict)  # pass -> {layer: choice}
+    halos: bool = False
+    sanitize: bool = False
+
+    @property
+    def default_layers(self) -> bool:
+        return not any(self.layers.values()) and not self.halos
+
+    def pipeline(self) -> str | None:
+        """The pass pipeline with the per-layer choices; None for the default one."""
+        if self.default_layers:
+            return None
+        backend = get_backend(self.target)
+        text = default_pipeline(backend.vector_widths, self.unroll, self.weights, self.code_budget, backend.registers)
+        text = with_layer_choices(
+            text,
+            {name: tuple(shape) for name, shape in self.layers.get("register-block", {}).items()},
+            self.layers.get("unroll", {}),
+            self.layers.get("winograd"),
+            self.layers.get("vectorize-pixels"),
+        )
+        return text.replace(",lower,", ",lower{halos=true},") if self.halos else text
+
+    def compile_kwargs(self) -> dict[str, Any]:
+        kwargs: dict[str, Any] = {"target": self.target, "unroll": self.unroll, "weights": self.weights}
+        kwargs["code_budget"] = self.code_budget
+        pipeline = self.pipeline()
+        return kwargs | ({"pipeline": pipeline} if pipeline else {})
+
+    def command(self, model_path: str = "model.onnx") -> str:
+        """The nncg-onnx command line that compiles and verifies the model with these options."""
+        args = ["nncg-onnx", model_path, "--target", self.target, "--unroll", self.unroll]
+        args += ["--code-budget", str(self.code_budget or 0), "--weights", self.weights]
+        pipeline = self.pipeline()
+        args += ["--pipeline", pipeline] if pipeline else []
+        return shlex.join([*args, "-o", "out", "--verify"])
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @staticmethod
+    def from_json(data: dict[str, Any]) -> Options:
+        return Options(**data)
+
+    def simpler(self) -> list[Options]:
+        """Options one step closer to the defaults (for the shrinker), most drastic first."""
+        base = Options()
+        out = []
+        for key in ("layers", "halos", "sanitize", "code_budget", "unroll", "weights", "target"):
+            if getattr(self, key) != getattr(base, key):
+                out.append(replace(self, **{key: getattr(base, key)}))
+        for pass_name, choices in self.layers.items():
+            for layer in choices:
+                fewer = {
+                    p: {k: v for k, v in c.items() if (p, k) != (pass_name, layer)} for p, c in self.layers.items()
+                }
+                out.append(replace(self, layers={p: c for p, c in fewer.items() if c}))
+        return out
+
+
+def host_targets() -> list[str]:
+    """ansi-c and the x86 targets whose instruction set this CPU has."""
+    isas = set(supported_isas())
+    return ["ansi-c"] + [target for target, isa in HOST_ISA_TARGETS.items() if isa in isas]
+
+
+def cross_available(target: str) -> bool:
+    cc, _, runner = CROSS[target]
+    return shutil.which(cc) is not None and shutil.which(runner[0]) is not None
+
+
+def random_options(
+    d: Draw, model: onnx.ModelProto, targets: list[str], sanitize_fraction: float, elements: int
+) -> Options:
+    """Options for one case; `elements` is the model's largest value (full unrolling without a code
+    budget is only drawn for small ones)."""
+    target = d.pick(targets)
+    unroll = d.pick(UNROLLS)
+    budgets = [b for b in BUDGETS if b is not None or (elements <= UNCAPPED_MAX_ELEMENTS and unroll != "0")]
+    options = Options(
+        target=target,
+        unroll=unroll,
+        code_budget=d.pick(budgets),
+        weights=d.pick(("auto", "auto", "embed", "bin")),
+        halos=d.chance(0.15),
+        sanitize=target not in CROSS and d.chance(sanitize_fraction),
+    )
+    if d.chance(0.4):
+        options = replace(options, layers=_layer_choices(d, model, options))
+    return options
+
+
+def _layer_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[str, dict[str, Any]]:
+    """Per-layer choices drawn from what --tune would measure (each legal), with a small chance of a
+    choice the pass must refuse. The IR is imported and run up to each pass, as --tune does."""
+    choices: dict[str, dict[str, Any]] = {}
+    try:
+        names = list(algorithm_layers(model, _base(options), None))
+        if names:
+            choices["winograd"] = {n: d.chance(0.5) for n in names}
+        pixels = _pixel_candidates(model, replace(options, layers=choices))
+        if pixels:
+            taken = d.int(0, len(pixels))
+            choices["vectorize-pixels"] = {
+                n: i < taken if d.chance(0.85) else d.chance(0.5) for i, n in enumerate(pixels)
+            }
+        registers = get_backend(options.target).registers
+        layers = tunable_layers(model, replace(options, layers=choices).pipeline() or _base(options), None)
+        blocks = {n: list(_block_choice(d, shape, registers)) for n, (shape, _) in layers.items() if d.chance(0.7)}
+        budgets = {n: d.pick(LAYER_BUDGETS) for n in layers if d.chance(0.5)}
+    except NncgError:
+        return {}
+    choices |= {k: v for k, v in (("register-block", blocks), ("unroll", budgets)) if v}
+    return choices
+
+
+def _base(options: Options) -> str:
+    backend = get_backend(options.target)
+    return default_pipeline(
+        backend.vector_widths, options.unroll, options.weights, options.code_budget, backend.registers
+    )
+
+
+def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
+    from ..passes.vectorize_pixels import pixel_candidates
+    from ..tune import ir_before
+
+    pipeline = options.pipeline() or _base(options)
+    if "vectorize-pixels" not in pipeline:
+        return []
+    return pixel_candidates(ir_before(model, pipeline, "vectorize-pixels", None))
+
+
+def _block_choice(d: Draw, shape: tuple[int, int], registers: int) -> tuple[int, int]:
+    """A block shape --tune would time, or now and then another one that fits the register file
+    (pixels may exceed the loop, channels the vectors there are: the pass must cope)."""
+    if d.chance(0.85):
+        return d.pick(block_candidates(shape, registers))
+    extent, vectors = shape
+    channels = d.int(1, vectors + 1)
+    return d.int(1, max(1, min(extent + 2, registers // channels))), channels
+
+
+def options_rng(seed: int, index: int) -> Draw:
+    """The options' own random stream, apart from the graph's (so shrinking one keeps the other)."""
+    return Draw(np.random.default_rng([seed, index, 1]), 0)
