@@ -9,6 +9,7 @@ import itertools
 import re
 
 import numpy as np
+import onnxruntime as ort
 import pytest
 from helpers import check_against_onnxruntime
 from onnx import TensorProto, helper, numpy_helper
@@ -708,3 +709,40 @@ def test_resize_pieces_reproduce_every_output_coordinate(mode, coordinates):
         for o, expected in enumerate(taps):
             assert [c for c, _ in rebuilt[o]] == [c for c, _ in expected]
             np.testing.assert_allclose([w for _, w in rebuilt[o]], [w for _, w in expected], atol=1e-6)
+
+
+@pytest.mark.parametrize("mode", ["nearest", "linear"])
+def test_resize_coordinates_match_onnxruntime_on_a_grid_of_sizes(mode):
+    """Every input index (nearest) or weighted sum (linear) for 1..12 -> 1..12 pixels, given as sizes
+    or as a float scale, in every coordinate and nearest mode: near-ties (7 -> 4 asymmetric hits 3.5
+    exactly, 3.4999998 in float32) and sizes that do not change (scale 1.013 on 10 pixels) included."""
+    rng = np.random.default_rng(0)
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    nearest_modes = ["round_prefer_floor", "round_prefer_ceil", "floor", "ceil"] if mode == "nearest" else [None]
+    for coords, nearest, n, m, given_scale in itertools.product(
+        ["asymmetric", "half_pixel", "pytorch_half_pixel", "align_corners", "half_pixel_symmetric",
+         "tf_half_pixel_for_nn"], nearest_modes, range(1, 13), range(1, 13), (False, True),
+    ):  # fmt: skip
+        if mode == "linear" and coords == "tf_half_pixel_for_nn":
+            continue
+        scale = float(np.float32(m / n + 0.013 * ((n * m) % 3))) if given_scale else None
+        out = int(np.floor(np.float32(scale) * np.float32(n))) if given_scale else m
+        if out < 1:
+            continue
+        x = rng.standard_normal(n).astype(np.float32)
+        extra = {"nearest_mode": nearest} if nearest else {}
+        node = helper.make_node("Resize", ["x", "", *(["s"] if given_scale else ["", "s"])], ["y"], mode=mode,
+                                coordinate_transformation_mode=coords, **extra)  # fmt: skip
+        s = helper.make_tensor("s", *((TensorProto.FLOAT, [3], [1, 1, scale]) if given_scale else
+                                      (TensorProto.INT64, [3], [1, 1, out])))  # fmt: skip
+        graph = helper.make_graph([node], "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 1, n])],
+                                  [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)], [s])  # fmt: skip
+        session = ort.InferenceSession(
+            helper.make_model(graph, opset_imports=[helper.make_opsetid("", 19)]).SerializeToString(), options
+        )
+        expected = session.run(None, {"x": x.reshape(1, 1, n)})[0].ravel()
+        used = np.float32(scale) if given_scale else np.float32(out) / np.float32(n)
+        attrs = ResizeAttrs((1.0, 1.0, float(used)), mode, coords, nearest or "round_prefer_floor")
+        got = np.array([sum(w * x[i] for i, w in taps) for taps in dim_taps(attrs, 2, n, out)], dtype=np.float32)
+        assert np.abs(got - expected).max() <= 1e-6, (coords, nearest, n, out, scale, got, expected)

@@ -5,8 +5,9 @@ Shared by loading (validating the user's model) and folding (re-inferring after 
 
 from __future__ import annotations
 
+import numpy as np
 import onnx
-from onnx import helper
+from onnx import helper, numpy_helper
 
 from nncg.errors import NncgError
 from nncg.frontend.context import OnnxOp
@@ -16,20 +17,22 @@ from nncg.ir.graph import Shape
 from nncg.safe_text import capped, escaped, shown
 
 POOLS = ("MaxPool", "AveragePool")
+RESIZES = ("Resize", "Upsample")
 
 
 def inferred_shapes(model: onnx.ModelProto) -> dict[str, Shape]:
-    """Static shapes of all values by strict ONNX inference, ceil-mode pool outputs fixed.
+    """Static shapes of all values by strict ONNX inference, ceil-mode pool and Resize outputs fixed.
 
     ONNX's MaxPool and AveragePool inference before opset 22 ignores the spec rule that drops a
-    window starting in the end padding (onnxruntime follows it); such outputs are pinned to the right
-    shape, fed in as inputs, and inference re-runs so everything downstream (and Shape folding) sees
-    the real shape. A negative dimension anywhere is refused, naming the node that makes it.
+    window starting in the end padding (onnxruntime follows it), and its Resize inference rounds
+    n * scale in double where onnxruntime uses float32; such outputs are pinned to the right shape,
+    fed in as inputs, and inference re-runs so everything downstream (and Shape folding) sees the
+    real shape. A negative dimension anywhere is refused, naming the node that makes it.
     """
     pinned: dict[str, Shape] = {}
     while True:
         shapes = static_shapes(infer(_inference_model(model, pinned)))
-        wrong = _misinferred_pool(model, shapes, pinned)
+        wrong = _misinferred(model, shapes, pinned)
         if wrong is None:
             _check_no_negative_dims(model, shapes)
             _check_declared_outputs(model, shapes)
@@ -103,23 +106,44 @@ def _dim_text(dim: onnx.TensorShapeProto.Dimension) -> str:
     return capped(escaped(dim.dim_param), 20) or "?"
 
 
-def _misinferred_pool(model: onnx.ModelProto, shapes: dict[str, Shape], pinned: dict) -> tuple[str, Shape] | None:
+def _misinferred(model: onnx.ModelProto, shapes: dict[str, Shape], pinned: dict) -> tuple[str, Shape] | None:
+    """The first output whose ONNX-inferred shape differs from what onnxruntime computes."""
+    initializers = {t.name: t for t in model.graph.initializer}
     for node, name in zip(model.graph.node, node_names(model.graph), strict=True):
-        if node.op_type not in POOLS or node.output[0] in pinned or node.input[0] not in shapes:
+        if node.output[0] in pinned or not node.input or node.input[0] not in shapes:
             continue
-        op, in_shape = OnnxOp.of(node, name), shapes[node.input[0]]
-        if op.attr("ceil_mode", 0):
-            expected = pool_output_shape(pool_attrs(op, in_shape), in_shape)
-            if shapes.get(node.output[0]) != expected and min(expected) >= 1:
-                return node.output[0], expected
+        in_shape = shapes[node.input[0]]
+        if node.op_type in POOLS and OnnxOp.of(node, name).attr("ceil_mode", 0):
+            expected = pool_output_shape(pool_attrs(OnnxOp.of(node, name), in_shape), in_shape)
+        elif node.op_type in RESIZES:
+            expected = _resize_output_shape(OnnxOp.of(node, name), in_shape, initializers)
+        else:
+            continue
+        if expected is not None and shapes.get(node.output[0]) != expected and min(expected) >= 1:
+            return node.output[0], expected
     return None
+
+
+def _resize_output_shape(op: OnnxOp, in_shape: Shape, initializers: dict) -> Shape | None:
+    """floor(n * scale) in float32, as onnxruntime computes it, for a Resize or Upsample with constant
+    scales (ONNX inference computes it in double: 10 x 1.3 is 13 for onnxruntime, 12 for inference)."""
+    scales_at = 1 if op.type == "Upsample" or len(op.node.input) == 2 else 2
+    scales_name = op.input(scales_at)
+    if (len(op.node.input) > 3 and op.input(3)) or scales_name not in initializers or op.attr("axes") is not None:
+        return None
+    if op.attr("coordinate_transformation_mode") == "tf_crop_and_resize":
+        return None
+    scales = numpy_helper.to_array(initializers[scales_name]).astype(np.float32).reshape(-1)
+    if scales.size != len(in_shape):
+        return None
+    return tuple(int(np.floor(s * np.float32(n))) for s, n in zip(scales, in_shape))
 
 
 def _inference_model(model: onnx.ModelProto, pinned: dict[str, Shape]) -> onnx.ModelProto:
     """A copy for inference: outputs without declared shapes (checked afterwards instead), and the
-    pools producing pinned values cut out, those values becoming inputs of the pinned shape."""
+    nodes producing pinned values cut out, those values becoming inputs of the pinned shape."""
     graph = model.graph
-    cut = [n for n in graph.node if n.op_type in POOLS and n.output[0] in pinned]
+    cut = [n for n in graph.node if n.output[0] in pinned]
     extra = [helper.make_tensor_value_info(n.output[0], onnx.TensorProto.FLOAT, pinned[n.output[0]]) for n in cut]
     extra += [  # a cut MaxPool's Indices would otherwise be undefined
         helper.make_tensor_value_info(n.output[1], onnx.TensorProto.INT64, pinned[n.output[0]])
@@ -127,7 +151,7 @@ def _inference_model(model: onnx.ModelProto, pinned: dict[str, Shape]) -> onnx.M
         if len(n.output) > 1 and n.output[1]
     ]
     outputs = [helper.make_tensor_value_info(v.name, v.type.tensor_type.elem_type, None) for v in graph.output]
-    nodes = [n for n in graph.node if not (n.op_type in POOLS and n.output[0] in pinned)]
+    nodes = [n for n in graph.node if n.output[0] not in pinned]
     copy = helper.make_graph(nodes, graph.name, [*graph.input, *extra], outputs, list(graph.initializer))
     copy.sparse_initializer.extend(graph.sparse_initializer)
     return helper.make_model(copy, opset_imports=list(model.opset_import), ir_version=model.ir_version)

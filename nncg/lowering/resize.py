@@ -26,6 +26,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, replace
+from fractions import Fraction
 
 import numpy as np
 
@@ -123,18 +124,44 @@ def _emit(ctx: LoweringContext, node: Node, x: TensorRef, out: TensorRef, pieces
 
 def dim_taps(attrs: ResizeAttrs, d: int, n_in: int, n_out: int) -> list[Taps]:
     scale = np.float32(attrs.scales[d])
-    if scale == 1:
-        # onnxruntime maps a dim of scale 1 onto itself, whatever the coordinate mode: only
-        # tf_half_pixel_for_nn would move it ((o + 0.5) / 1 rounds up to o + 1).
+    if scale == 1 or n_in == n_out:
+        # onnxruntime maps a dim whose size does not change onto itself (scale 1, or one like 1.013
+        # that floors back to the same size), whatever the coordinate mode.
         return [((o, 1.0),) for o in range(n_out)]
     taps = []
     for o in range(n_out):
         x = source_coordinate(attrs.coordinate_transformation_mode, np.float32(o), scale, n_in, n_out)
+        if attrs.mode == "nearest" and attrs.nearest_mode.startswith("round"):
+            x = exact_coordinate(attrs.coordinate_transformation_mode, o, _ratio(scale, n_in, n_out), n_in, n_out)
         if attrs.mode == "nearest":
             taps.append(((_nearest(x, attrs.nearest_mode, scale, n_in), 1.0),))
         else:
             taps.append(_linear(x, n_in))
     return taps
+
+
+def _ratio(scale: np.float32, n_in: int, n_out: int) -> Fraction:
+    """1 / scale exactly: n_in / n_out when the scale is that ratio in float32 (given as sizes)."""
+    return Fraction(n_in, n_out) if np.float32(n_out) / np.float32(n_in) == scale else 1 / Fraction(float(scale))
+
+
+def exact_coordinate(mode: str, o: int, ratio: Fraction, n_in: int, n_out: int) -> Fraction:
+    """The input coordinate of output o in exact arithmetic. Rounding to the nearest input is decided
+    on it, as onnxruntime's does: a coordinate that is a tie exactly (7 -> 4 asymmetric: 2 * 7/4 = 3.5)
+    is 1 ulp below the tie in float32 (3.4999998), which would round the other way."""
+    half = Fraction(1, 2)
+    if mode == "asymmetric":
+        return o * ratio
+    if mode == "tf_half_pixel_for_nn":
+        return (o + half) * ratio
+    if mode == "align_corners":
+        return Fraction(0) if n_out == 1 else Fraction(o * (n_in - 1), n_out - 1)
+    if mode == "pytorch_half_pixel" and n_out == 1:
+        return Fraction(0)
+    if mode == "half_pixel_symmetric":
+        offset = Fraction(n_in, 2) * (1 - n_out * ratio / n_in)
+        return offset + (o + half) * ratio - half
+    return (o + half) * ratio - half  # half_pixel, pytorch_half_pixel
 
 
 def source_coordinate(mode: str, o: np.float32, scale: np.float32, n_in: int, n_out: int) -> np.float32:
@@ -148,22 +175,22 @@ def source_coordinate(mode: str, o: np.float32, scale: np.float32, n_in: int, n_
         return np.float32(0) if n_out == 1 else o * np.float32(n_in - 1) / np.float32(n_out - 1)
     if mode == "pytorch_half_pixel":
         return (o + half) / scale - half if n_out > 1 else np.float32(0)
-    if mode == "half_pixel_symmetric":
+    if mode == "half_pixel_symmetric":  # the offset in float32, the rest in double, as onnxruntime has it
         adjustment = np.float32(n_out) / (scale * np.float32(n_in))
         offset = np.float32(n_in) / np.float32(2) * (np.float32(1) - adjustment)
-        return offset + (o + half) / scale - half
+        return np.float32(float(offset) + (float(o) + 0.5) / float(scale) - 0.5)
     return (o + half) / scale - half  # half_pixel
 
 
-def _nearest(x: np.float32, mode: str, scale: np.float32, n_in: int) -> int:
+def _nearest(x: np.float32 | Fraction, mode: str, scale: np.float32, n_in: int) -> int:
     """The rounded coordinate, clamped into the input."""
     if mode == "simple":  # Resize-10 and Upsample (x >= 0 there): floor when enlarging, ceil when shrinking
         mode = "ceil" if scale < 1 else "floor"
-    value = float(x)  # exact: float64 holds every float32
+    value = x if isinstance(x, Fraction) else Fraction(float(x))  # exact: float64 holds every float32
     floor = math.floor(value)
     if mode in ("floor", "ceil"):
         index = floor if mode == "floor" else math.ceil(value)
-    elif value - floor == 0.5:
+    elif value - floor == Fraction(1, 2):
         index = floor if mode == "round_prefer_floor" else floor + 1
     else:
         index = round(value)  # not a tie, so round()'s tie rule does not matter
