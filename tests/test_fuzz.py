@@ -230,3 +230,10 @@ def test_regression_models_match_their_recipes():
         rebuilt = build(Recipe.from_json(record["recipe"]))
         saved = onnx.load(folder / "model.onnx")
         assert rebuilt.SerializeToString() == saved.SerializeToString(), folder.name
+
+
+def test_every_target_builds_each_graph_for_each_target():
+    targets = ["ansi-c", "ssse3", "avx2"]
+    cases = [make_case(5, i, targets, 0.0, every_target=True) for i in range(6)]
+    assert [c.options.target for c in cases] == targets * 2
+    assert cases[0].recipe == cases[1].recipe == cases[2].recipe != cases[3].recipe

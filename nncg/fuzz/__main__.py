@@ -23,6 +23,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--focus", default="", help="comma-separated step kinds to propose 10x as often, e.g. Resize,MaxPool"
     )
+    parser.add_argument(
+        "--every-target",
+        action="store_true",
+        help="build each graph for every target (--count then counts graphs x targets)",
+    )
     parser.add_argument("--no-shrink", action="store_true", help="save failures without shrinking them")
     parser.add_argument("--replay", type=Path, help="re-run a saved case (its folder or .json) and print the outcome")
     parser.add_argument(
@@ -76,6 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         out=args.out,
         sanitize_fraction=args.sanitize_fraction,
         focus=focus(args.focus),
+        every_target=args.every_target,
         shrink=not args.no_shrink,
     )
     print(

@@ -35,6 +35,7 @@ class Settings:
     out: Path = Path("fuzz-out")
     sanitize_fraction: float = 0.1
     focus: tuple[str, ...] = ()  # step kinds proposed more often (nncg.fuzz.generator.FOCUS_WEIGHT)
+    every_target: bool = False  # each graph on every target (count = graphs x targets)
     shrink: bool = True
     shrink_evaluations: int = MAX_EVALUATIONS
     shrink_seconds: float = MAX_SECONDS
@@ -121,7 +122,9 @@ def _progress(results, start: float) -> str:
 
 def evaluate_index(settings: Settings, index: int) -> tuple[int, Case | None, Outcome]:
     """Case `index` of the run: drawn, built, checked, run (in a worker process)."""
-    case = make_case(settings.seed, index, settings.targets, settings.sanitize_fraction, settings.focus)
+    case = make_case(
+        settings.seed, index, settings.targets, settings.sanitize_fraction, settings.focus, settings.every_target
+    )
     if isinstance(case, Outcome):
         return index, None, case
     return index, case, evaluate(case.recipe, case.options)

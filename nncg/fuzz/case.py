@@ -40,10 +40,19 @@ class Case:
 
 
 def make_case(
-    seed: int, index: int, targets: list[str], sanitize_fraction: float, focus: tuple[str, ...] = ()
+    seed: int,
+    index: int,
+    targets: list[str],
+    sanitize_fraction: float,
+    focus: tuple[str, ...] = (),
+    every_target: bool = False,
 ) -> Case | Outcome:
-    """Case `index` of the run with `seed`: the same arguments give the same case."""
-    recipe = generate([seed, index], focus=focus)
+    """Case `index` of the run with `seed`: the same arguments give the same case. With `every_target`,
+    cases come in runs of len(targets): one graph, each target in turn (its own random options)."""
+    graph = index // len(targets) if every_target else index
+    if every_target:
+        targets = [targets[index % len(targets)]]
+    recipe = generate([seed, graph], focus=focus)
     try:
         model = build(recipe)
     except Invalid as exc:
