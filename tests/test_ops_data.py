@@ -21,7 +21,7 @@ from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops import CONVERTERS
 from nncg.ir.graph import PadAttrs, ResizeAttrs, SliceAttrs, SplitAttrs
 from nncg.ir.loops import Store, walk_stmts
-from nncg.lowering.resize import dim_taps, periodic_pieces, windowed_pieces
+from nncg.lowering.resize import dim_taps, periodic_pieces, resize_taps, windowed_pieces
 from nncg.passes import PassManager
 
 RNG = np.random.default_rng(7)
@@ -744,5 +744,46 @@ def test_resize_coordinates_match_onnxruntime_on_a_grid_of_sizes(mode):
         expected = session.run(None, {"x": x.reshape(1, 1, n)})[0].ravel()
         used = np.float32(scale) if given_scale else np.float32(out) / np.float32(n)
         attrs = ResizeAttrs((1.0, 1.0, float(used)), mode, coords, nearest or "round_prefer_floor")
-        got = np.array([sum(w * x[i] for i, w in taps) for taps in dim_taps(attrs, 2, n, out)], dtype=np.float32)
+        dim = resize_taps(attrs, (1, 1, n), (1, 1, out))[2]
+        got = np.array([sum(w * x[i] for i, w in taps) for taps in dim], dtype=np.float32)
         assert np.abs(got - expected).max() <= 1e-6, (coords, nearest, n, out, scale, got, expected)
+
+
+@pytest.mark.parametrize(
+    "n, scale, coords, nearest",
+    [
+        (7, 1.3, "pytorch_half_pixel", "round_prefer_floor"),  # 6.5 / 1.3f - 0.5 is a tie in float32
+        (9, 1.2, "asymmetric", "round_prefer_ceil"),  # 9 / 1.2f = 7.4999995: a tie 1 ulp below
+        (16, 1.3, "half_pixel", "round_prefer_floor"),  # 19.5 / 1.3f - 0.5 = 14.500001: 1 ulp above
+        (14, 1.2, "asymmetric", "round_prefer_ceil"),
+    ],
+)
+def test_resize_near_ties_break_as_onnxruntime(n, scale, coords, nearest):
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    node = helper.make_node("Resize", ["x", "", "s"], ["y"], mode="nearest", coordinate_transformation_mode=coords,
+                            nearest_mode=nearest)  # fmt: skip
+    graph = helper.make_graph([node], "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 1, n])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+                              [helper.make_tensor("s", TensorProto.FLOAT, [3], [1, 1, scale])])  # fmt: skip
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    x = np.arange(n, dtype=np.float32).reshape(1, 1, n)
+    expected = ort.InferenceSession(model.SerializeToString(), options).run(None, {"x": x})[0].ravel()
+    out = len(expected)
+    attrs = ResizeAttrs((1.0, 1.0, float(np.float32(scale))), "nearest", coords, nearest)
+    assert [taps[0][0] for taps in resize_taps(attrs, (1, 1, n), (1, 1, out))[2]] == expected.astype(int).tolist()
+
+
+def test_resize_copies_only_when_the_whole_shape_stays():
+    """onnxruntime copies a Resize whose output shape is its input's (scale 1.3 on 3 pixels), but
+    resizes that dim by its scale when another dim changes size (3 -> 3 reads rows 0, 1, 1)."""
+    resize = helper.make_node("Resize", ["x", "", "s"], ["y"], mode="nearest", coordinate_transformation_mode="half_pixel")
+    model_proto = model(
+        [resize],
+        {"x": (1, 2, 3, 2)},
+        [("s", np.array([1, 1, 1.3, 1.5], np.float32))],
+    )
+    check_against_onnxruntime(model_proto, nncg.compile(model_proto, "ssse3"))
+    same = model([helper.make_node("Resize", ["x", "", "s"], ["y"], mode="nearest")], {"x": (1, 2, 3, 2)},
+                 [("s", np.array([1, 1, 1.3, 1.2], np.float32))])  # fmt: skip
+    check_against_onnxruntime(same, nncg.compile(same, "ansi-c"))

@@ -26,7 +26,6 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, replace
-from fractions import Fraction
 
 import numpy as np
 
@@ -59,7 +58,7 @@ def lower_resize(ctx: LoweringContext, node: Node) -> None:
     attrs: ResizeAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     out_shape = ctx.graph.shape(node.outputs[0])
-    taps = [dim_taps(attrs, d, x.shape[d], out_shape[d]) for d in range(len(x.shape))]
+    taps = resize_taps(attrs, x.shape, out_shape)
     exact = [periodic_pieces(t, MAX_PERIOD) for t in taps]
     if math.prod(statements(p) for p in exact) <= DIRECT_STATEMENTS:
         _emit(ctx, node, x, ctx.output(node.outputs[0], x.order), exact)
@@ -122,46 +121,28 @@ def _emit(ctx: LoweringContext, node: Node, x: TensorRef, out: TensorRef, pieces
 # ---------------------------------------------------------------------------- taps per output coordinate
 
 
+def resize_taps(attrs: ResizeAttrs, in_shape: tuple[int, ...], out_shape: tuple[int, ...]) -> list[list[Taps]]:
+    """The taps of every dim. A resize whose output has the input's shape is a copy in onnxruntime,
+    whatever its scales (1.013 floors 10 pixels back to 10); otherwise each dim follows its scale."""
+    if tuple(in_shape) == tuple(out_shape):
+        return [[((o, 1.0),) for o in range(n)] for n in in_shape]
+    return [dim_taps(attrs, d, n_in, n_out) for d, (n_in, n_out) in enumerate(zip(in_shape, out_shape))]
+
+
 def dim_taps(attrs: ResizeAttrs, d: int, n_in: int, n_out: int) -> list[Taps]:
     scale = np.float32(attrs.scales[d])
-    if scale == 1 or n_in == n_out:
-        # onnxruntime maps a dim whose size does not change onto itself (scale 1, or one like 1.013
-        # that floors back to the same size), whatever the coordinate mode.
+    if scale == 1:
+        # onnxruntime maps a dim of scale 1 onto itself, whatever the coordinate mode: only
+        # tf_half_pixel_for_nn would move it ((o + 0.5) / 1 rounds up to o + 1).
         return [((o, 1.0),) for o in range(n_out)]
     taps = []
     for o in range(n_out):
         x = source_coordinate(attrs.coordinate_transformation_mode, np.float32(o), scale, n_in, n_out)
-        if attrs.mode == "nearest" and attrs.nearest_mode.startswith("round"):
-            x = exact_coordinate(attrs.coordinate_transformation_mode, o, _ratio(scale, n_in, n_out), n_in, n_out)
         if attrs.mode == "nearest":
             taps.append(((_nearest(x, attrs.nearest_mode, scale, n_in), 1.0),))
         else:
             taps.append(_linear(x, n_in))
     return taps
-
-
-def _ratio(scale: np.float32, n_in: int, n_out: int) -> Fraction:
-    """1 / scale exactly: n_in / n_out when the scale is that ratio in float32 (given as sizes)."""
-    return Fraction(n_in, n_out) if np.float32(n_out) / np.float32(n_in) == scale else 1 / Fraction(float(scale))
-
-
-def exact_coordinate(mode: str, o: int, ratio: Fraction, n_in: int, n_out: int) -> Fraction:
-    """The input coordinate of output o in exact arithmetic. Rounding to the nearest input is decided
-    on it, as onnxruntime's does: a coordinate that is a tie exactly (7 -> 4 asymmetric: 2 * 7/4 = 3.5)
-    is 1 ulp below the tie in float32 (3.4999998), which would round the other way."""
-    half = Fraction(1, 2)
-    if mode == "asymmetric":
-        return o * ratio
-    if mode == "tf_half_pixel_for_nn":
-        return (o + half) * ratio
-    if mode == "align_corners":
-        return Fraction(0) if n_out == 1 else Fraction(o * (n_in - 1), n_out - 1)
-    if mode == "pytorch_half_pixel" and n_out == 1:
-        return Fraction(0)
-    if mode == "half_pixel_symmetric":
-        offset = Fraction(n_in, 2) * (1 - n_out * ratio / n_in)
-        return offset + (o + half) * ratio - half
-    return (o + half) * ratio - half  # half_pixel, pytorch_half_pixel
 
 
 def source_coordinate(mode: str, o: np.float32, scale: np.float32, n_in: int, n_out: int) -> np.float32:
@@ -182,18 +163,21 @@ def source_coordinate(mode: str, o: np.float32, scale: np.float32, n_in: int, n_
     return (o + half) / scale - half  # half_pixel
 
 
-def _nearest(x: np.float32 | Fraction, mode: str, scale: np.float32, n_in: int) -> int:
-    """The rounded coordinate, clamped into the input."""
+def _nearest(x: np.float32, mode: str, scale: np.float32, n_in: int) -> int:
+    """The rounded coordinate, clamped into the input. A coordinate within one float32 ulp of a
+    half-way point is a tie: the exact coordinate is a tie there (7 -> 4 asymmetric: 2 * 7/4 = 3.5)
+    and float32 lands on either side of it (3.4999998); onnxruntime breaks such ties by the mode."""
     if mode == "simple":  # Resize-10 and Upsample (x >= 0 there): floor when enlarging, ceil when shrinking
         mode = "ceil" if scale < 1 else "floor"
-    value = x if isinstance(x, Fraction) else Fraction(float(x))  # exact: float64 holds every float32
-    floor = math.floor(value)
+    value = float(x)  # exact: float64 holds every float32
     if mode in ("floor", "ceil"):
-        index = floor if mode == "floor" else math.ceil(value)
-    elif value - floor == Fraction(1, 2):
-        index = floor if mode == "round_prefer_floor" else floor + 1
+        index = math.floor(value) if mode == "floor" else math.ceil(value)
     else:
-        index = round(value)  # not a tie, so round()'s tie rule does not matter
+        half = math.floor(value) + 0.5  # the half-way point nearest to value
+        if abs(value - half) <= float(np.spacing(np.float32(abs(half)))):
+            index = math.floor(half) if mode == "round_prefer_floor" else math.ceil(half)
+        else:
+            index = round(value)  # not a tie, so round()'s tie rule does not matter
     return min(max(index, 0), n_in - 1)
 
 
