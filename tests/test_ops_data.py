@@ -777,7 +777,8 @@ def test_resize_near_ties_break_as_onnxruntime(n, scale, coords, nearest):
 def test_resize_copies_only_when_the_whole_shape_stays():
     """onnxruntime copies a Resize whose output shape is its input's (scale 1.3 on 3 pixels), but
     resizes that dim by its scale when another dim changes size (3 -> 3 reads rows 0, 1, 1)."""
-    resize = helper.make_node("Resize", ["x", "", "s"], ["y"], mode="nearest", coordinate_transformation_mode="half_pixel")
+    coords = {"coordinate_transformation_mode": "half_pixel"}
+    resize = helper.make_node("Resize", ["x", "", "s"], ["y"], mode="nearest", **coords)
     model_proto = model(
         [resize],
         {"x": (1, 2, 3, 2)},
