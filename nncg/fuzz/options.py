@@ -114,7 +114,10 @@ def random_options(
     budget is only drawn for small ones)."""
     target = d.pick(targets)
     unroll = d.pick(UNROLLS)
-    budgets = [b for b in BUDGETS if b is not None or (elements <= UNCAPPED_MAX_ELEMENTS and unroll != "0")]
+    # No cap at a paper level unrolls whole layers into straight-line code: MBs of C is then what the
+    # user asked for, not a bug, so an uncapped level is drawn only for tiny models.
+    uncapped = unroll in ("auto", "none") or (elements <= UNCAPPED_MAX_ELEMENTS // 8 and unroll != "0")
+    budgets = [b for b in BUDGETS if b is not None or uncapped]
     options = Options(
         target=target,
         unroll=unroll,
