@@ -30,6 +30,7 @@ from ..ir.loops import (
     walk_exprs,
     walk_stmts,
 )
+from ..ir.target import Target
 from ..passes.substitute import rename_variables
 from ..safe_text import comment_name
 
@@ -123,6 +124,12 @@ class AnsiC:
     strict_cflags: tuple[str, ...] = ("-std=c89", "-pedantic", "-Wall", "-Wextra", "-Werror")
     includes: tuple[str, ...] = ("<math.h>",)
     scalar_type = "float"
+
+    @property
+    def target(self) -> Target:
+        """The facts passes may use about this backend's hardware."""
+        fma = any(getattr(simd, "fma", False) for simd in getattr(self, "simd", {}).values())
+        return Target(self.name, self.vector_widths, self.registers, fma)
 
     # ------------------------------------------------------------------ the file
 

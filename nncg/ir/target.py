@@ -1,0 +1,31 @@
+"""The hardware facts passes and printers may use: one `Target` per backend, handed to passes by the
+pass manager. The pipeline text records choices (which layer is vectorised, blocked, unrolled), never
+these facts, so a pipeline cannot disagree with the target it runs for."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Target:
+    """What one backend's code runs on.
+
+    vector_widths: the SIMD widths (float lanes) it prints, widest first; () for scalar C.
+    registers: vector registers (float registers for scalar C) register blocking may fill.
+    fma: a multiply feeding an add can be one fused multiply-add (one rounding)."""
+
+    name: str
+    vector_widths: tuple[int, ...] = ()
+    registers: int = 16
+    fma: bool = False
+
+    @property
+    def lanes(self) -> int:
+        """The widest vector: 1 for scalar C."""
+        return self.vector_widths[0] if self.vector_widths else 1
+
+    @property
+    def widths_text(self) -> str:
+        """The widths as pipeline parameters spell them: `16/8/4`, `1` for none."""
+        return "/".join(map(str, self.vector_widths)) or "1"
