@@ -13,6 +13,7 @@ from . import __version__
 from .arguments import DIM_MAX
 from .backends import BACKENDS
 from .errors import NncgError
+from .options import CompileOptions
 from .output_files import check_output_folder
 from .passes.unroll import CODE_BUDGET
 from .safe_text import shown, terminal_line
@@ -163,6 +164,7 @@ def fail(message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .backends import get_target
     from .compiler import compile
     from .passes import REGISTRY, default_pipeline
 
@@ -170,28 +172,27 @@ def run(args: argparse.Namespace) -> int:
         for info in REGISTRY.values():
             params = f"{{{','.join(f'{k}=...' for k in info.params)}}}" if info.params else ""
             print(f"{info.name + params:28} {info.stage:6} {info.doc}")
-        print(f"\ndefault pipeline (ssse3): {default_pipeline(4)}")
+        print(f"\ndefault pipeline (ssse3): {default_pipeline(get_target('ssse3'))}")
         return 0
     if not args.model:
         raise NncgError("no model given: nncg-onnx MODEL.onnx --target ssse3 -o build/")
     check_output_folder(Path(args.output_dir))  # before compiling (or tuning for a minute)
-    args.pipeline = tune_command(args) if args.tune or args.tune_runner else args.pipeline
+    options = CompileOptions.of(args.unroll, args.weights, args.code_budget, args.pipeline)
+    if args.tune or args.tune_runner:
+        options = options.with_pipeline(tune_command(args))
     compiled = compile(
         args.model,
         target=args.target,
-        unroll=args.unroll,
         name=args.name,
         input_shapes=input_shapes(args),
-        pipeline=args.pipeline,
         print_ir_after_all=sys.stderr if args.print_ir_after_all else None,
-        weights=args.weights,
-        code_budget=args.code_budget or None,
+        **options.kwargs(),
     )
     paths = compiled.write(args.output_dir, cmake=args.cmake)
     print(terminal_line(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}"))
     status = verify_command(args, compiled) if args.verify else 0
     if args.benchmark or args.profile:
-        measure_command(args)
+        measure_command(args, options)
     return status
 
 
@@ -229,13 +230,12 @@ def verify_command(args: argparse.Namespace, compiled) -> int:
     return 0 if report.ok else 1
 
 
-def measure_command(args: argparse.Namespace) -> None:
+def measure_command(args: argparse.Namespace, compile_options: CompileOptions) -> None:
     from .bench.benchmark import benchmark, format_profile, format_results, profile
 
     options = dict(
-        target=args.target, unroll=args.unroll, cc=args.cc, cpu=args.cpu,
-        input_shapes=input_shapes(args), name=args.name, weights=args.weights,
-        code_budget=args.code_budget or None, pipeline=args.pipeline,
+        target=args.target, cc=args.cc, cpu=args.cpu, input_shapes=input_shapes(args), name=args.name,
+        **compile_options.kwargs(),
     )  # fmt: skip
     if args.benchmark:
         print(format_results([benchmark(args.model, **options)]))

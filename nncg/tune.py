@@ -25,14 +25,16 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
-from .backends import get_backend
+from .backends import get_target
 from .bench.benchmark import calibrate, pinned
 from .bench.harness import CompiledHarness
 from .compiler import compile as compile_model
 from .frontend import import_onnx
 from .ir.loops import Program
+from .ir.target import Target
 from .ir.text import program_to_text
-from .passes import PassManager, default_pipeline, format_pipeline, parse_pipeline
+from .options import CompileOptions
+from .passes import PassManager, format_pipeline, parse_pipeline
 from .passes.per_layer import format_layer_map
 from .passes.register_block import block_shape, choose_blocks, format_block, parse_block
 from .passes.unroll import AUTO_BUDGET, CODE_BUDGET, parse_budget
@@ -68,18 +70,18 @@ def tune(
     layer's block shape and unroll budget measured (with `cc`, run through `runner` if given). Pass it
     to nncg.compile(pipeline=)."""
     progress = progress or (lambda line: print(line, file=sys.stderr, flush=True))
-    backend = get_backend(target)
-    base = default_pipeline(backend.vector_widths, "auto", weights, code_budget, backend.registers)
+    facts = get_target(target)
+    base = CompileOptions(weights=weights, code_budget=code_budget).pass_pipeline(facts)
     cc = find_c_compiler(cc)
     where = f"{target}|{Path(cc).name}|{' '.join(runner)}"
     cache = cache or default_cache()
     known = _read_cache(cache)
     measure = _Measurer(model, target, cc, tuple(runner), input_shapes, batches, cpu, progress)
-    algorithms = _tune_algorithms(model, base, input_shapes, where, known, measure, progress)
+    algorithms = _tune_algorithms(model, base, facts, input_shapes, where, known, measure, progress)
     base = with_layer_choices(base, {}, {}, algorithms)
-    pixels = _tune_pixel_axis(model, base, input_shapes, where, known, measure, progress)
+    pixels = _tune_pixel_axis(model, base, facts, input_shapes, where, known, measure, progress)
     base = with_layer_choices(base, {}, {}, pixels=pixels)
-    layers = tunable_layers(model, base, input_shapes)
+    layers = tunable_layers(model, base, facts, input_shapes)
     if not layers:
         progress("tune: no register-blocked layer to tune")
         _write_cache(cache, known)
@@ -90,7 +92,7 @@ def tune(
     budgets = {name: known[keys[name]]["unroll"] for name in layers if name not in todo}
     progress(f"tune: {len(layers)} layers, {len(layers) - len(todo)} cached, {len(todo)} to measure")
     if todo:
-        shapes = {name: block_candidates(shape, backend.registers) for name, shape in todo.items()}
+        shapes = {name: block_candidates(shape, facts.registers) for name, shape in todo.items()}
         blocks |= measure.best("block shape", shapes, lambda pick: with_layer_choices(base, blocks | pick, budgets))
         unrolls = {name: UNROLL_BUDGETS for name in todo}
         budgets |= measure.best("unroll budget", unrolls, lambda pick: with_layer_choices(base, blocks, budgets | pick))
@@ -102,10 +104,10 @@ def tune(
     return with_layer_choices(base, blocks, budgets)
 
 
-def _tune_algorithms(model, base, input_shapes, where, known, measure, progress) -> dict[str, bool]:
+def _tune_algorithms(model, base, target, input_shapes, where, known, measure, progress) -> dict[str, bool]:
     """Winograd or not for each layer it applies to: measured (both variants in two builds) or
     from the cache, keyed by the layer's direct loop nest."""
-    layers = algorithm_layers(model, base, input_shapes)
+    layers = algorithm_layers(model, base, target, input_shapes)
     keys = {name: _cache_key(where + "|winograd", signature) for name, signature in layers.items()}
     chosen = {name: known[keys[name]]["winograd"] for name in layers if keys[name] in known}
     todo = {name: (False, True) for name in layers if name not in chosen}
@@ -119,18 +121,18 @@ def _tune_algorithms(model, base, input_shapes, where, known, measure, progress)
     return chosen
 
 
-def _tune_pixel_axis(model, base, input_shapes, where, known, measure, progress) -> dict[str, bool]:
+def _tune_pixel_axis(model, base, target, input_shapes, where, known, measure, progress) -> dict[str, bool]:
     """Which layers vectorise over output pixels. A layer's choice changes its consumers' time too
     (they read a planar tensor), and a layer can take the pixel axis only if its input is planar, so
     the builds are: the first k candidates on, k = 0..N; the fastest whole model wins. Cached by the
     network's loop nests with every candidate off."""
     if all(spec.name != "vectorize-pixels" for spec in parse_pipeline(base)):
         return {}  # a target without vectors
-    names = pixel_candidates(ir_before(model, base, "vectorize-pixels", input_shapes))
+    names = pixel_candidates(ir_before(model, base, "vectorize-pixels", target, input_shapes))
     if not names:
         return {}
     off = with_layer_choices(base, {}, {}, pixels=dict.fromkeys(names, False))
-    program = ir_before(model, off, "register-block", input_shapes)
+    program = ir_before(model, off, "register-block", target, input_shapes)
     key = _cache_key(where + "|pixels", "\n".join(layer_signature(program, k) for k in program.kernels))
     if key in known:
         chosen = {name: name in known[key]["pixels"] for name in names}
@@ -148,14 +150,14 @@ def _tune_pixel_axis(model, base, input_shapes, where, known, measure, progress)
 # ---------------------------------------------------------------------------- what to tune
 
 
-def algorithm_layers(model, pipeline: str, input_shapes=None) -> dict[str, str]:
+def algorithm_layers(model, pipeline: str, target: Target, input_shapes=None) -> dict[str, str]:
     """Layer name -> signature of its direct loop nest, for every layer Winograd applies to (whose
     kernel carries the node's name)."""
-    names = winograd_candidates(ir_before(model, pipeline, "winograd", input_shapes))
+    names = winograd_candidates(ir_before(model, pipeline, "winograd", target, input_shapes))
     if not names:
         return {}
     direct = with_layer_choices(pipeline, {}, {}, dict.fromkeys(names, False))
-    program = ir_before(model, direct, "register-block", input_shapes)
+    program = ir_before(model, direct, "register-block", target, input_shapes)
     return _signatures(program, names)
 
 
@@ -168,10 +170,10 @@ def _signatures(program: Program, names: list[str]) -> dict[str, str]:
     return {name: layer_signature(program, kernels[name]) for name in names}
 
 
-def tunable_layers(model, pipeline: str, input_shapes=None) -> dict[str, tuple[tuple[int, int], str]]:
+def tunable_layers(model, pipeline: str, target: Target, input_shapes=None) -> dict[str, tuple[tuple[int, int], str]]:
     """Layer name -> (its block_shape, a signature of its loop nest) for every layer the
     register-block pass would block, from the IR just before that pass."""
-    program = ir_before(model, pipeline, "register-block", input_shapes)
+    program = ir_before(model, pipeline, "register-block", target, input_shapes)
     out = {}
     for kernel in program.kernels:
         shape = block_shape(kernel.body)
@@ -180,11 +182,11 @@ def tunable_layers(model, pipeline: str, input_shapes=None) -> dict[str, tuple[t
     return out
 
 
-def ir_before(model, pipeline: str, pass_name: str, input_shapes=None):
+def ir_before(model, pipeline: str, pass_name: str, target: Target, input_shapes=None):
     """The IR the pipeline gives the pass `pass_name` (a graph or a loop-nest program)."""
     specs = parse_pipeline(pipeline)
     cut = next(i for i, spec in enumerate(specs) if spec.name == pass_name)
-    return PassManager(specs[:cut]).run(import_onnx(model, input_shapes))
+    return PassManager(specs[:cut], target, finish=False).run(import_onnx(model, input_shapes))
 
 
 def layer_signature(program: Program, kernel) -> str:

@@ -6,6 +6,7 @@ from typing import Any
 
 import onnx
 
+from nncg.ir.target import Target
 from nncg.verify import VerifyReport, verify
 
 
@@ -22,3 +23,8 @@ def check_against_onnxruntime(
     report = verify(model_proto, compiled, seed=seed, tolerance=tolerance, sanitize=sanitize, opt=opt)
     assert report.ok, report.format()
     return report
+
+
+def target(*widths: int, registers: int = 16, fma: bool = False) -> Target:
+    """A target with these vector widths (widest first) and registers, for pass tests."""
+    return Target("test", tuple(widths), registers, fma)

@@ -5,7 +5,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from helpers import target
 
+import nncg
 from nncg.errors import NncgError
 from nncg.ir.graph import Activation, BatchNormAttrs, ConvAttrs, DenseAttrs, Graph, Node, Value
 from nncg.ir.loops import Program
@@ -121,10 +123,11 @@ def test_fuse_bias_refuses_an_add_that_varies_per_row():
 
 
 def test_pipeline_text_round_trips():
-    text = "fold-batchnorm,lower,vectorize{lanes=4},unroll{level=1},inline-constants"
-    assert PassManager(text).pipeline == text
+    text = "fold-batchnorm,lower,vectorize,unroll{level=1},inline-constants,plan-memory"
+    assert PassManager(text, target(4)).pipeline == text
     assert parse_pipeline(" unroll{ level=none } ")[0].params == (("level", "none"),)
-    assert PassManager(default_pipeline(4, "2")).pipeline == default_pipeline(4, "2")
+    ssse3 = nncg.get_target("ssse3")
+    assert PassManager(default_pipeline(ssse3, "2"), ssse3).pipeline == default_pipeline(ssse3, "2")
 
 
 @pytest.mark.parametrize(
@@ -133,7 +136,8 @@ def test_pipeline_text_round_trips():
         ("fold-batchnorm,frobnicate", "unknown pass 'frobnicate'"),
         ("unroll{depth=1}", "has no parameter 'depth'"),
         ("unroll{level=-1}", "bad value '-1'"),
-        ("vectorize{lanes=3}", "bad value '3'"),
+        ("vectorize{lanes=4}", "pass vectorize has no parameter 'lanes'"),
+        ("lower,plan-memory,unroll", "pass plan-memory must run last, but unroll follows it"),
         ("lower,,unroll", "cannot parse pipeline"),
     ],
 )
@@ -153,6 +157,7 @@ def test_manager_checks_stages_and_prints_ir_after_every_pass():
         "// ----- IR after fold-batchnorm",
         "// ----- IR after lower",
         "// ----- IR after unroll{level=0}",
+        "// ----- IR after plan-memory",
     ]
     assert "= Conv(x[1, 2, 5, 5]" in text and "kernel conv (Conv)" in text
 
@@ -271,5 +276,20 @@ def test_fuse_bias_keeps_a_runtime_bias():
 
 
 def test_default_pipeline_fuses_residuals_between_bias_and_activation():
-    names = [spec.name for spec in parse_pipeline(default_pipeline(4, "2"))]
+    names = [spec.name for spec in parse_pipeline(default_pipeline(nncg.get_target("ssse3"), "2"))]
     assert names.index("fuse-bias") < names.index("fuse-residual") < names.index("fuse-activation")
+
+
+def test_manager_hands_passes_the_target_and_finishes_pipelines():
+    with pytest.raises(NncgError, match="passes vectorize need a target"):
+        PassManager("lower,vectorize")
+    manager = PassManager("fold-batchnorm,lower,unroll{level=0}")
+    assert manager.pipeline == "fold-batchnorm,lower,unroll{level=0},plan-memory"
+    assert manager.run(conv_bn()).arena is not None
+    assert PassManager("fold-batchnorm,lower", finish=False).pipeline == "fold-batchnorm,lower"
+    assert PassManager("fold-batchnorm").pipeline == "fold-batchnorm"  # no lowering: nothing to finish
+
+
+def test_errors_inside_a_pass_name_it():
+    with pytest.raises(NncgError, match="^pass register-block: .*no layer named conv9"):
+        PassManager("lower,register-block{layers=conv9:2x2}", target(4)).run(conv_bn())

@@ -35,8 +35,7 @@ def chain(x_shape, layers, residual=False):
 
 
 def with_halos(target: str) -> str:
-    backend = nncg.backends.get_backend(target)
-    pipeline = nncg.default_pipeline(backend.vector_widths, registers=backend.registers)
+    pipeline = nncg.default_pipeline(nncg.get_target(target))
     return pipeline.replace(",lower,", ",lower{halos=true},")
 
 

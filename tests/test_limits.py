@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 from onnx import TensorProto, helper
 
+from nncg.backends import get_target
 from nncg.errors import NncgError
 from nncg.frontend import import_onnx
 from nncg.ir.loops import ArenaPlan, Buffer, Program
@@ -13,7 +14,8 @@ from nncg.passes import PassManager, default_pipeline
 
 
 def planned_program(proto) -> Program:
-    return PassManager(default_pipeline(4, "none")).run(import_onnx(proto))
+    ssse3 = get_target("ssse3")
+    return PassManager(default_pipeline(ssse3, "none"), ssse3).run(import_onnx(proto))
 
 
 def branches_model(side: int):

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from helpers import target
 from test_ops import conv_model
 
 import nncg
@@ -26,7 +27,7 @@ from nncg.ir.loops import (
     walk_stmts,
 )
 from nncg.ir.verify import verify_program
-from nncg.passes import PassManager, default_pipeline, parse_lanes
+from nncg.passes import PassManager, default_pipeline
 from nncg.passes.inline_constants import inline_constants
 from nncg.passes.unroll import emitted_size, mark_unroll, unroll
 from nncg.passes.vectorize import vectorize
@@ -113,7 +114,7 @@ def test_unrolling_resolves_border_checks_statically():
 
 
 def test_vectorize_channels_into_vector_loads_and_broadcasts():
-    out = vectorize(program(scale_nest(2, 8)), lanes=4)
+    out = vectorize(program(scale_nest(2, 8)), target(4))
     vec = Store(
         "y",
         A("i") * 8 + A("c") * 4,
@@ -127,7 +128,7 @@ def test_vectorize_channels_into_vector_loads_and_broadcasts():
 def test_vectorize_adds_scalar_tail_and_broadcasts_invariant_operands():
     # y[c] = x[0] * w[c] for c in 0..6: one vector block (loop elided) and a 2-iteration scalar tail
     store = Store("y", A("c"), Binary("*", Load("x", A(0)), Load("w", A("c"))))
-    out = vectorize(program([Loop("c", 6, (store,), parallel=True)]), lanes=4)
+    out = vectorize(program([Loop("c", 6, (store,), parallel=True)]), target(4))
     body = out.kernels[0].body
     assert body[0] == Store("y", A(0), Binary("*", Broadcast(Load("x", A(0)), 4), Load("w", A(0), 4)))
     tail = Store("y", A("c") + 4, Binary("*", Load("x", A(0)), Load("w", A("c") + 4)))
@@ -138,7 +139,7 @@ def test_vectorize_adds_scalar_tail_and_broadcasts_invariant_operands():
 def test_vectorize_makes_reduction_locals_vectors():
     update = Assign("acc", Binary("+", LocalRef("acc"), Binary("*", Load("x", A("k")), Load("w", A("k") * 4 + "c"))))
     let = Let("acc", Const.splat(0.0), (Loop("k", 2, (update,)), Store("y", A("c"), LocalRef("acc"))))
-    out = vectorize(program([Loop("c", 4, (let,), parallel=True)]), lanes=4)
+    out = vectorize(program([Loop("c", 4, (let,), parallel=True)]), target(4))
     let_v = out.kernels[0].body[0]
     assert let_v.init == Const.splat(0.0, 4)
     assert let_v.body[1] == Store("y", A(0), LocalRef("acc", 4))
@@ -176,7 +177,7 @@ def vector_blocks(body):
 )
 def test_vectorize_splits_channels_into_several_widths(channels, blocks):
     p = program(channel_nest(channels), {"w": np.arange(channels, dtype=np.float32)}, size=2 * channels)
-    out = vectorize(p, lanes=(16, 8, 4))
+    out = vectorize(p, target(16, 8, 4))
     assert verify_program(out) == []
     if blocks is None:
         assert out == p
@@ -186,7 +187,7 @@ def test_vectorize_splits_channels_into_several_widths(channels, blocks):
 
 def test_vectorize_widths_print_each_block_with_its_own_width():
     # 12 channels: 8 lanes at c = 0, 4 lanes at c = 8; w is loaded, x broadcast, at each block's width
-    out = vectorize(program(channel_nest(12), {"w": np.arange(12, dtype=np.float32)}, size=24), lanes=(16, 8, 4))
+    out = vectorize(program(channel_nest(12), {"w": np.arange(12, dtype=np.float32)}, size=24), target(16, 8, 4))
     eight, four = out.kernels[0].body[0].body
     x = Load("x", A("i"))
     assert eight == Store(
@@ -195,23 +196,22 @@ def test_vectorize_widths_print_each_block_with_its_own_width():
     assert four == Store(
         "y", A("i") * 12 + 8, Binary("+", Binary("*", Broadcast(x, 4), Load("w", A(8), 4)), Broadcast(x, 4))
     )
-    assert vectorize(program(channel_nest(12)), lanes=(4,)) == vectorize(program(channel_nest(12)), lanes=4)
 
 
-def test_vectorize_widths_in_pipelines():
-    assert PassManager("lower,vectorize{lanes=16/8/4}").pipeline == "lower,vectorize{lanes=16/8/4}"
-    assert parse_lanes("4") == (4,) and parse_lanes("8/4") == (8, 4)
-    for bad in ("3", "4/8", "8/8", "16/1", "0"):
-        with pytest.raises(NncgError, match="bad value"):
-            PassManager(f"lower,vectorize{{lanes={bad}}}")
-    assert "vectorize{lanes=16/8/4}," in default_pipeline((16, 8, 4))
-    assert "vectorize" not in default_pipeline(())
+def test_vectorize_widths_come_from_the_target():
+    assert PassManager("lower,vectorize", target(16, 8, 4)).pipeline == "lower,vectorize,plan-memory"
+    with pytest.raises(NncgError, match="no parameter 'lanes'"):
+        PassManager("lower,vectorize{lanes=8/4}", target(4))
+    assert ",vectorize," in default_pipeline(nncg.get_target("avx512"))
+    assert "vectorize" not in default_pipeline(nncg.get_target("ansi-c"))
+    assert "lanes=" not in default_pipeline(nncg.get_target("avx512"))
 
 
 def test_backends_reject_widths_they_cannot_print():
     m = conv_model((1, 3, 6, 7), 12, (3, 3), pads=[1, 1, 1, 1])
-    with pytest.raises(NncgError, match="ssse3 cannot print 8-lane vectors; run vectorize with lanes=4"):
-        nncg.compile(m, target="ssse3", pipeline="lower,vectorize{lanes=8/4},plan-memory")
+    program = PassManager("lower,vectorize", nncg.get_target("avx2")).run(nncg.import_onnx(m))
+    with pytest.raises(NncgError, match="ssse3 cannot print 8-lane vectors"):
+        nncg.emit(program, "ssse3")
 
 
 @pytest.mark.parametrize(
@@ -225,7 +225,7 @@ def test_backends_reject_widths_they_cannot_print():
 )
 def test_vectorize_leaves_ineligible_loops_scalar(loop):
     p = program([loop])
-    assert vectorize(p, lanes=4) == p
+    assert vectorize(p, target(4)) == p
 
 
 # ------------------------------------------------------------------------------- inline-constants
@@ -239,7 +239,7 @@ def test_inline_constants_writes_literals_and_drops_unused_arrays():
 
 
 def test_inline_constants_keeps_arrays_read_in_loops_and_inlines_vectors():
-    p = vectorize(program(scale_nest(1, 8)), lanes=4)  # w read as w[4*c:4] inside a loop
+    p = vectorize(program(scale_nest(1, 8)), target(4))  # w read as w[4*c:4] inside a loop
     assert inline_constants(p) == p
     vec = unroll(p, level=0)
     out = inline_constants(vec)

@@ -83,8 +83,8 @@ def program_of(model, target, unroll):
     from nncg.frontend import import_onnx
     from nncg.passes import PassManager, default_pipeline
 
-    lanes = nncg.backends.get_backend(target).lanes
-    return PassManager(default_pipeline(lanes, unroll)).run(import_onnx(model))
+    facts = nncg.get_target(target)
+    return PassManager(default_pipeline(facts, unroll), facts).run(import_onnx(model))
 
 
 @pytest.mark.parametrize(

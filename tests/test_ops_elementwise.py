@@ -13,6 +13,7 @@ from test_ops import RNG, TARGETS, compile_and_check, model, weights
 import nncg
 from nncg.errors import NncgError
 from nncg.ir.loops import Affine, Buffer, Call, Kernel, Load, Loop, Program, Store
+from nncg.ir.target import Target
 from nncg.ir.verify import verify_program
 from nncg.passes.vectorize import vectorize
 from nncg.verify import run_compiled
@@ -371,7 +372,7 @@ def test_prelu_slope_that_would_grow_x_is_refused():
 
 def test_vectorize_turns_calls_into_vector_calls():
     loop = Loop("c", 8, (Store("y", Affine.of("c"), Call("tanh", Load("x", Affine.of("c")))),), parallel=True)
-    out = vectorize(Program("p", (), (Kernel("k", "Tanh", (loop,)),)), lanes=4)
+    out = vectorize(Program("p", (), (Kernel("k", "Tanh", (loop,)),)), Target("t", (4,)))
     assert out.kernels[0].body[0].body[0].value == Call("tanh", Load("x", Affine.of("c") * 4, 4))
 
 

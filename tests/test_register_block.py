@@ -1,7 +1,9 @@
 """The register-block pass: structure of the jammed loop nests, and every block shape against onnxruntime."""
 
+from dataclasses import replace
+
 import pytest
-from helpers import check_against_onnxruntime
+from helpers import check_against_onnxruntime, target
 from onnx import helper
 from test_ops import conv_model, model, weights
 
@@ -15,20 +17,34 @@ from nncg.passes.register_block import choose_blocks, parse_layers
 LOWER = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation,lower"
 
 
-def pipeline(vector: str, block: str, unroll: str = "none") -> str:
-    steps = [LOWER] + ([f"vectorize{{lanes={vector}}}"] if vector else []) + [f"register-block{{{block}}}"]
+def pipeline(vector: bool, layers: str | None = None, unroll: str = "none") -> str:
+    steps = (
+        [LOWER]
+        + (["vectorize"] if vector else [])
+        + [f"register-block{{layers={layers}}}" if layers else "register-block"]
+    )
     steps += [] if unroll == "none" else [f"unroll{{level={unroll}}}"]
     return ",".join(steps + ["inline-constants", "plan-memory"])
 
 
-def lowered(m, vector="4", block="registers=16"):
-    return PassManager(pipeline(vector, block), verify=True).run(import_onnx(m))
+def lowered(m, widths=(4,), layers=None, registers=16):
+    return PassManager(pipeline(bool(widths), layers), target(*widths, registers=registers), verify=True).run(
+        import_onnx(m)
+    )
+
+
+def compiled_for(m, name: str, registers: int, layers: str | None, unroll: str = "auto"):
+    """The C of `m` for the backend `name`, register-blocked for `registers` registers (through the
+    pass manager with the backend's target but that register count)."""
+    facts = replace(nncg.get_target(name), registers=registers)
+    manager = PassManager(pipeline(bool(facts.vector_widths), layers, unroll), facts, verify=True)
+    return nncg.emit(manager.run(import_onnx(m)), name)
 
 
 def test_jam_splits_borders_and_interleaves_accumulators():
     # 12 channels = 3 vectors of 4; 3x3, pad 1 over 10 columns: columns 0 and 9 are borders.
     m = conv_model((1, 5, 6, 10), 12, (3, 3), pads=[1, 1, 1, 1])
-    kernel = lowered(m, block="registers=16,layers=Conv_0:4x3").kernels[0]
+    kernel = lowered(m, layers="Conv_0:4x3").kernels[0]
     stmts = list(walk_stmts(kernel.body))
     lets = [s for s in stmts if isinstance(s, Let)]
     # border columns: 3 accumulators each; interior 8 columns = 2 jammed blocks of 4 x 3 vectors
@@ -44,7 +60,7 @@ def test_jam_splits_borders_and_interleaves_accumulators():
 def test_siblings_of_mixed_width_share_their_reduction():
     # 12 channels on 8/4 lanes: the 8-lane and the 4-lane accumulator run in the same loops.
     m = conv_model((1, 4, 5, 9), 12, (3, 3), pads=[1, 1, 1, 1])
-    kernel = lowered(m, vector="8/4", block="registers=16,layers=Conv_0:2x2").kernels[0]
+    kernel = lowered(m, widths=(8, 4), layers="Conv_0:2x2").kernels[0]
     jammed = next(s for s in walk_stmts(kernel.body) if isinstance(s, Loop) and s.var == "ow")
     lanes = sorted(s.init.lanes for s in walk_stmts(jammed.body) if isinstance(s, Let))
     assert lanes == [4, 4, 8, 8]
@@ -68,7 +84,7 @@ def test_layers_parameter_parses_and_rejects():
     with pytest.raises(NncgError, match="register-block"):
         PassManager("register-block{layers=conv1:4}")
     with pytest.raises(NncgError, match="no layer named conv9; the layers are: Conv_0, Conv_0_to_y"):
-        lowered(conv_model((1, 2, 4, 4), 4, (3, 3)), block="layers=conv9:2x2")
+        lowered(conv_model((1, 2, 4, 4), 4, (3, 3)), layers="conv9:2x2")
 
 
 def conv_case(**attrs):
@@ -87,7 +103,7 @@ CONVS = {
     "20_channels": conv_case(c_out=20, pads=[1, 1, 1, 1]),
     "narrow_input": conv_case(x=(1, 6, 3, 2), pads=[1, 1, 1, 1]),
 }
-BLOCKS = ["registers=16", "registers=32", "registers=16,layers=Conv_0:1x1", "registers=16,layers=Conv_0:7x5"]
+BLOCKS = [(16, None), (32, None), (16, "Conv_0:1x1"), (16, "Conv_0:7x5")]  # registers, per-layer shapes
 
 
 @pytest.mark.parametrize("block", BLOCKS)
@@ -98,8 +114,7 @@ def test_blocked_conv_matches_onnxruntime(case, target, block):
 
     if target == "avx512" and "avx512f" not in HOST:
         pytest.skip("the host CPU lacks avx512f")
-    widths = "/".join(map(str, nncg.backends.get_backend(target).vector_widths))
-    compiled = nncg.compile(CONVS[case], target=target, pipeline=pipeline(widths, block, "auto"), verify_ir=True)
+    compiled = compiled_for(CONVS[case], target, *block)
     check_against_onnxruntime(CONVS[case], compiled, opt="-O1")
 
 
@@ -119,8 +134,7 @@ def residual_then_pool():
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
 def test_blocked_residual_pool_and_gemm_under_sanitizers(target):
     m = residual_then_pool()
-    widths = "/".join(map(str, nncg.backends.get_backend(target).vector_widths))
-    compiled = nncg.compile(m, target=target, pipeline=pipeline(widths, "registers=16"), verify_ir=True)
+    compiled = compiled_for(m, target, 16, None, unroll="none")
     check_against_onnxruntime(m, compiled, sanitize=True, opt="-O1")
 
 

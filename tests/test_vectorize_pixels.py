@@ -2,13 +2,13 @@
 every padding, stride, group, batch and consumer case against onnxruntime on every x86 target."""
 
 import pytest
-from helpers import check_against_onnxruntime
+from helpers import check_against_onnxruntime, target
 from onnx import helper
 from test_ops import conv_model, model, weights
 from test_x86_targets import TARGETS
 
 import nncg
-from nncg.backends import get_backend
+from nncg.backends import get_target
 from nncg.errors import NncgError
 from nncg.frontend import import_onnx
 from nncg.ir.loops import (
@@ -35,15 +35,14 @@ from nncg.tune import with_layer_choices
 GRAPH = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation,winograd"
 
 
-def graph_after(m, pixels: str):
-    return PassManager(f"{GRAPH},{pixels}").run(import_onnx(m))
+def graph_after(m, pixels: str, facts=None):
+    return PassManager(f"{GRAPH},{pixels}", facts or target()).run(import_onnx(m))
 
 
 def pipeline(target: str, **layers: bool) -> str:
     """The target's default pipeline with these choices (ansi-c, without vectors, has no
     vectorize-pixels pass by default: the planar layout is forced in anyway)."""
-    backend = get_backend(target)
-    base = default_pipeline(backend.vector_widths, registers=backend.registers)
+    base = default_pipeline(get_target(target))
     if "vectorize-pixels" not in base:
         base = base.replace(",lower,", ",vectorize-pixels,lower,")
     return with_layer_choices(base, {}, {}, pixels=layers) if layers else base
@@ -53,11 +52,12 @@ def test_cost_model_takes_few_channels_on_long_rows():
     robot_like = conv_model((1, 3, 12, 80), 8, (3, 3), pads=[1, 1, 1, 1])
     short_rows = conv_model((1, 3, 12, 18), 8, (3, 3), pads=[1, 1, 1, 1])
     many_channels = conv_model((1, 3, 12, 80), 12, (3, 3), pads=[1, 1, 1, 1])
-    pad, conv = graph_after(robot_like, "vectorize-pixels{lanes=16/8/4}").nodes
+    avx512 = nncg.get_target("avx512")
+    pad, conv = graph_after(robot_like, "vectorize-pixels", avx512).nodes
     assert (pad.op, conv.attrs.vector_axis) == ("Pad", "pixels")
-    assert graph_after(robot_like, "vectorize-pixels{lanes=8/4}").nodes[0].attrs.vector_axis == "channels"
-    assert graph_after(short_rows, "vectorize-pixels{lanes=16/8/4}").nodes[0].attrs.vector_axis == "channels"
-    assert graph_after(many_channels, "vectorize-pixels{lanes=16/8/4}").nodes[0].attrs.vector_axis == "channels"
+    assert graph_after(robot_like, "vectorize-pixels", nncg.get_target("avx2")).nodes[0].attrs.vector_axis == "channels"
+    assert graph_after(short_rows, "vectorize-pixels", avx512).nodes[0].attrs.vector_axis == "channels"
+    assert graph_after(many_channels, "vectorize-pixels", avx512).nodes[0].attrs.vector_axis == "channels"
     assert graph_after(robot_like, "vectorize-pixels").nodes[0].attrs.vector_axis == "channels"
 
 
@@ -89,7 +89,7 @@ def test_only_layers_with_planar_rows_qualify():
 
 def test_rows_are_vectorised_without_border_checks():
     m = conv_model((1, 3, 5, 42), 8, (3, 3), pads=[1, 1, 1, 1])
-    program = PassManager(pipeline("avx512", Conv_0=True), verify=True).run(import_onnx(m))
+    program = PassManager(pipeline("avx512", Conv_0=True), nncg.get_target("avx512"), verify=True).run(import_onnx(m))
     (conv,) = [k for k in program.kernels if k.op == "Conv"]
     assert not any(isinstance(s, If) for s in walk_stmts(conv.body))
     stores = [s for s in walk_stmts(conv.body) if isinstance(s, Store)]
@@ -184,7 +184,7 @@ def accumulate(extent: int, lo: int, hi: int) -> Loop:
 
 
 def vectorized(kernel: Kernel, lanes: tuple[int, ...]) -> Kernel:
-    (out,) = vectorize(Program("p", (), (kernel,), {}), lanes).kernels
+    (out,) = vectorize(Program("p", (), (kernel,), {}), target(*lanes)).kernels
     return out
 
 
@@ -210,6 +210,6 @@ def test_a_channels_last_consumer_of_a_planar_tensor_jams_channels_only():
     m = leaky_pool((1, 3, 8, 72), 8, pads=[1, 1, 1, 1])
     for on, expected in ((True, {"Conv_0": False, "MaxPool_2": True}), (False, {"Conv_0": False, "MaxPool_2": False})):
         specs = pipeline("avx512", Conv_0=on).split(",register-block")[0]
-        program = PassManager(specs).run(import_onnx(m))
+        program = PassManager(specs, nncg.get_target("avx512"), finish=False).run(import_onnx(m))
         strided = {k.name: reads_across_planes(k.body) for k in program.kernels if k.name in expected}
         assert strided == expected

@@ -3,7 +3,7 @@ padding case against onnxruntime on every x86 target (ASan/UBSan on some)."""
 
 import numpy as np
 import pytest
-from helpers import check_against_onnxruntime
+from helpers import check_against_onnxruntime, target
 from onnx import helper
 from test_ops import conv_model, model, weights
 from test_x86_targets import TARGETS
@@ -29,15 +29,15 @@ def test_transforms_compute_a_3x3_correlation():
     np.testing.assert_allclose(y, direct, rtol=1e-6, atol=1e-6)
 
 
-def graph_after(m, winograd: str):
-    return PassManager(f"{GRAPH},{winograd}").run(import_onnx(m))
+def graph_after(m, winograd: str, facts=None):
+    return PassManager(f"{GRAPH},{winograd}", facts or target()).run(import_onnx(m))
 
 
 def test_cost_model_takes_3x3_convs_with_enough_input_channels():
     wide = conv_model((1, 8, 6, 6), 12, (3, 3), pads=[1, 1, 1, 1])
     narrow = conv_model((1, 3, 6, 6), 12, (3, 3), pads=[1, 1, 1, 1])
     strided = conv_model((1, 8, 6, 6), 12, (3, 3), pads=[1, 1, 1, 1], strides=[2, 2])
-    (conv,) = graph_after(wide, "winograd{lanes=16/8/4}").nodes
+    (conv,) = graph_after(wide, "winograd", target(16, 8, 4)).nodes
     assert conv.attrs.algorithm == "winograd" and conv.attrs.gemm_channels == 16
     assert graph_after(narrow, "winograd").nodes[0].attrs.algorithm == "direct"
     assert graph_after(strided, "winograd").nodes[0].attrs.algorithm == "direct"
@@ -68,7 +68,8 @@ def test_gemm_channels_are_padded_only_where_it_saves_vector_instructions():
 
 def test_border_tiles_get_their_own_loops_without_checks():
     m = conv_model((1, 8, 30, 40), 12, (3, 3), pads=[1, 1, 1, 1])
-    program = PassManager(default_pipeline((16, 8, 4), registers=32), verify=True).run(import_onnx(m))
+    avx512 = nncg.get_target("avx512")
+    program = PassManager(default_pipeline(avx512), avx512, verify=True).run(import_onnx(m))
     (kernel,) = [k for k in program.kernels if k.op == "Conv"]
     assert not any(isinstance(s, If) for s in walk_stmts(kernel.body))
     # 15 x 20 tiles, 2 tile rows per chunk: the first and last chunk apart, 6 alike ones in a loop
@@ -131,13 +132,13 @@ def test_halo_input_reads_the_border_instead_of_skipping_it():
         helper.make_node("Conv", ["a", "w2"], ["y"], pads=[1, 1, 1, 1]),
     ]
     m = model(nodes, {"x": (1, 4, 7, 9)}, None, [("w1", weights(8, 4, 3, 3)), ("w2", weights(12, 8, 3, 3))])
-    pipeline = default_pipeline((4,)).replace(",lower,", ",lower{halos=true},")
+    pipeline = default_pipeline(nncg.get_target("ssse3")).replace(",lower,", ",lower{halos=true},")
     check_against_onnxruntime(m, nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True), sanitize=True)
 
 
 @pytest.mark.parametrize("c_in", [1, 3])
 def test_narrow_input_forced_through_winograd(c_in):
     m = conv_model((1, c_in, 10, 11), 8, (3, 3), pads=[1, 1, 1, 1])
-    pipeline = default_pipeline((4,)).replace("winograd{lanes=4}", "winograd{lanes=4,layers=Conv_0:true}")
+    pipeline = default_pipeline(nncg.get_target("ssse3")).replace("winograd", "winograd{layers=Conv_0:true}")
     compiled = nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True)
     check_against_onnxruntime(m, compiled, sanitize=True)

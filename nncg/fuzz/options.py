@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 import onnx
 
-from ..backends import get_backend
+from ..backends import get_target
 from ..bench.peak import supported_isas
 from ..errors import NncgError
-from ..passes import default_pipeline
+from ..options import CompileOptions
 from ..passes.unroll import CODE_BUDGET
 from ..tune import algorithm_layers, block_candidates, tunable_layers, with_layer_choices
 from .draw import Draw
@@ -48,8 +48,7 @@ class Options:
         """The pass pipeline with the per-layer choices; None for the default one."""
         if self.default_layers:
             return None
-        backend = get_backend(self.target)
-        text = default_pipeline(backend.vector_widths, self.unroll, self.weights, self.code_budget, backend.registers)
+        text = _base(self)
         text = with_layer_choices(
             text,
             {name: tuple(shape) for name, shape in self.layers.get("register-block", {}).items()},
@@ -60,10 +59,10 @@ class Options:
         return text.replace(",lower,", ",lower{halos=true},") if self.halos else text
 
     def compile_kwargs(self) -> dict[str, Any]:
-        kwargs: dict[str, Any] = {"target": self.target, "unroll": self.unroll, "weights": self.weights}
-        kwargs["code_budget"] = self.code_budget
         pipeline = self.pipeline()
-        return kwargs | ({"pipeline": pipeline} if pipeline else {})
+        if pipeline:  # it records the unroll level, weights and code budget
+            return {"target": self.target, "pipeline": pipeline}
+        return {"target": self.target, "unroll": self.unroll, "weights": self.weights, "code_budget": self.code_budget}
 
     def command(self, model_path: str = "model.onnx") -> str:
         """The nncg-onnx command line that compiles and verifies the model with these options."""
@@ -136,7 +135,8 @@ def _layer_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[st
     choice the pass must refuse. The IR is imported and run up to each pass, as --tune does."""
     choices: dict[str, dict[str, Any]] = {}
     try:
-        names = list(algorithm_layers(model, _base(options), None))
+        target = get_target(options.target)
+        names = list(algorithm_layers(model, _base(options), target, None))
         if names:
             choices["winograd"] = {n: d.chance(0.5) for n in names}
         pixels = _pixel_candidates(model, replace(options, layers=choices))
@@ -145,8 +145,8 @@ def _layer_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[st
             choices["vectorize-pixels"] = {
                 n: i < taken if d.chance(0.85) else d.chance(0.5) for i, n in enumerate(pixels)
             }
-        registers = get_backend(options.target).registers
-        layers = tunable_layers(model, replace(options, layers=choices).pipeline() or _base(options), None)
+        registers = target.registers
+        layers = tunable_layers(model, replace(options, layers=choices).pipeline() or _base(options), target, None)
         blocks = {n: list(_block_choice(d, shape, registers)) for n, (shape, _) in layers.items() if d.chance(0.7)}
         budgets = {n: d.pick(LAYER_BUDGETS) for n in layers if d.chance(0.5)}
     except NncgError:
@@ -156,10 +156,8 @@ def _layer_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[st
 
 
 def _base(options: Options) -> str:
-    backend = get_backend(options.target)
-    return default_pipeline(
-        backend.vector_widths, options.unroll, options.weights, options.code_budget, backend.registers
-    )
+    chosen = CompileOptions(options.unroll, options.weights, options.code_budget)
+    return chosen.pass_pipeline(get_target(options.target))
 
 
 def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
@@ -169,7 +167,7 @@ def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
     pipeline = options.pipeline() or _base(options)
     if "vectorize-pixels" not in pipeline:
         return []
-    return pixel_candidates(ir_before(model, pipeline, "vectorize-pixels", None))
+    return pixel_candidates(ir_before(model, pipeline, "vectorize-pixels", get_target(options.target), None))
 
 
 def _block_choice(d: Draw, shape: tuple[int, int], registers: int) -> tuple[int, int]:

@@ -1,8 +1,12 @@
 """The pass manager: named passes, pipelines as text that round-trips, IR printing as an instrument.
 
-A pipeline is `name{key=value,...},name,...`, e.g. `fold-batchnorm,lower,vectorize{lanes=4},unroll{level=1}`.
-Graph passes run before `lower`, loop passes after it; the manager checks each pass gets the IR it
-expects, verifies the IR after each pass when asked, and names the pass in every error."""
+A pipeline is `name{key=value,...},name,...`, e.g. `fold-batchnorm,lower,vectorize,unroll{level=1}`: the
+text records choices; hardware facts (vector widths, registers) come from the `Target` the manager
+hands to the passes that declare they need it. Graph passes run before `lower`, loop passes after it;
+a finishing pass (plan-memory) runs last and is appended when a lowering pipeline lacks it (the
+pipeline text then shows it). The manager checks each pass gets the IR it expects, that no loop
+mark (vectorized, unrolled) survives the pipeline, verifies the IR after each pass when asked, and
+names the pass in every error raised inside it."""
 
 from __future__ import annotations
 
@@ -14,7 +18,8 @@ from typing import TextIO
 
 from ..errors import NncgError
 from ..ir.graph import Graph
-from ..ir.loops import Program
+from ..ir.loops import Loop, Program, walk_stmts
+from ..ir.target import Target
 from ..ir.text import graph_to_text, program_to_text
 from ..ir.verify import verify_ir
 
@@ -28,14 +33,25 @@ class PassInfo:
     run: Callable
     params: dict[str, Callable[[str], object]]  # parameter name -> parser of its text
     doc: str
+    target: bool = False  # run(ir, target=..., **params): it needs the hardware facts
+    finishing: bool = False  # runs last; appended to a lowering pipeline that lacks it
 
 
 REGISTRY: dict[str, PassInfo] = {}
 
 
-def register(name: str, stage: str, run: Callable, **params: Callable[[str], object]) -> None:
+def register(
+    name: str,
+    stage: str,
+    run: Callable,
+    *,
+    target: bool = False,
+    finishing: bool = False,
+    **params: Callable[[str], object],
+) -> None:
     doc = (sys.modules[run.__module__].__doc__ or "").strip()
-    REGISTRY[name] = PassInfo(name, stage, run, params, doc.splitlines()[0] if doc else "")
+    first = doc.splitlines()[0] if doc else ""
+    REGISTRY[name] = PassInfo(name, stage, run, params, first, target, finishing)
 
 
 @dataclass(frozen=True)
@@ -93,17 +109,33 @@ def _checked(spec: PassSpec) -> PassSpec:
 
 
 class PassManager:
-    """Runs passes in order. Instruments get (pass spec, IR after it); `verify` checks the IR."""
+    """Runs passes in order. Instruments get (pass spec, IR after it); `verify` checks the IR.
+
+    `target` gives the passes that need hardware facts (vectorize, register-block, ...) their
+    Target; `finish` appends the finishing passes a lowering pipeline lacks (off only to inspect the
+    IR part-way, as --tune does)."""
 
     def __init__(
-        self, pipeline: str | tuple[PassSpec, ...], verify: bool = False, print_ir_after_all: TextIO | None = None
+        self,
+        pipeline: str | tuple[PassSpec, ...],
+        target: Target | None = None,
+        verify: bool = False,
+        print_ir_after_all: TextIO | None = None,
+        finish: bool = True,
     ):
-        self.specs = parse_pipeline(pipeline) if isinstance(pipeline, str) else tuple(_checked(s) for s in pipeline)
+        specs = parse_pipeline(pipeline) if isinstance(pipeline, str) else tuple(_checked(s) for s in pipeline)
+        self.specs = _with_finishing_passes(specs) if finish else _in_order(specs)
+        self.target = target
         self.verify = verify
         self.instruments: list[Callable[[PassSpec, object], None]] = []
         if print_ir_after_all is not None:
             self.instruments.append(
                 lambda spec, ir: print(f"// ----- IR after {spec}\n{ir_to_text(ir)}", file=print_ir_after_all)
+            )
+        needy = [spec.name for spec in self.specs if REGISTRY[spec.name].target]
+        if needy and target is None:
+            raise NncgError(
+                f"passes {', '.join(needy)} need a target: PassManager(pipeline, target=nncg.get_target('ssse3'))"
             )
 
     @property
@@ -112,20 +144,65 @@ class PassManager:
 
     def run(self, ir: Graph | Program) -> Graph | Program:
         for spec in self.specs:
-            info = REGISTRY[spec.name]
-            if not isinstance(ir, STAGES[info.stage]):
-                where = "after" if info.stage == "loop" else "before"
-                expected, got = _ir_kind(STAGES[info.stage]), _ir_kind(type(ir))
-                raise NncgError(f"pass {spec} works on the {expected} but gets the {got}; put it {where} lower")
-            kwargs = {k: info.params[k](v) for k, v in spec.params}
-            ir = info.run(ir, **kwargs)
+            ir = self._run_one(spec, ir)
             if self.verify:
                 problems = verify_ir(ir)
                 if problems:
                     raise NncgError(f"IR is malformed after pass {spec}: " + "; ".join(problems[:5]))
             for instrument in self.instruments:
                 instrument(spec, ir)
+        if isinstance(ir, Program) and self.specs and REGISTRY[self.specs[-1].name].finishing:
+            _check_no_marks(ir, self.specs[-1])
         return ir
+
+    def _run_one(self, spec: PassSpec, ir: Graph | Program) -> Graph | Program:
+        info = REGISTRY[spec.name]
+        if not isinstance(ir, STAGES[info.stage]):
+            where = "after" if info.stage == "loop" else "before"
+            expected, got = _ir_kind(STAGES[info.stage]), _ir_kind(type(ir))
+            raise NncgError(f"pass {spec} works on the {expected} but gets the {got}; put it {where} lower")
+        kwargs = {k: info.params[k](v) for k, v in spec.params}
+        if info.target:
+            kwargs["target"] = self.target
+        try:
+            return info.run(ir, **kwargs)
+        except NncgError as exc:
+            message = str(exc).removeprefix(f"{spec.name}: ")
+            if message.startswith(f"pass {spec.name}"):
+                raise
+            raise type(exc)(f"pass {spec.name}: {message}") from None
+        except Exception as exc:
+            raise RuntimeError(f"pass {spec.name} failed: {type(exc).__name__}: {exc}") from exc
+
+
+def _in_order(specs: tuple[PassSpec, ...]) -> tuple[PassSpec, ...]:
+    """The specs, refused when a finishing pass is not last."""
+    for i, spec in enumerate(specs[:-1]):
+        if REGISTRY[spec.name].finishing:
+            raise NncgError(f"pass {spec.name} must run last, but {specs[i + 1].name} follows it")
+    return specs
+
+
+def _with_finishing_passes(specs: tuple[PassSpec, ...]) -> tuple[PassSpec, ...]:
+    """A pipeline that lowers ends with the finishing passes; those it lacks are appended."""
+    specs = _in_order(specs)
+    if not any(REGISTRY[s.name].stage == "lower" for s in specs):
+        return specs
+    present = {s.name for s in specs}
+    missing = [info.name for info in REGISTRY.values() if info.finishing and info.name not in present]
+    return specs + tuple(PassSpec(name) for name in missing)
+
+
+def _check_no_marks(program: Program, last: PassSpec) -> None:
+    """No loop leaves the pipeline still marked for a pass that materialises it."""
+    for kernel in program.kernels:
+        marked = [s for s in walk_stmts(kernel.body) if isinstance(s, Loop) and s.kind != "serial"]
+        if marked:
+            loop = marked[0]
+            raise NncgError(
+                f"after pass {last.name}, loop '{loop.var}' of layer {kernel.name} is still marked {loop.kind}: "
+                "the pass that marked it must also materialise it"
+            )
 
 
 def ir_to_text(ir: Graph | Program) -> str:

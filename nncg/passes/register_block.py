@@ -1,4 +1,5 @@
-"""Loop pass `register-block{registers=R,layers=NAME:PxC;...}`: register blocking by unroll-and-jam.
+"""Loop pass `register-block{layers=NAME:PxC;...}`: register blocking by unroll-and-jam, sized to the
+target's vector registers.
 
 A layer that accumulates (a Let whose body loops over a reduction, as Conv, Gemm and pooling do)
 adds into one register per output: every add waits for the previous one. This pass jams several
@@ -21,6 +22,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
+from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
 from .substitute import interior, iterations, prune_bounds, rename_variables, substitute_body
 
@@ -47,7 +49,8 @@ def parse_layers(text: str) -> dict[str, tuple[int, int]]:
     return parse_layer_map(text, parse_block, "conv1:4x2")
 
 
-def register_block(program: Program, registers: int = 16, layers: dict[str, tuple[int, int]] | None = None) -> Program:
+def register_block(program: Program, target: Target, layers: dict[str, tuple[int, int]] | None = None) -> Program:
+    registers = target.registers
     layers = layers or {}
     check_layer_names(program, layers, "register-block")
     kernels = []

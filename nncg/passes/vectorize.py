@@ -1,11 +1,11 @@
-"""Loop pass `vectorize{lanes=N}`: SIMD over output channels (the paper's principle 4), or over
+"""Loop pass `vectorize`: SIMD in the target's vector widths over output channels (the paper's principle 4), or over
 output pixels where the layer was lowered for that (see the vectorize-pixels pass).
 
 Marks, in each kernel, the innermost parallel loop that every store walks contiguously (a loop
 whose border checks depend on it is first split into its border iterations, left scalar, and the
 interior, where the checks hold and are dropped), then materialises it: a loop over vector blocks
 whose expressions have N lanes, plus a scalar tail when the extent is not a multiple of N. With
-several widths, widest first (`lanes=16/8/4`), the extent is split greedily: blocks of the widest
+several widths, widest first (avx512: 16/8/4), the extent is split greedily: blocks of the widest
 width that fits, the remainder in the next narrower width, and so on; only what is left after the
 narrowest is scalar (12 channels at 16/8/4: one 8-lane and one 4-lane block). Loads that do not
 depend on the loop become broadcasts. A call (exp, ...) becomes a vector call: backends without a
@@ -37,13 +37,14 @@ from ..ir.loops import (
     walk_exprs,
     walk_stmts,
 )
+from ..ir.target import Target
 from .register_block import is_accumulator
 from .substitute import interior, iterations, substitute_body
 
 
-def vectorize(program: Program, lanes: int | tuple[int, ...] = 4) -> Program:
-    """`lanes`: one vector width, or several, widest first."""
-    widths = tuple(w for w in ((lanes,) if isinstance(lanes, int) else lanes) if w > 1)
+def vectorize(program: Program, target: Target) -> Program:
+    """SIMD in the target's vector widths (widest first); a target without vectors changes nothing."""
+    widths = target.vector_widths
     if not widths:
         return program
     if list(widths) != sorted(set(widths), reverse=True):

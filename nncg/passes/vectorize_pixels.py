@@ -1,4 +1,4 @@
-"""Graph pass `vectorize-pixels{lanes=16/8/4,layers=conv1:true;conv2:false}`: SIMD over output pixels.
+"""Graph pass `vectorize-pixels{layers=conv1:true;conv2:false}`: SIMD over output pixels.
 
 Vectorising over output channels (the default) leaves a wide vector part empty when a layer has
 few of them: 3 channels fill 3 of 16 lanes. Such a layer can instead be lowered with a planar
@@ -20,6 +20,7 @@ from dataclasses import replace
 
 from ..errors import NncgError
 from ..ir.graph import ConvAttrs, Graph, Node, PadAttrs
+from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
 
@@ -31,7 +32,8 @@ def parse_layers(text: str) -> dict[str, bool]:
     return parse_layer_map(text, parse_bool, "conv1:true;conv2:false")
 
 
-def vectorize_pixels(graph: Graph, lanes: tuple[int, ...] = (1,), layers: dict[str, bool] | None = None) -> Graph:
+def vectorize_pixels(graph: Graph, target: Target, layers: dict[str, bool] | None = None) -> Graph:
+    lanes = target.vector_widths or (1,)
     layers = layers or {}
     check_layer_names(graph, layers, "vectorize-pixels")
     planar = {value.name for value in graph.inputs}

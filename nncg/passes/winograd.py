@@ -1,4 +1,4 @@
-"""Graph pass `winograd{lanes=16/8/4,layers=conv2:true;conv1:false}`: Winograd F(2x2, 3x3) for 3x3 convs.
+"""Graph pass `winograd{layers=conv2:true;conv1:false}`: Winograd F(2x2, 3x3) for 3x3 convs.
 
 Winograd (nncg/lowering/winograd.py) does 2.25x fewer multiplies than direct convolution but adds
 an input and an output transform (adds only) and two scratch buffers. The multiplies it saves grow
@@ -7,7 +7,7 @@ stride-1, ungrouped 2-D Conv with at least MIN_INPUT_CHANNELS input channels; `l
 the choice per layer (what `--tune` measured). Layers Winograd does not apply to stay direct.
 
 The GEMMs' output channels are internal, so they may be padded with zero filters: with the target's
-vector widths `lanes`, a count that would take more vector instructions than its padded form (12 on
+vector widths of the target, a count that would take more vector instructions than its padded form (12 on
 16/8/4: an 8- and a 4-lane block, padded to 16: one block) is padded, if the padding stays under a
 quarter of the lanes computed (measured on robot, avx512: 12 -> 16 ran 1.5x faster; 8 -> 16 and
 20 -> 32 ran slower)."""
@@ -18,6 +18,7 @@ from dataclasses import replace
 
 from ..errors import NncgError
 from ..ir.graph import Graph
+from ..ir.target import Target
 from ..lowering.winograd import winograd_applies
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
@@ -31,7 +32,8 @@ def parse_layers(text: str) -> dict[str, bool]:
     return parse_layer_map(text, parse_bool, "conv2:true;conv1:false")
 
 
-def winograd(graph: Graph, lanes: tuple[int, ...] = (1,), layers: dict[str, bool] | None = None) -> Graph:
+def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None) -> Graph:
+    lanes = target.vector_widths or (1,)
     layers = layers or {}
     check_layer_names(graph, layers, "winograd")
     nodes = []
