@@ -105,8 +105,9 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "Sum": ConvertedOp(convert_variadic, ("Sum", "Identity")),
     "LogSoftmax": ConvertedOp(convert_log_softmax, ("LogSoftmax",)),
     "LRN": ConvertedOp(convert_lrn, ("LRN",)),
-    # The spatial mean with keepdims is a global AveragePool; no axes with noop_with_empty_axes an Identity.
-    "ReduceMean": ConvertedOp(convert_reduce_mean, ("ReduceMean", "AveragePool", "Identity"), (1,)),  # axes (18+)
+    # axes (opset 18+); the spatial mean with keepdims is a global AveragePool, the mean over no axes
+    # with noop_with_empty_axes an Identity
+    "ReduceMean": ConvertedOp(convert_reduce_mean, ("ReduceMean", "AveragePool", "Identity"), (1,)),
 }
 
 CONVERTERS: dict[str, Converter] = {name: op.convert for name, op in ONNX_OPS.items()}
@@ -115,8 +116,8 @@ SUPPORTED_OPS: tuple[str, ...] = tuple(sorted(ONNX_OPS))
 # Ops that are accepted only when folded away (Shape/Size need a static input shape).
 FOLDED_OPS = "Constant, ConstantOfShape, Shape, Size and any other op whose inputs are all constants"
 
-# Parameter inputs of ops that have no converter but fold once these inputs are constants (as the
-# ONNX backend makes them: see nncg/onnx_backend.py).
+# Parameter inputs of ops that have no converter and import only when folded: the ONNX backend
+# (nncg/onnx_backend.py) binds them too, so that such an op fed by a graph input can fold.
 _REDUCE_AXES = (1,)  # Reduce* from opset 18 (13 for ReduceSum): axes
 FOLDED_PARAMETER_INPUTS: dict[str, tuple[int, ...]] = {
     "ConstantOfShape": (0,),  # shape
