@@ -12,12 +12,13 @@ Parameter inputs. NNCG needs operator parameters (Reshape's shape, Slice's start
 Pad's pads, Resize's scales, Clip's bounds, ...) as compile-time constants, while onnx's test cases
 often feed them as graph inputs. As an ahead-of-time backend would, this adapter specialises on
 them: a graph input is a parameter input when every node reading it reads it in a slot listed in
-PARAMETER_INPUTS (and the graph does not return it), or when it is not float32. For a model with
-parameter inputs, `prepare` only checks the model and the first `run` binds the values given for
-those inputs as initializers (they are no longer graph inputs), compiles and builds; the build is
-cached by the bound values, so a later run with the same values reuses it and one with other values
-compiles again. The other (data) inputs are passed to the C program as usual. This is the adapter's
-behaviour only: nncg.compile and `nncg-onnx` still refuse parameters that are not constants.
+PARAMETER_INPUTS (made from the op records in nncg/frontend/ops.py) and the graph does not return
+it, or when it is not float32. For a model with parameter inputs, `prepare` only checks the model
+and the first `run` binds the values given for those inputs as initializers (they are no longer
+graph inputs), compiles and builds; the build is cached by the bound values, so a later run with
+the same values reuses it and one with other values compiles again. The other (data) inputs are
+passed to the C program as usual. This is the adapter's behaviour only: nncg.compile and
+`nncg-onnx` still refuse parameters that are not constants.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from onnx.backend.base import Backend, BackendRep, Device, DeviceType
 from nncg.compiler import CompiledModel
 from nncg.compiler import compile as nncg_compile
 from nncg.errors import NncgError
+from nncg.frontend.ops import PARAMETER_INPUTS
 from nncg.frontend.shapes import dtype_name
 from nncg.verify import BuiltModel, build_model
 
@@ -43,34 +45,6 @@ from nncg.verify import BuiltModel, build_model
 _COMPILE_KWARGS = ("target", "unroll", "input_shapes", "pipeline", "weights", "code_budget")
 _BUILD_KWARGS = ("cc", "opt", "extra_cflags")
 _IGNORED_KWARGS = ("rtol", "atol")
-
-# {op_type: indices of the inputs that are operator parameters}: values NNCG compiles as constants.
-_REDUCE_AXES = (1,)  # Reduce* from opset 18 (13 for ReduceSum): axes
-PARAMETER_INPUTS: dict[str, tuple[int, ...]] = {
-    "Clip": (1, 2),  # min, max (opset 11+)
-    "ConstantOfShape": (0,),  # shape
-    "Dropout": (1, 2),  # ratio, training_mode (opset 12+)
-    "Expand": (1,),  # shape
-    "Pad": (1, 2, 3),  # pads, constant_value, axes (opset 11+)
-    "ReduceL1": _REDUCE_AXES,
-    "ReduceL2": _REDUCE_AXES,
-    "ReduceLogSum": _REDUCE_AXES,
-    "ReduceLogSumExp": _REDUCE_AXES,
-    "ReduceMax": _REDUCE_AXES,
-    "ReduceMean": _REDUCE_AXES,
-    "ReduceMin": _REDUCE_AXES,
-    "ReduceProd": _REDUCE_AXES,
-    "ReduceSum": _REDUCE_AXES,
-    "ReduceSumSquare": _REDUCE_AXES,
-    "Reshape": (1,),  # shape
-    "Resize": (1, 2, 3),  # roi, scales, sizes (opset 11+; scales alone in opset 10)
-    "Slice": (1, 2, 3, 4),  # starts, ends, axes, steps (opset 10+)
-    "Split": (1,),  # split (opset 13+)
-    "Squeeze": (1,),  # axes (opset 13+)
-    "Tile": (1,),  # repeats
-    "Unsqueeze": (1,),  # axes (opset 13+)
-    "Upsample": (1,),  # scales (opset 9)
-}
 
 
 class BackendError(NncgError):
@@ -151,7 +125,7 @@ class NncgBackendRep(BackendRep):
         build = self._builds.get(key)
         if build is None:
             assert self._model is not None, "a model compiled at prepare has no parameter inputs"
-            build = _compile_and_build(_bind(self._model, bound), self._options, self._build_options)
+            build = _compile_and_build(bind_inputs(self._model, bound), self._options, self._build_options)
             self._builds[key] = build
         self._last = build
         return build
@@ -325,7 +299,7 @@ def _real_inputs(graph: onnx.GraphProto) -> list[onnx.ValueInfoProto]:
     return [v for v in graph.input if v.name not in constants]
 
 
-def _bind(model: onnx.ModelProto, values: Mapping[str, np.ndarray]) -> onnx.ModelProto:
+def bind_inputs(model: onnx.ModelProto, values: Mapping[str, np.ndarray]) -> onnx.ModelProto:
     """A copy of `model` with the inputs in `values` turned into initializers of those values."""
     bound = onnx.ModelProto()
     bound.CopyFrom(model)

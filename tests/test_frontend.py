@@ -14,7 +14,6 @@ from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_nn import convert_maxpool
 from nncg.frontend.ops_shape import convert_dropout
 from nncg.ir.graph import (
-    OPS,
     Activation,
     BatchNormAttrs,
     ConvAttrs,
@@ -25,6 +24,7 @@ from nncg.ir.graph import (
     ReshapeAttrs,
     SoftmaxAttrs,
 )
+from nncg.ir.ops import IR_OPS
 
 F = TensorProto.FLOAT
 RNG = np.random.default_rng(0)
@@ -283,7 +283,7 @@ def test_node_names_default_to_op_and_index_and_are_unique():
 def test_every_ir_node_uses_a_canonical_op_and_its_attr_record():
     graph = import_onnx(conv_model())
     for node in graph.nodes:
-        expected = OPS[node.op]
+        expected = IR_OPS[node.op].attrs
         assert node.attrs is None if expected is None else isinstance(node.attrs, expected)
 
 

@@ -2,25 +2,14 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..ir.graph import Graph, Node
+from ..ir.ops import IR_OPS
 
 
 def node_macs(graph: Graph, node: Node) -> int:
-    """Conv: outputs x c_in/group x kernel taps; ConvTranspose: inputs x c_out/group x kernel taps;
-    Dense: outputs x K; other ops do no MACs. Weights may be constant or runtime: shapes suffice."""
-    if node.op == "Conv":
-        weight = graph.shape(node.inputs[1])  # [c_out, c_in/group, k...]
-        return int(np.prod(graph.shape(node.outputs[0]))) * int(np.prod(weight[1:]))
-    if node.op == "ConvTranspose":
-        weight = graph.shape(node.inputs[1])  # [c_in, c_out/group, k...]
-        return int(np.prod(graph.shape(node.inputs[0]))) * int(np.prod(weight[1:]))
-    if node.op == "Dense":
-        weight = graph.shape(node.inputs[1])  # [..., K, N], or [..., N, K] with trans_w
-        k = weight[-1] if node.attrs.trans_w else weight[-2]
-        return int(np.prod(graph.shape(node.outputs[0]))) * k
-    return 0
+    """The MAC rule of the node's op (nncg/ir/ops.py): Conv, ConvTranspose and Dense count their
+    multiply-accumulates, other ops none."""
+    return IR_OPS[node.op].macs(graph, node)
 
 
 def total_macs(graph: Graph) -> int:

@@ -1,8 +1,10 @@
-"""ONNX front end (ONNX -> graph IR), step 3: the table of ONNX ops NNCG converts and to what."""
+"""ONNX front end (ONNX -> graph IR), step 3: one record per ONNX op NNCG converts (converter, graph IR
+ops it yields, parameter inputs); the converter table and the parameter inputs derive from them."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_conv import convert_conv_transpose
@@ -47,52 +49,93 @@ from nncg.ir.graph import Node
 
 Converter = Callable[[OnnxOp, Context], Node]
 
-CONVERTERS: dict[str, Converter] = {
-    "Conv": convert_conv,
-    "ConvTranspose": convert_conv_transpose,
-    "MaxPool": convert_maxpool,
-    "AveragePool": convert_averagepool,
-    "GlobalAveragePool": convert_global_pool,
-    "GlobalMaxPool": convert_global_pool,
-    "Relu": convert_relu,
-    "Clip": convert_clip,
-    "LeakyRelu": convert_leaky_relu,
-    "BatchNormalization": convert_batchnorm,
-    "Softmax": convert_softmax,
-    "Dropout": convert_dropout,
-    "Identity": convert_identity,
-    "Flatten": convert_flatten,
-    "Reshape": convert_reshape,
-    "Squeeze": convert_squeeze,
-    "Unsqueeze": convert_unsqueeze,
-    "Gemm": convert_gemm,
-    "MatMul": convert_matmul,
-    "Add": convert_binary,
-    "Sub": convert_binary,
-    "Mul": convert_binary,
-    "Div": convert_binary,
-    "Concat": convert_concat,
-    "Split": convert_split,
-    "Slice": convert_slice,
-    "Transpose": convert_transpose,
-    "Pad": convert_pad,
-    "Resize": convert_resize,
-    "Upsample": convert_upsample,
-    "Sigmoid": convert_activation,
-    "Tanh": convert_activation,
-    "HardSigmoid": convert_activation,
-    "HardSwish": convert_activation,
-    "Elu": convert_activation,
-    "PRelu": convert_prelu,
-    "Max": convert_variadic,
-    "Min": convert_variadic,
-    "Sum": convert_variadic,
-    "LogSoftmax": convert_log_softmax,
-    "LRN": convert_lrn,
-    "ReduceMean": convert_reduce_mean,
+
+@dataclass(frozen=True)
+class ConvertedOp:
+    """An ONNX op the front end converts: its converter, the graph IR ops (nncg/ir/ops.py) that
+    converter can yield, and the input slots it reads as compile-time constants (operator
+    parameters such as shapes, axes and pads; not weights, which may be runtime values)."""
+
+    convert: Converter
+    ir_ops: tuple[str, ...]
+    parameter_inputs: tuple[int, ...] = ()
+
+
+ONNX_OPS: dict[str, ConvertedOp] = {
+    "Conv": ConvertedOp(convert_conv, ("Conv",)),
+    "ConvTranspose": ConvertedOp(convert_conv_transpose, ("ConvTranspose",)),
+    "MaxPool": ConvertedOp(convert_maxpool, ("MaxPool",)),
+    "AveragePool": ConvertedOp(convert_averagepool, ("AveragePool",)),
+    "GlobalAveragePool": ConvertedOp(convert_global_pool, ("AveragePool",)),
+    "GlobalMaxPool": ConvertedOp(convert_global_pool, ("MaxPool",)),
+    "Relu": ConvertedOp(convert_relu, ("Relu",)),
+    "Clip": ConvertedOp(convert_clip, ("Clip",), (1, 2)),  # min, max (opset 11+)
+    "LeakyRelu": ConvertedOp(convert_leaky_relu, ("LeakyRelu",)),
+    "BatchNormalization": ConvertedOp(convert_batchnorm, ("BatchNormalization",)),
+    "Softmax": ConvertedOp(convert_softmax, ("Softmax",)),
+    "Dropout": ConvertedOp(convert_dropout, ("Identity",), (1, 2)),  # ratio, training_mode (opset 12+)
+    "Identity": ConvertedOp(convert_identity, ("Identity",)),
+    "Flatten": ConvertedOp(convert_flatten, ("Reshape",)),
+    "Reshape": ConvertedOp(convert_reshape, ("Reshape",), (1,)),  # shape
+    "Squeeze": ConvertedOp(convert_squeeze, ("Reshape",), (1,)),  # axes (opset 13+)
+    "Unsqueeze": ConvertedOp(convert_unsqueeze, ("Reshape",), (1,)),  # axes (opset 13+)
+    "Gemm": ConvertedOp(convert_gemm, ("Dense",)),
+    "MatMul": ConvertedOp(convert_matmul, ("Dense",)),
+    "Add": ConvertedOp(convert_binary, ("Add",)),
+    "Sub": ConvertedOp(convert_binary, ("Sub",)),
+    "Mul": ConvertedOp(convert_binary, ("Mul",)),
+    "Div": ConvertedOp(convert_binary, ("Div",)),
+    "Concat": ConvertedOp(convert_concat, ("Concat",)),
+    "Split": ConvertedOp(convert_split, ("Split",), (1,)),  # split (opset 13+)
+    "Slice": ConvertedOp(convert_slice, ("Slice",), (1, 2, 3, 4)),  # starts, ends, axes, steps (opset 10+)
+    "Transpose": ConvertedOp(convert_transpose, ("Transpose",)),
+    "Pad": ConvertedOp(convert_pad, ("Pad",), (1, 2, 3)),  # pads, constant_value, axes (opset 11+)
+    # roi, scales, sizes (opset 11+; scales alone in opset 10)
+    "Resize": ConvertedOp(convert_resize, ("Resize",), (1, 2, 3)),
+    "Upsample": ConvertedOp(convert_upsample, ("Resize",), (1,)),  # scales (opset 9)
+    "Sigmoid": ConvertedOp(convert_activation, ("Sigmoid",)),
+    "Tanh": ConvertedOp(convert_activation, ("Tanh",)),
+    "HardSigmoid": ConvertedOp(convert_activation, ("HardSigmoid",)),
+    "HardSwish": ConvertedOp(convert_activation, ("HardSwish",)),
+    "Elu": ConvertedOp(convert_activation, ("Elu",)),
+    "PRelu": ConvertedOp(convert_prelu, ("PRelu",)),
+    # One input is an Identity; a scalar constant bound is a Clip.
+    "Max": ConvertedOp(convert_variadic, ("Max", "Clip", "Identity")),
+    "Min": ConvertedOp(convert_variadic, ("Min", "Clip", "Identity")),
+    "Sum": ConvertedOp(convert_variadic, ("Sum", "Identity")),
+    "LogSoftmax": ConvertedOp(convert_log_softmax, ("LogSoftmax",)),
+    "LRN": ConvertedOp(convert_lrn, ("LRN",)),
+    # axes (opset 18+); the spatial mean with keepdims is a global AveragePool, the mean over no axes
+    # with noop_with_empty_axes an Identity
+    "ReduceMean": ConvertedOp(convert_reduce_mean, ("ReduceMean", "AveragePool", "Identity"), (1,)),
 }
 
-SUPPORTED_OPS: tuple[str, ...] = tuple(sorted(CONVERTERS))
+CONVERTERS: dict[str, Converter] = {name: op.convert for name, op in ONNX_OPS.items()}
+SUPPORTED_OPS: tuple[str, ...] = tuple(sorted(ONNX_OPS))
 
 # Ops that are accepted only when folded away (Shape/Size need a static input shape).
 FOLDED_OPS = "Constant, ConstantOfShape, Shape, Size and any other op whose inputs are all constants"
+
+# Parameter inputs of ops that have no converter and import only when folded: the ONNX backend
+# (nncg/onnx_backend.py) binds them too, so that such an op fed by a graph input can fold.
+_REDUCE_AXES = (1,)  # Reduce* from opset 18 (13 for ReduceSum): axes
+FOLDED_PARAMETER_INPUTS: dict[str, tuple[int, ...]] = {
+    "ConstantOfShape": (0,),  # shape
+    "Expand": (1,),  # shape
+    "ReduceL1": _REDUCE_AXES,
+    "ReduceL2": _REDUCE_AXES,
+    "ReduceLogSum": _REDUCE_AXES,
+    "ReduceLogSumExp": _REDUCE_AXES,
+    "ReduceMax": _REDUCE_AXES,
+    "ReduceMin": _REDUCE_AXES,
+    "ReduceProd": _REDUCE_AXES,
+    "ReduceSum": _REDUCE_AXES,
+    "ReduceSumSquare": _REDUCE_AXES,
+    "Tile": (1,),  # repeats
+}
+
+# {op_type: indices of the inputs that are operator parameters}: what NNCG compiles as constants.
+PARAMETER_INPUTS: dict[str, tuple[int, ...]] = {
+    **{name: op.parameter_inputs for name, op in ONNX_OPS.items() if op.parameter_inputs},
+    **FOLDED_PARAMETER_INPUTS,
+}

@@ -210,46 +210,6 @@ class ResizeAttrs:
     nearest_mode: str = "round_prefer_floor"
 
 
-# Canonical op names of the graph IR and their attribute record type (None: no attributes).
-OPS: dict[str, type | None] = {
-    "Conv": ConvAttrs,
-    "ConvTranspose": ConvTransposeAttrs,
-    "MaxPool": PoolAttrs,
-    "AveragePool": PoolAttrs,
-    "Relu": Activation,
-    "Clip": Activation,
-    "LeakyRelu": Activation,
-    "BatchNormalization": BatchNormAttrs,
-    "ScaleShift": ScaleShiftAttrs,
-    "Dense": DenseAttrs,
-    "Softmax": SoftmaxAttrs,
-    "Reshape": ReshapeAttrs,
-    "Identity": None,
-    "Add": None,
-    "Sub": None,
-    "Mul": None,
-    "Div": None,
-    "Concat": ConcatAttrs,
-    "Slice": SliceAttrs,
-    "Split": SplitAttrs,
-    "Transpose": TransposeAttrs,
-    "Pad": PadAttrs,
-    "Resize": ResizeAttrs,
-    "Sigmoid": Activation,
-    "Tanh": Activation,
-    "HardSigmoid": Activation,
-    "HardSwish": Activation,
-    "Elu": Activation,
-    "PRelu": None,
-    "Max": None,
-    "Min": None,
-    "Sum": None,
-    "LogSoftmax": SoftmaxAttrs,
-    "LRN": LrnAttrs,
-    "ReduceMean": ReduceAttrs,
-}
-
-
 @dataclass(frozen=True)
 class Value:
     """A graph input or output: a float32 tensor with a static shape."""

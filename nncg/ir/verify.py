@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..ir.graph import OPS, Graph
+from ..ir.graph import Graph, Node
 from ..ir.loops import (
     FUNCTIONS,
     Assign,
@@ -21,6 +21,7 @@ from ..ir.loops import (
     Store,
     walk_exprs,
 )
+from ..ir.ops import IR_OPS
 
 
 def verify_ir(ir: Graph | Program) -> list[str]:
@@ -31,8 +32,7 @@ def verify_graph(graph: Graph) -> list[str]:
     problems = []
     known = {v.name for v in graph.inputs} | set(graph.constants)
     for node in graph.nodes:
-        if node.op not in OPS:
-            problems.append(f"node {node.name}: unknown op {node.op}")
+        problems += _node_op_problems(node)
         for name in node.inputs:
             if name not in known:
                 problems.append(f"node {node.name} reads {name} before it is produced")
@@ -42,6 +42,17 @@ def verify_graph(graph: Graph) -> list[str]:
         known |= set(node.outputs)
     problems += [f"graph output {v.name} is never produced" for v in graph.outputs if v.name not in known]
     return problems
+
+
+def _node_op_problems(node: Node) -> list[str]:
+    """An op of IR_OPS, carrying that op's attribute record."""
+    op = IR_OPS.get(node.op)
+    if op is None:
+        return [f"node {node.name}: unknown op {node.op}"]
+    expected = type(None) if op.attrs is None else op.attrs
+    if isinstance(node.attrs, expected):
+        return []
+    return [f"node {node.name}: {node.op} carries {type(node.attrs).__name__}, not {expected.__name__}"]
 
 
 def verify_program(program: Program) -> list[str]:
