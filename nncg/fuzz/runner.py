@@ -44,6 +44,7 @@ SHRINKABLE = tuple(kind for kind in BUGS if kind != "timeout")  # a timeout take
 TOLERANCE = 1e-4
 COMPILE_SECONDS = 60  # NNCG's own compile: anything near this is a finding (typically < 2 s)
 BUILD_CPU_SECONDS = 90  # gcc -O2 build and run of the test program, CPU time (typically < 10 s)
+SANITIZER_SLOWDOWN = 3  # ASan+UBSan instrumentation: gcc and the program take about 2-3x as long
 HARD_SECONDS = 600  # the case is abandoned
 NOISE_ULPS = 4  # input perturbation (in float32 ulps) that estimates the model's rounding sensitivity
 
@@ -161,7 +162,7 @@ def _run(model: onnx.ModelProto, options: Options, size_limit: int | None, start
     built = _children_cpu_seconds()
     outcome = _verify(model, compiled, options)
     build_seconds = _children_cpu_seconds() - built
-    if outcome.kind == "pass" and build_seconds > BUILD_CPU_SECONDS:
+    if outcome.kind == "pass" and build_seconds > BUILD_CPU_SECONDS * (SANITIZER_SLOWDOWN if options.sanitize else 1):
         message = f"building and running {c_bytes} bytes of C took {build_seconds:.0f} s of CPU"
         return Outcome("timeout", message, c_bytes=c_bytes)
     return Outcome(outcome.kind, outcome.message, outcome.max_rel, c_bytes)
