@@ -1,15 +1,19 @@
 """The static memory plan: lifetimes, reuse, in-place, and the reentrant NAME_run with a caller's arena."""
 
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from test_vectorize_pixels import accumulate
 
 import nncg
 from nncg.frontend import load_model
 from nncg.ir.loops import Affine, Binary, Buffer, Const, Kernel, Load, Loop, Program, Store
+from nncg.ir.target import Target
 from nncg.passes.plan_memory import kernel_access, lifetimes, plan_memory
+from nncg.passes.vectorize import vectorize
 from nncg.verify import find_c_compiler, random_inputs, reference_outputs
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
@@ -67,6 +71,18 @@ def test_not_elementwise_is_never_in_place():
     planned = plan_memory(chain_program(kernels, {"a": 64, "b": 64}))
     offsets = {b.name: b.offset for b in planned.role("internal")}
     assert set(offsets) == {"a", "b"} and offsets["a"] != offsets["b"]
+
+
+def test_a_kernel_storing_elements_twice_is_never_in_place():
+    """An overlapped vector tail stores some elements twice: in place, the second store would read
+    an element the first already overwrote. vectorize marks such kernels; plan-memory obeys."""
+    relu = lambda x: Binary("max", x, Const.splat(0.0))  # noqa: E731
+    overlapping = replace(copy_kernel("k1", "a", "b", 64, relu), overlapping_stores=True)
+    kernels = [reverse_kernel("k0", "x", "a", 64), overlapping, reverse_kernel("k2", "b", "y", 64)]
+    planned = plan_memory(chain_program(kernels, {"a": 64, "b": 64}))
+    assert [b.name for b in planned.role("internal")] == ["a", "b"]
+    marked = vectorize(chain_program([Kernel("k", "Conv", (accumulate(20, 0, 20),))], {}), Target("t", (8, 4)))
+    assert marked.kernels[0].overlapping_stores
 
 
 def test_offsets_are_aligned_and_no_reuse_lays_out_back_to_back():

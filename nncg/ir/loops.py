@@ -257,11 +257,14 @@ class Buffer:
 
 @dataclass(frozen=True)
 class Kernel:
-    """One layer: the unit that unroll levels count loops in."""
+    """One layer: the unit that unroll levels count loops in. `overlapping_stores`: some elements are
+    stored more than once (a vector tail that overlaps the vector before it), so the kernel must not
+    compute in place (plan-memory reads it instead of assuming every element is written once)."""
 
     name: str
     op: str
     body: tuple[Stmt, ...]
+    overlapping_stores: bool = False
 
 
 @dataclass(frozen=True)

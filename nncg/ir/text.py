@@ -76,7 +76,8 @@ def program_to_text(program: Program) -> str:
         place = f" @ arena+{buf.offset}" if buf.offset is not None else ""
         lines.append(f"  {buf.role} {buf.name}[{buf.size}]{place}  # {shape} {buf.layout}".rstrip())
     for kernel in program.kernels:
-        lines.append(f"  kernel {kernel.name} ({kernel.op}) {{")
+        overlap = " overlapping-stores" if kernel.overlapping_stores else ""
+        lines.append(f"  kernel {kernel.name} ({kernel.op}){overlap} {{")
         lines.extend(_stmts(kernel.body, 2))
         lines.append("  }")
     lines.append("}")

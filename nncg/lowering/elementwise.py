@@ -6,8 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import numpy as np
-
+from ..ir.batchnorm import scale_shift_of_batchnorm
 from ..ir.graph import Activation, Node, ScaleShiftAttrs
 from ..ir.loops import Affine, Binary, Call, Const, Expr, Load, Select, Store
 from .activation import apply_activation
@@ -120,9 +119,3 @@ def broadcast(ctx: LoweringContext, node: Node, combine: Callable[[list[Load]], 
     order = full[0].order if full else row_major(len(out_shape))
     elementwise(ctx, node, order, lambda idx: combine([broadcast_load(r, idx) for r in refs]))
 
-
-def scale_shift_of_batchnorm(constants: dict[str, np.ndarray], node: Node) -> tuple[np.ndarray, np.ndarray]:
-    """BatchNorm as y = x * scale + shift, with scale = gamma / sqrt(var + eps)."""
-    gamma, beta, mean, var = (constants[name].astype(np.float64) for name in node.inputs[1:5])
-    scale = gamma / np.sqrt(var + node.attrs.epsilon)
-    return scale.astype(np.float32), (beta - mean * scale).astype(np.float32)

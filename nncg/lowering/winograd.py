@@ -23,7 +23,7 @@ from itertools import groupby
 
 import numpy as np
 
-from ..ir.graph import ConvAttrs, Graph, Node
+from ..ir.graph import ConvAttrs, Node
 from ..ir.loops import (
     Affine,
     Assign,
@@ -52,18 +52,6 @@ A_T = ((1, 1, 1, 0), (0, 1, -1, -1))
 CHUNK_TILES = 24  # tiles per chunk (rounded up to whole tile rows): scratch that stays in L1
 
 
-def winograd_applies(graph: Graph, node: Node) -> bool:
-    """A 2-D 3x3 Conv, stride 1, no dilation, no groups, with constant weights."""
-    attrs = node.attrs
-    return (
-        node.op == "Conv"
-        and isinstance(attrs, ConvAttrs)
-        and attrs.kernel == (3, 3)
-        and attrs.strides == (1, 1)
-        and attrs.dilations == (1, 1)
-        and attrs.group == 1
-        and graph.is_constant(node.inputs[1])
-    )
 
 
 def transformed_filters(w: np.ndarray) -> np.ndarray:

@@ -12,8 +12,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..ir.batchnorm import scale_shift_of_batchnorm
 from ..ir.graph import Graph, Node, ScaleShiftAttrs
-from ..lowering.elementwise import scale_shift_of_batchnorm
 from .rewrite import fresh_name, merge_into_producer, sole_consumer
 
 

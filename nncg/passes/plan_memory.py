@@ -142,6 +142,8 @@ def _in_place_pair(kernel, index, access, spans, sizes, renames) -> tuple[str, s
     """(output, input) when the output can take the input's memory: both internal and of one size,
     the input dead after this kernel, the output born in it, and the kernel elementwise between them.
     `access` and `spans` use the new names; the kernel body still has the original ones."""
+    if kernel.overlapping_stores:
+        return None
     for out in sorted(access.writes & spans.keys()):
         if spans[out][0] != index or out in access.reads:
             continue

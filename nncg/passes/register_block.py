@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..ir.analysis import holds_accumulators, is_accumulator
 from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
@@ -69,12 +70,8 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
 # ---------------------------------------------------------------------------- structure
 
 
-def is_accumulator(stmt: Stmt) -> bool:
-    return isinstance(stmt, Let) and any(isinstance(s, Loop) for s in walk_stmts(stmt.body))
 
 
-def holds_accumulators(loop: Loop) -> bool:
-    return any(is_accumulator(s) for s in walk_stmts(loop.body))
 
 
 def pixel_loop_of(stmt: Stmt) -> Loop | None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..ir.analysis import is_accumulator, vector_instructions
 from ..ir.loops import (
     Affine,
     Assign,
@@ -38,7 +39,6 @@ from ..ir.loops import (
     walk_stmts,
 )
 from ..ir.target import Target
-from .register_block import is_accumulator
 from .substitute import interior, iterations, substitute_body
 
 
@@ -52,7 +52,12 @@ def vectorize(program: Program, target: Target) -> Program:
     kernels = []
     for kernel in program.kernels:
         body = mark_vector_loop(kernel.body, widths)
-        kernels.append(replace(kernel, body=map_body(body, lambda s: materialize(s, widths))))
+        overlaps = any(
+            isinstance(s, Loop) and s.kind == "vectorized" and _overlapped_tail_pays(s, widths)
+            for s in walk_stmts(body)
+        )
+        body = map_body(body, lambda s: materialize(s, widths))
+        kernels.append(replace(kernel, body=body, overlapping_stores=kernel.overlapping_stores or overlaps))
     return replace(program, kernels=tuple(kernels))
 
 
@@ -143,21 +148,13 @@ def materialize(stmt: Stmt, widths: tuple[int, ...] = ()) -> Stmt | tuple[Stmt, 
     return tuple(out)
 
 
-def vector_instructions(extent: int, widths: tuple[int, ...]) -> int:
-    """Blocks of the widest width that fits, then narrower ones, then scalars (as materialize splits)."""
-    count = 0
-    for width in widths:
-        count += extent // width
-        extent %= width
-    return count + extent
-
-
 def _overlapped_tail_pays(loop: Loop, widths: tuple[int, ...]) -> bool:
     """Whether the iterations after the last full vector are better done as one more full vector
     ending at the last iteration, overlapping the one before: when they would otherwise take more
     than one instruction (narrower blocks, scalars) and redoing an iteration changes nothing (no
-    buffer the loop stores to is read in it). Only for reductions (convolutions, pooling): an
-    elementwise kernel may later compute in place (plan-memory), where redoing is not harmless."""
+    buffer the loop stores to is read in it). The kernel is then marked as storing some elements twice
+    (plan-memory keeps it out of place). Only for reductions (convolutions, pooling): an elementwise
+    kernel keeps its scalar tail, which costs little there and lets it compute in place."""
     rest = loop.extent % loop.lanes
     if not rest or loop.extent < loop.lanes:
         return False

@@ -17,12 +17,12 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..errors import NncgError
+from ..ir.analysis import vector_instructions
+from ..ir.applicability import winograd_applies
 from ..ir.graph import Graph
 from ..ir.target import Target
-from ..lowering.winograd import winograd_applies
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
-from .vectorize import vector_instructions
 
 MIN_INPUT_CHANNELS = 8
 
