@@ -30,8 +30,8 @@ from ..ir.loops import (
     walk_exprs,
     walk_stmts,
 )
+from ..ir.rename import rename_variables
 from ..ir.target import Target
-from ..passes.substitute import rename_variables
 from ..safe_text import comment_name
 
 INDENT = "    "

@@ -21,8 +21,9 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
+from ..ir.rename import rename_variables
 from .per_layer import check_layer_names, parse_layer_map
-from .substitute import interior, iterations, prune_bounds, rename_variables, substitute_body
+from .substitute import interior, iterations, prune_bounds, substitute_body
 
 # The cost model: channel vectors jammed per pixel at most, and registers left besides accumulators
 # (the broadcast input, a product, weights the compiler keeps).
