@@ -17,7 +17,7 @@ import onnx
 from . import __version__
 from .arguments import check_compile_arguments, check_write_arguments
 from .backends import get_backend
-from .backends.c import external_weights, weights_blob
+from .backends.weights import external_weights, weights_blob
 from .bench.macs import macs_by_layer
 from .cmake import CMAKE_LISTS, cmake_file
 from .errors import NncgError

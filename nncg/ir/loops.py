@@ -165,7 +165,20 @@ class Call:
         return self.arg.lanes
 
 
-Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call]
+@dataclass(frozen=True)
+class Fma:
+    """a * b + c per lane, fused (one rounding): formed by a backend for targets that have it."""
+
+    a: Expr
+    b: Expr
+    c: Expr
+
+    @property
+    def lanes(self) -> int:
+        return max(self.a.lanes, self.b.lanes, self.c.lanes)
+
+
+Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call, Fma]
 
 BINARY_OPS = ("+", "-", "*", "/", "max", "min")
 COMPARISONS = (">", ">=", "<", "<=")
@@ -315,6 +328,8 @@ def children(expr: Expr) -> tuple[Expr, ...]:
         return (expr.lhs, expr.rhs, expr.then, expr.otherwise)
     if isinstance(expr, Call):
         return (expr.arg,)
+    if isinstance(expr, Fma):
+        return (expr.a, expr.b, expr.c)
     return ()
 
 
@@ -328,6 +343,8 @@ def with_children(expr: Expr, new: tuple[Expr, ...]) -> Expr:
         return Select(expr.cmp, *new)
     if isinstance(expr, Call):
         return Call(expr.fn, new[0])
+    if isinstance(expr, Fma):
+        return Fma(*new)
     return expr
 
 

@@ -15,6 +15,7 @@ from .loops import (
     Call,
     Const,
     Expr,
+    Fma,
     If,
     Let,
     Load,
@@ -139,4 +140,6 @@ def expr_to_text(expr: Expr) -> str:
         return f"({parts[0]} {expr.cmp} {parts[1]} ? {parts[2]} : {parts[3]})"
     if isinstance(expr, Call):
         return f"{expr.fn}({expr_to_text(expr.arg)})"
+    if isinstance(expr, Fma):
+        return f"fma({expr_to_text(expr.a)}, {expr_to_text(expr.b)}, {expr_to_text(expr.c)})"
     raise TypeError(f"not a loop-IR expression: {expr!r}")

@@ -10,6 +10,7 @@ from ..ir.loops import (
     Broadcast,
     Call,
     Expr,
+    Fma,
     If,
     Let,
     Load,
@@ -106,6 +107,8 @@ def _check_expr(expr: Expr, buffers, loop_vars, locals_, problems, where):
             problems.append(f"{where}: operands of {e.op} have {e.a.lanes} and {e.b.lanes} lanes")
         elif isinstance(e, Select) and len({x.lanes for x in (e.lhs, e.rhs, e.then, e.otherwise)}) != 1:
             problems.append(f"{where}: select operands differ in lanes")
+        elif isinstance(e, Fma) and len({x.lanes for x in (e.a, e.b, e.c)}) != 1:
+            problems.append(f"{where}: fma operands differ in lanes")
         elif isinstance(e, Broadcast) and e.value.lanes != 1:
             problems.append(f"{where}: broadcast of a vector")
         elif isinstance(e, Call) and e.fn not in FUNCTIONS:

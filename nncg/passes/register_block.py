@@ -23,9 +23,10 @@ from dataclasses import replace
 
 from ..ir.analysis import holds_accumulators, is_accumulator
 from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
+from ..ir.rename import rename_variables
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
-from .substitute import interior, iterations, prune_bounds, rename_variables, substitute_body
+from .substitute import interior, iterations, prune_bounds, substitute_body
 
 # The cost model: channel vectors jammed per pixel at most, and registers left besides accumulators
 # (the broadcast input, a product, weights the compiler keeps).

@@ -6,13 +6,11 @@ from dataclasses import replace
 
 from ..ir.loops import (
     Affine,
-    Assign,
     Bound,
     Expr,
     If,
     Let,
     Load,
-    LocalRef,
     Loop,
     Stmt,
     Store,
@@ -86,23 +84,6 @@ def _needed_sides(bound: Bound, extents: dict[str, int]) -> Bound | None:
         None if bound.lo is None or lo >= bound.lo else bound.lo,
         None if bound.hi is None or hi < bound.hi else bound.hi,
     )
-
-
-def rename_variables(body: tuple[Stmt, ...], names: dict[str, str]) -> tuple[Stmt, ...]:
-    """body with loop variables and locals renamed (old -> new)."""
-    body = substitute_body(body, {old: Affine.of(new) for old, new in names.items()})
-
-    def in_expr(e: Expr) -> Expr:
-        return replace(e, name=names.get(e.name, e.name)) if isinstance(e, LocalRef) else e
-
-    def in_stmt(stmt: Stmt) -> Stmt:
-        stmt = map_stmt_exprs(stmt, in_expr)
-        if isinstance(stmt, Loop | Let | Assign):
-            attr = "var" if isinstance(stmt, Loop) else "name"
-            return replace(stmt, **{attr: names.get(getattr(stmt, attr), getattr(stmt, attr))})
-        return stmt
-
-    return map_body(body, in_stmt)
 
 
 def interior(loop: Loop) -> tuple[int, int]:

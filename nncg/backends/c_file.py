@@ -1,0 +1,175 @@
+"""Backend, file layer: NAME.c around the printed kernels — first line, includes, portability macros,
+the constant arrays (or the weights check), one static function per layer, NAME_run over the
+caller's arena, NAME over a static one, and the per-layer timers of --profile."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..errors import NncgError
+from ..ir.loops import Kernel, Let, Load, Loop, Program, Store, stmt_exprs, walk_exprs, walk_stmts
+from ..ir.rename import rename_variables
+from .c_header import run_signature, signature
+from .c_text import INDENT, c_float
+from .scalar import ScalarPrinter
+from .weights import external_weights, weights_check
+
+# Alignment of weight arrays and the static arena, and restrict for the layer functions' pointers:
+# GNU spellings where the compiler has them, nothing (still correct C89) elsewhere.
+PORTABILITY_MACROS = (
+    "#if defined(__GNUC__) || defined(__clang__)",
+    "#define NNCG_ALIGNED __attribute__((aligned(64)))",
+    "#define NNCG_RESTRICT __restrict__",
+    "#elif defined(_MSC_VER)",
+    "#define NNCG_ALIGNED __declspec(align(64))",
+    "#define NNCG_RESTRICT __restrict",
+    "#else",
+    "#define NNCG_ALIGNED",
+    "#define NNCG_RESTRICT",
+    "#endif",
+)
+VALUES_PER_LINE = 8
+
+
+def source(printer: ScalarPrinter, program: Program, first_line: str, header_name: str, profile: bool = False) -> str:
+    """The .c file. `profile` adds per-layer timers (POSIX clock_gettime; for --profile only)."""
+    if program.arena is None:
+        raise NncgError("the program has no memory plan: run the plan-memory pass last")
+    printer = printer.for_program(program)
+    lines = [first_line]
+    if profile:
+        lines.append("#define _POSIX_C_SOURCE 199309L")
+    lines.append(f'#include "{header_name}"')
+    lines += [f"#include {inc}" for inc in printer.includes]
+    lines += printer.preamble()
+    lines += ["#include <time.h>"] if profile else []
+    lines += ["", *PORTABILITY_MACROS, ""]
+    lines += _constants(program)
+    calls, passed = [], set()
+    for kernel in program.kernels:
+        params = _kernel_params(program, kernel)
+        lines += _kernel_function(printer, program.name, _without_clashes(kernel, program), params)
+        calls.append(f"{program.name}_{kernel.name}({', '.join(b.name for b in params)});")
+        passed |= {b.name for b in params}
+    if profile:
+        lines += _profile_globals(program)
+    lines += _run_function(program, calls, passed, profile)
+    lines += _static_arena_function(program)
+    return "\n".join(lines) + "\n"
+
+
+def _constants(program: Program) -> list[str]:
+    """The constant arrays, aligned; with a weights blob only its check."""
+    if external_weights(program):
+        return weights_check(program)
+    lines = []
+    for buf in program.role("constant"):
+        values = [c_float(v) for v in program.constants[buf.name].ravel()]
+        lines.append(f"static NNCG_ALIGNED const float {buf.name}[{buf.size}] = {{")
+        for i in range(0, len(values), VALUES_PER_LINE):
+            lines.append(INDENT + ", ".join(values[i : i + VALUES_PER_LINE]) + ",")
+        lines.append("};")
+    return lines + ([""] if lines else [])
+
+
+def _kernel_params(program: Program, kernel: Kernel) -> list:
+    """The buffers a kernel touches that are not constant arrays of the file, in program order."""
+    used = {s.buffer for s in walk_stmts(kernel.body) if isinstance(s, Store)}
+    used |= {
+        e.buffer
+        for s in walk_stmts(kernel.body)
+        for top in stmt_exprs(s)
+        for e in walk_exprs(top)
+        if isinstance(e, Load)
+    }
+    return [b for b in program.buffers if b.name in used and (b.role != "constant" or external_weights(program))]
+
+
+def _without_clashes(kernel: Kernel, program: Program) -> Kernel:
+    """The kernel with loop variables and locals renamed where a buffer has their name (a model
+    input called `w` or `acc`), so the C function's locals do not shadow its pointers."""
+    taken = {b.name for b in program.buffers}
+    local = {s.var for s in walk_stmts(kernel.body) if isinstance(s, Loop)}
+    local |= {s.name for s in walk_stmts(kernel.body) if isinstance(s, Let)}
+    names = {}
+    for name in sorted(local & taken):
+        new = name + "_"
+        while new in taken or new in local:
+            new += "_"
+        names[name] = new
+    return replace(kernel, body=rename_variables(kernel.body, names)) if names else kernel
+
+
+def _kernel_function(printer: ScalarPrinter, prefix: str, kernel: Kernel, params) -> list[str]:
+    """One static function per layer: compilers optimise several medium functions much faster
+    than one huge one, and it inlines them back into the single entry point anyway. The memory
+    plan never gives one layer overlapping buffers, so its pointers are restrict."""
+    written = {s.buffer for s in walk_stmts(kernel.body) if isinstance(s, Store)}
+    args = ", ".join(f"{'' if b.name in written else 'const '}float *NNCG_RESTRICT {b.name}" for b in params) or "void"
+    head = [f"/* {kernel.name}: {kernel.op} */", f"static void {prefix}_{kernel.name}({args})", "{"]
+    return head + printer.function_body(kernel.body) + ["}", ""]
+
+
+def _run_function(program: Program, calls: list[str], passed: set[str], profile: bool) -> list[str]:
+    """NAME_run: points each internal buffer into the caller's arena, then runs the layers.
+    `passed` names the buffers some layer takes; an input no layer reads is cast to void."""
+    decls = [
+        f"const float *const {b.name} = (const float *)weights + {b.offset};"
+        for b in program.role("constant")
+        if external_weights(program)
+    ]
+    decls += [
+        f"float *const {b.name} = (float *)arena + {b.offset}; /* {'x'.join(map(str, b.shape))} {b.layout} */"
+        for b in _planned(program)
+    ]
+    if profile:
+        decls.append("double start = nncg_now(), end;")
+        calls = _timed(program, calls)
+    params = [b.name for b in (*program.role("input"), *program.role("output"))]
+    unused = [f"(void){name};" for name in params if name not in passed]
+    unused += [] if _planned(program) else ["(void)arena;"]
+    body = [*decls, *unused, *calls]
+    return [run_signature(program), "{", *(INDENT + line for line in body), "}", ""]
+
+
+def _static_arena_function(program: Program) -> list[str]:
+    """NAME: NAME_run with an arena of static storage, for callers that run one inference at a time."""
+    args = [b.name for b in (*program.role("input"), *program.role("output"))]
+    args += ["weights"] if external_weights(program) else []
+    lines = []
+    if program.arena.floats:
+        lines += [f"static NNCG_ALIGNED float {program.name}_arena[{program.arena.floats}];", ""]
+        args.append(f"{program.name}_arena")
+    else:
+        args.append("(void *)0")
+    return lines + [signature(program), "{", f"{INDENT}{program.name}_run({', '.join(args)});", "}"]
+
+
+def _planned(program: Program) -> tuple:
+    return tuple(b for b in program.role("internal") if b.offset is not None)
+
+
+def _profile_globals(program: Program) -> list[str]:
+    names = ", ".join(f'"{k.name}"' for k in program.kernels)
+    count = len(program.kernels)
+    return [
+        f"const int {program.name}_profile_count = {count};",
+        f"const char *const {program.name}_profile_layers[{count}] = {{{names}}};",
+        f"double {program.name}_profile_seconds[{count}];",
+        "",
+        "static double nncg_now(void)",
+        "{",
+        f"{INDENT}struct timespec t;",
+        f"{INDENT}clock_gettime(CLOCK_MONOTONIC, &t);",
+        f"{INDENT}return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;",
+        "}",
+        "",
+    ]
+
+
+def _timed(program: Program, calls: list[str]) -> list[str]:
+    """Each layer's call followed by adding its time to NAME_profile_seconds[i]."""
+    out = []
+    for i, call in enumerate(calls):
+        out += [call, "end = nncg_now();", f"{program.name}_profile_seconds[{i}] += end - start;", "start = end;"]
+    return out

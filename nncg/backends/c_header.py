@@ -1,0 +1,67 @@
+"""Backend, file layer: NAME.h — the parameter sizes, the arena, the weights blob and the two entry
+points' signatures (which the .c repeats)."""
+
+from __future__ import annotations
+
+from ..ir.loops import Program
+from ..safe_text import comment_name
+from .weights import external_weights, weights_header
+
+
+def header(program: Program, first_line: str) -> str:
+    guard = f"{program.name.upper()}_H"
+    macro = program.name.upper()
+    arena = program.arena
+    lines = [
+        first_line,
+        f"#ifndef {guard}",
+        f"#define {guard}",
+        "",
+        "#ifdef __cplusplus",
+        'extern "C" {',
+        "#endif",
+        "",
+    ]
+    for buf in (*program.role("input"), *program.role("output")):
+        shape = ",".join(map(str, buf.shape))
+        lines.append(f"/* {buf.role} {comment_name(buf.onnx_name)}: float32[{shape}], row-major as in ONNX */")
+        lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
+    lines += [
+        "",
+        f"/* Activation memory: one arena of {macro}_ARENA_BYTES (the memory plan reuses space: without",
+        f"   reuse the activations would take {arena.activation_floats * 4} bytes). Any float-aligned block",
+        f"   works; {macro}_ARENA_ALIGN-byte alignment is fastest. */",
+        f"#define {macro}_ARENA_BYTES {arena.floats * 4}",
+        f"#define {macro}_ARENA_ALIGN {arena.align_floats * 4}",
+        "",
+        *weights_header(program),
+        "/* Runs one inference: inputs, then outputs. Uses a static arena, so calls must not overlap. */",
+        signature(program) + ";",
+        "",
+        f"/* Reentrant form: activations live in `arena` ({macro}_ARENA_BYTES bytes, owned by the caller),",
+        "   so calls with distinct arenas may run at the same time. No buffer may overlap another. */",
+        run_signature(program) + ";",
+        "",
+        "#ifdef __cplusplus",
+        "}",
+        "#endif",
+        "",
+        f"#endif /* {guard} */",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def signature(program: Program) -> str:
+    """NAME: inputs, then outputs (then the weights blob when there is one)."""
+    return f"void {program.name}({', '.join(_io_params(program))})"
+
+
+def run_signature(program: Program) -> str:
+    """NAME_run: NAME's parameters and the caller's arena."""
+    return f"void {program.name}_run({', '.join([*_io_params(program), 'void *arena'])})"
+
+
+def _io_params(program: Program) -> list[str]:
+    params = [f"const float *{b.name}" for b in program.role("input")]
+    params += [f"float *{b.name}" for b in program.role("output")]
+    return params + (["const void *weights"] if external_weights(program) else [])

@@ -1,0 +1,156 @@
+"""Backend: the scalar C printer. Prints a kernel's statements and float expressions as C89, max/min
+and select as conditional moves; the SIMD printer (simd.py) extends it, c_file.py prints the file."""
+
+from __future__ import annotations
+
+from ..errors import NncgError
+from ..ir.loops import (
+    Affine,
+    Assign,
+    Binary,
+    Bound,
+    Broadcast,
+    Call,
+    Const,
+    Expr,
+    Fma,
+    If,
+    Let,
+    Load,
+    LocalRef,
+    Loop,
+    Program,
+    Select,
+    Stmt,
+    Store,
+    walk_stmts,
+)
+from ..ir.target import Target
+from .c_text import INDENT, c_affine, c_float, unparen
+
+
+class ScalarPrinter:
+    """Statements and scalar (1-lane) expressions. A backend subclass declares its `target` (the
+    hardware facts, nncg/ir/target.py), `includes` and the compiler flags its code needs."""
+
+    target: Target
+    includes: tuple[str, ...] = ("<math.h>",)
+    cflags: tuple[str, ...] = ()
+    strict_cflags: tuple[str, ...] = ("-std=c89", "-pedantic", "-Wall", "-Wextra", "-Werror")
+    scalar_type = "float"
+
+    def for_program(self, program: Program) -> ScalarPrinter:
+        """The printer for one program: SIMD printers collect the helpers it needs here, before any
+        code is printed. Scalar code needs none."""
+        return self
+
+    def preamble(self) -> list[str]:
+        """Definitions the printed code calls, printed after the includes (none for scalar C)."""
+        return []
+
+    def function_body(self, body: tuple[Stmt, ...]) -> list[str]:
+        """The lines inside a kernel's function: its loop variables, then its statements."""
+        loop_vars = sorted({s.var for s in walk_stmts(body) if isinstance(s, Loop)})
+        decls = [f"{INDENT}int {', '.join(loop_vars)};"] if loop_vars else []
+        return decls + self.stmts(body, 1)
+
+    # ------------------------------------------------------------------ statements
+
+    def stmts(self, body: tuple[Stmt, ...], depth: int) -> list[str]:
+        out: list[str] = []
+        for stmt in body:
+            out += getattr(self, f"_stmt_{type(stmt).__name__}")(stmt, depth)
+        return out
+
+    def _stmt_Loop(self, loop: Loop, depth: int) -> list[str]:
+        if loop.kind != "serial":
+            raise NncgError(f"loop '{loop.var}' is still marked {loop.kind}: run the pass that materialises it")
+        pad = INDENT * depth
+        head = f"{pad}for ({loop.var} = 0; {loop.var} < {loop.extent}; ++{loop.var}) {{"
+        return [head, *self.stmts(loop.body, depth + 1), pad + "}"]
+
+    def _stmt_Let(self, let: Let, depth: int) -> list[str]:
+        pad = INDENT * depth
+        decl = f"{pad}{INDENT}{self.type_of(let.init.lanes)} {let.name} = {self.expr(let.init)};"
+        return [pad + "{", decl, *self.stmts(let.body, depth + 1), pad + "}"]
+
+    def _stmt_If(self, stmt: If, depth: int) -> list[str]:
+        pad = INDENT * depth
+        cond = " && ".join(_bound(b) for b in stmt.bounds)
+        return [f"{pad}if ({cond}) {{", *self.stmts(stmt.body, depth + 1), pad + "}"]
+
+    def _stmt_Store(self, store: Store, depth: int) -> list[str]:
+        return [INDENT * depth + self.store(store.buffer, store.index, store.value) + ";"]
+
+    def _stmt_Assign(self, assign: Assign, depth: int) -> list[str]:
+        return [INDENT * depth + self.assign(assign.name, assign.value) + ";"]
+
+    # ------------------------------------------------------------------ hooks a SIMD printer extends
+
+    def type_of(self, lanes: int) -> str:
+        self.unsupported_lanes(lanes)
+        return self.scalar_type
+
+    def store(self, buffer: str, index: Affine, value: Expr) -> str:
+        self.unsupported_lanes(value.lanes)
+        return f"{buffer}[{c_affine(index)}] = {unparen(self.expr(value))}"
+
+    def assign(self, name: str, value: Expr) -> str:
+        # acc = acc + e reads better as acc += e
+        if isinstance(value, Binary) and value.op in "+-*/" and value.a == LocalRef(name, value.lanes):
+            if value.lanes == 1:
+                return f"{name} {value.op}= {unparen(self.expr(value.b))}"
+        return f"{name} = {unparen(self.expr(value))}"
+
+    def expr(self, e: Expr) -> str:
+        self.unsupported_lanes(e.lanes)
+        return getattr(self, f"_expr_{type(e).__name__}")(e)
+
+    def unsupported_lanes(self, lanes: int) -> None:
+        """Refuses a vector width this printer has no spelling for."""
+        if lanes != 1:
+            widths = self.target.widths_text if self.target.vector_widths else "1 (or not at all)"
+            name = self.target.name
+            raise NncgError(f"target {name} cannot print {lanes}-lane vectors; run vectorize with lanes={widths}")
+
+    # ------------------------------------------------------------------ scalar expressions
+
+    def _expr_Const(self, e: Const) -> str:
+        return c_float(e.values[0])
+
+    def _expr_Load(self, e: Load) -> str:
+        return f"{e.buffer}[{c_affine(e.index)}]"
+
+    def _expr_LocalRef(self, e: LocalRef) -> str:
+        return e.name
+
+    def _expr_Broadcast(self, e: Broadcast) -> str:
+        return self.expr(e.value)
+
+    def _expr_Binary(self, e: Binary) -> str:
+        a, b = self.expr(e.a), self.expr(e.b)
+        if e.op == "max":  # the paper's conditional move
+            return f"({a} > {b} ? {a} : {b})"
+        if e.op == "min":
+            return f"({a} < {b} ? {a} : {b})"
+        return f"({a} {e.op} {b})"
+
+    def _expr_Fma(self, e: Fma) -> str:
+        # Scalar C has no fused multiply-add in C89, and the FMA legalisation forms one only on
+        # vectors; one formed by hand still prints, as a multiply and an add (two roundings).
+        return f"(({self.expr(e.a)} * {self.expr(e.b)}) + {self.expr(e.c)})"
+
+    def _expr_Select(self, e: Select) -> str:
+        lhs, rhs, then, other = (self.expr(x) for x in (e.lhs, e.rhs, e.then, e.otherwise))
+        return f"({lhs} {e.cmp} {rhs} ? {then} : {other})"
+
+    def _expr_Call(self, e: Call) -> str:
+        return f"(float){e.fn}({self.expr(e.arg)})"  # C89 has only the double versions
+
+
+def _bound(bound: Bound) -> str:
+    e = c_affine(bound.expr)
+    sides = ([f"{e} >= {bound.lo}"] if bound.lo is not None else []) + (
+        [f"{e} < {bound.hi}"] if bound.hi is not None else []
+    )
+    return " && ".join(sides)

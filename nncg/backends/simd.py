@@ -1,0 +1,148 @@
+"""Backend: the SIMD printer base. Dispatches every vector node once (1-lane code goes to the scalar
+printer), prints it from the target's table of widths (vector_width.py), and prints the helpers the
+program needs (simd_needs.py, collected before any code) before the kernels, in a fixed order."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from ..ir.loops import Affine, Binary, Broadcast, Call, Const, Expr, Fma, Load, LocalRef, Program, Select
+from .c_text import INDENT, c_affine, c_float
+from .scalar import ScalarPrinter
+from .simd_needs import Needs, collect_needs
+from .vector_width import VectorWidth
+
+
+class SimdPrinter(ScalarPrinter):
+    """A SIMD target: a subclass declares `target` and fills `widths` (lanes -> VectorWidth, one per
+    width of target.vector_widths); it overrides hooks only where a table cannot say it."""
+
+    widths: Mapping[int, VectorWidth] = {}
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        if "target" in cls.__dict__ or "widths" in cls.__dict__:
+            _check_table(cls)
+
+    def __init__(self, needs: Needs | None = None) -> None:
+        self.needs = needs or Needs()
+
+    def for_program(self, program: Program) -> SimdPrinter:
+        return type(self)(collect_needs(program, self.widths))
+
+    # ------------------------------------------------------------------ dispatch, once
+
+    def width(self, lanes: int) -> VectorWidth:
+        if lanes not in self.widths:
+            self.unsupported_lanes(lanes)
+        return self.widths[lanes]
+
+    def type_of(self, lanes: int) -> str:
+        return super().type_of(lanes) if lanes == 1 else self.width(lanes).type
+
+    def store(self, buffer: str, index: Affine, value: Expr) -> str:
+        if value.lanes == 1:
+            return super().store(buffer, index, value)
+        width = self.width(value.lanes)
+        return width.spell("store", address=f"&{buffer}[{c_affine(index)}]", value=self.expr(value))
+
+    def assign(self, name: str, value: Expr) -> str:
+        if value.lanes == 1:
+            return super().assign(name, value)
+        self.width(value.lanes)
+        return f"{name} = {self.expr(value)}"
+
+    def expr(self, e: Expr) -> str:
+        if e.lanes == 1:
+            return super().expr(e)
+        return getattr(self, f"_vector_{type(e).__name__}")(e, self.width(e.lanes))
+
+    # ------------------------------------------------------------------ vector expressions
+
+    def _vector_Const(self, e: Const, width: VectorWidth) -> str:
+        if e.is_splat:
+            return width.spell("splat", value=c_float(e.values[0]))
+        if "vector" in width.ops:
+            return width.spell("vector", values=", ".join(c_float(v) for v in e.values))
+        row = self.needs.rows[e.lanes][e.values]
+        return width.spell("load", address=f"{width.spell('table')}[{row}]")
+
+    def _vector_Load(self, e: Load, width: VectorWidth) -> str:
+        return width.spell("load", address=f"&{e.buffer}[{c_affine(e.index)}]")
+
+    def _vector_LocalRef(self, e: LocalRef, width: VectorWidth) -> str:
+        return e.name
+
+    def _vector_Broadcast(self, e: Broadcast, width: VectorWidth) -> str:
+        return width.spell("splat", value=self.expr(e.value))
+
+    def _vector_Binary(self, e: Binary, width: VectorWidth) -> str:
+        return width.spell(e.op, a=self.expr(e.a), b=self.expr(e.b))
+
+    def _vector_Fma(self, e: Fma, width: VectorWidth) -> str:
+        a, b, c = self.expr(e.a), self.expr(e.b), self.expr(e.c)
+        if "fma" in width.ops:
+            return width.spell("fma", a=a, b=b, c=c)
+        return width.spell("+", a=width.spell("*", a=a, b=b), b=c)
+
+    def _vector_Select(self, e: Select, width: VectorWidth) -> str:
+        lhs, rhs, then, other = (self.expr(x) for x in (e.lhs, e.rhs, e.then, e.otherwise))
+        return width.spell(e.cmp, lhs=lhs, rhs=rhs, then=then, otherwise=other)
+
+    def _vector_Call(self, e: Call, width: VectorWidth) -> str:
+        return f"{width.spell('lane_wise', fn=e.fn)}({self.expr(e.arg)})"
+
+    # ------------------------------------------------------------------ helpers, before the kernels
+
+    def preamble(self) -> list[str]:
+        """The helper definitions templates call (in order of first use), then the tables of
+        constant vectors (widest first), then the lane-wise math functions (widest first, by name);
+        a blank line before each."""
+        blocks: list[tuple[str, ...]] = []
+        for lanes, op in self.needs.definitions:
+            definition = self.widths[lanes].helpers[op]
+            if definition not in blocks:  # two widths may share a helper
+                blocks.append(definition)
+        for lanes, rows in sorted(self.needs.rows.items(), reverse=True):
+            blocks.append(self.constant_table(lanes, tuple(rows)))
+        for lanes, fn in sorted(self.needs.lane_wise, key=lambda need: (-need[0], need[1])):
+            blocks.append(self.lane_wise_helper(fn, lanes))
+        return [line for block in blocks for line in ("", *block)]
+
+    def constant_table(self, lanes: int, rows: tuple[tuple[float, ...], ...]) -> tuple[str, ...]:
+        """The static table of the constant vectors of one width that are not splats, a row each:
+        standard C, the same lanes whatever the byte order."""
+        width = self.widths[lanes]
+        loader = width.ops["load"].partition("(")[0]
+        return (
+            f"/* constant vectors that are not splats, loaded with {loader} */",
+            f"static const float {width.spell('table')}[{len(rows)}][{lanes}] = {{",
+            *(f"{INDENT}{{{', '.join(c_float(v) for v in values)}}}," for values in rows),
+            "};",
+        )
+
+    def lane_wise_helper(self, fn: str, lanes: int) -> tuple[str, ...]:
+        """NAME(x): math.h's double-precision fn of each lane of x, for an ISA without a vector fn."""
+        width = self.widths[lanes]
+        head = (
+            f"/* {fn} of each lane: no vector {fn} in the instruction set */",
+            f"static {width.type} {width.spell('lane_wise', fn=fn)}({width.type} x)",
+            "{",
+            f"{INDENT}float v[{lanes}];",
+            f"{INDENT}{width.spell('store', address='v', value='x')};",
+        )
+        calls = [f"(float){fn}(v[{i}])" for i in range(lanes)]
+        if "vector" in width.ops:
+            return (*head, f"{INDENT}return {width.spell('vector', values=', '.join(calls))};", "}")
+        each = [f"{INDENT}v[{i}] = {call};" for i, call in enumerate(calls)]
+        return (*head, *each, f"{INDENT}return {width.spell('load', address='v')};", "}")
+
+
+def _check_table(cls: type[SimdPrinter]) -> None:
+    """A SIMD target's table covers exactly its target's widths, each with every operation."""
+    if tuple(cls.widths) != cls.target.vector_widths:
+        raise TypeError(f"{cls.__name__}: widths {tuple(cls.widths)} are not the target's {cls.target.vector_widths}")
+    for lanes, width in cls.widths.items():
+        problems = width.problems(cls.target.fma)
+        if problems:
+            raise TypeError(f"{cls.__name__}, {lanes} lanes: {'; '.join(problems)}")

@@ -1,0 +1,49 @@
+"""Backend: the table a SIMD target fills for each vector width it prints — its C type and a C
+template per operation of the loop-nest IR. The SIMD printer (simd.py) prints only from these."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from ..ir.loops import BINARY_OPS, COMPARISONS
+
+# The operations a width's templates spell, with the fields each template is formatted with.
+OPERATIONS = {
+    "load": ("address",),  # address: `&x[i + 4]`, or a row of the constant table
+    "store": ("address", "value"),
+    "splat": ("value",),  # a constant splat, or a broadcast scalar
+    **{op: ("a", "b") for op in BINARY_OPS},
+    **{cmp: ("lhs", "rhs", "then", "otherwise") for cmp in COMPARISONS},  # (lhs cmp rhs) ? then : otherwise
+    "lane_wise": ("fn",),  # the NAME of the helper that applies math.h's fn to each lane: NAME(x)
+    # Optional:
+    "fma": ("a", "b", "c"),  # a * b + c, one rounding; required when the target has FMA
+    "vector": ("values",),  # a constant vector lane by lane; without it constants are table rows
+    "table": (),  # the name of the static table of constant vectors (when there is no `vector`)
+}
+OPTIONAL = ("fma", "vector", "table")
+
+
+@dataclass(frozen=True)
+class VectorWidth:
+    """How a target spells one vector width.
+
+    type: the C vector type (`__m256`, `float32x4_t`).
+    ops: operation -> C template (see OPERATIONS), e.g. `_mm256_add_ps({a}, {b})`.
+    helpers: operation -> the lines defining what its template calls beyond the ISA's intrinsics
+    (NEON's division on ARMv7), printed once before the kernels when the program uses it."""
+
+    type: str
+    ops: Mapping[str, str]
+    helpers: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+
+    def spell(self, op: str, **fields: str) -> str:
+        return self.ops[op].format(**fields)
+
+    def problems(self, fma: bool) -> list[str]:
+        """What this table lacks or has too much of, for a target with (or without) FMA."""
+        required = [op for op in OPERATIONS if op not in OPTIONAL] + (["fma"] if fma else [])
+        required += [] if "vector" in self.ops else ["table"]
+        missing = [op for op in required if op not in self.ops]
+        unknown = [op for op in (*self.ops, *self.helpers) if op not in OPERATIONS]
+        return [f"no template for {op}" for op in missing] + [f"unknown operation {op}" for op in unknown]

@@ -1,0 +1,39 @@
+"""Backend: the x86 intrinsics' spelling of one vector width (`_mm`, `_mm256`, `_mm512` prefixes),
+the table the ssse3, avx2 and avx512 targets fill theirs from."""
+
+from __future__ import annotations
+
+from .vector_width import VectorWidth
+
+ARITH = {"+": "add", "-": "sub", "*": "mul", "/": "div", "max": "max", "min": "min"}
+COMPARE = {">": "cmpgt", ">=": "cmpge", "<": "cmplt", "<=": "cmple"}
+PREDICATES = {">": "_CMP_GT_OQ", ">=": "_CMP_GE_OQ", "<": "_CMP_LT_OQ", "<=": "_CMP_LE_OQ"}
+
+
+def x86_width(prefix: str, vector_type: str, select: str, fma: bool) -> VectorWidth:
+    """One width: `prefix` of its intrinsics (`_mm256_add_ps`), its type (`__m256`), how it selects
+    ("bitwise": and/andnot/or on a comparison, SSE; "blendv": blendv_ps, AVX; "mask": a __mmask,
+    AVX-512) and whether it has fmadd_ps. Its lane-wise helpers are nncg_exp_ps, nncg256_exp_ps, ..."""
+    p = prefix
+    ops = {
+        "load": f"{p}_loadu_ps({{address}})",
+        "store": f"{p}_storeu_ps({{address}}, {{value}})",
+        "splat": f"{p}_set1_ps({{value}})",
+        "vector": f"{p}_setr_ps({{values}})",
+        **{op: f"{p}_{name}_ps({{a}}, {{b}})" for op, name in ARITH.items()},
+        **{cmp: _select(p, select, cmp) for cmp in COMPARE},
+        "lane_wise": f"nncg{p.removeprefix('_mm')}_{{fn}}_ps",
+    }
+    if fma:
+        ops["fma"] = f"{p}_fmadd_ps({{a}}, {{b}}, {{c}})"
+    return VectorWidth(vector_type, ops)
+
+
+def _select(p: str, style: str, cmp: str) -> str:
+    if style == "mask":
+        return f"{p}_mask_blend_ps({p}_cmp_ps_mask({{lhs}}, {{rhs}}, {PREDICATES[cmp]}), {{otherwise}}, {{then}})"
+    if style == "blendv":
+        return f"{p}_blendv_ps({{otherwise}}, {{then}}, {p}_cmp_ps({{lhs}}, {{rhs}}, {PREDICATES[cmp]}))"
+    # no blend: (mask & then) | (~mask & otherwise)
+    mask = f"{p}_{COMPARE[cmp]}_ps({{lhs}}, {{rhs}})"
+    return f"{p}_or_ps({p}_and_ps({mask}, {{then}}), {p}_andnot_ps({mask}, {{otherwise}}))"
