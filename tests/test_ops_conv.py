@@ -193,6 +193,8 @@ CONV_TRANSPOSE_CASES = {
     "output_shape_beyond_full": ((1, 2, 3, 3), 4, (3, 3), dict(strides=[3, 2], output_shape=[10, 8])),
     "same_upper": ((1, 2, 3, 4), 4, (3, 3), dict(strides=[2, 2], auto_pad="SAME_UPPER")),
     "same_lower": ((1, 2, 3, 4), 4, (3, 4), dict(strides=[2, 2], auto_pad="SAME_LOWER")),
+    # fuzz-found: ONNX inference adds output_padding to a SAME output, onnxruntime gives in * stride
+    "same_upper_output_padding": ((1, 22, 7), 33, (2,), dict(strides=[2], auto_pad="SAME_UPPER", output_padding=[1])),
     "valid": ((1, 2, 3, 4), 4, (3, 3), dict(strides=[2, 2], auto_pad="VALID")),
 }
 

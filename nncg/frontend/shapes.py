@@ -24,8 +24,9 @@ def inferred_shapes(model: onnx.ModelProto) -> dict[str, Shape]:
     """Static shapes of all values by strict ONNX inference, ceil-mode pool and Resize outputs fixed.
 
     ONNX's MaxPool and AveragePool inference before opset 22 ignores the spec rule that drops a
-    window starting in the end padding (onnxruntime follows it), and its Resize inference rounds
-    n * scale in double where onnxruntime uses float32; such outputs are pinned to the right shape,
+    window starting in the end padding (onnxruntime follows it), its Resize inference rounds n * scale
+    in double where onnxruntime uses float32, and its ConvTranspose inference adds output_padding to a
+    SAME output (onnxruntime gives in * stride); such outputs are pinned to the right shape,
     fed in as inputs, and inference re-runs so everything downstream (and Shape folding) sees the
     real shape. A negative dimension anywhere is refused, naming the node that makes it.
     """
@@ -117,11 +118,23 @@ def _misinferred(model: onnx.ModelProto, shapes: dict[str, Shape], pinned: dict)
             expected = pool_output_shape(pool_attrs(OnnxOp.of(node, name), in_shape), in_shape)
         elif node.op_type in RESIZES:
             expected = _resize_output_shape(OnnxOp.of(node, name), in_shape, initializers)
+        elif node.op_type == "ConvTranspose":
+            expected = _same_conv_transpose_shape(OnnxOp.of(node, name), in_shape, shapes.get(node.output[0]))
         else:
             continue
         if expected is not None and shapes.get(node.output[0]) != expected and min(expected) >= 1:
             return node.output[0], expected
     return None
+
+
+def _same_conv_transpose_shape(op: OnnxOp, in_shape: Shape, inferred: Shape | None) -> Shape | None:
+    """in * stride per spatial dim for auto_pad SAME, as onnxruntime (ONNX inference adds output_padding)."""
+    if inferred is None or op.attr("output_shape") is not None:
+        return None
+    if op.attr("auto_pad", "NOTSET") not in ("SAME_UPPER", "SAME_LOWER"):
+        return None
+    strides = op.attr("strides") or [1] * (len(in_shape) - 2)
+    return (*inferred[:2], *(int(i) * int(s) for i, s in zip(in_shape[2:], strides)))
 
 
 def _resize_output_shape(op: OnnxOp, in_shape: Shape, initializers: dict) -> Shape | None:
