@@ -23,6 +23,7 @@ from ..ir.loops import (
     walk_exprs,
 )
 from ..ir.ops import IR_OPS
+from .kinds import BufferRole
 
 
 def verify_ir(ir: Graph | Program) -> list[str]:
@@ -59,7 +60,7 @@ def _node_op_problems(node: Node) -> list[str]:
 def verify_program(program: Program) -> list[str]:
     problems: list[str] = []
     buffers = {b.name: b for b in program.buffers}
-    for buf in program.role("constant"):
+    for buf in program.role(BufferRole.CONSTANT):
         if buf.name not in program.constants or program.constants[buf.name].size != buf.size:
             problems.append(f"constant {buf.name} has no data of size {buf.size}")
     for kernel in program.kernels:

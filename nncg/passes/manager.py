@@ -18,6 +18,7 @@ from typing import TextIO
 
 from ..errors import NncgError
 from ..ir.graph import Graph
+from ..ir.kinds import LoopKind
 from ..ir.loops import Loop, Program, walk_stmts
 from ..ir.target import Target
 from ..ir.text import graph_to_text, program_to_text
@@ -196,7 +197,7 @@ def _with_finishing_passes(specs: tuple[PassSpec, ...]) -> tuple[PassSpec, ...]:
 def _check_no_marks(program: Program, last: PassSpec) -> None:
     """No loop leaves the pipeline still marked for a pass that materialises it."""
     for kernel in program.kernels:
-        marked = [s for s in walk_stmts(kernel.body) if isinstance(s, Loop) and s.kind != "serial"]
+        marked = [s for s in walk_stmts(kernel.body) if isinstance(s, Loop) and s.kind != LoopKind.SERIAL]
         if marked:
             loop = marked[0]
             raise NncgError(
