@@ -542,6 +542,15 @@ def test_resize_odd_ratios_shrinking_and_growing_under_sanitizers():
             compile_and_check(m, target, unroll=unroll, sanitize=True)
 
 
+def test_resize_to_one_pixel_reading_pixel_zero_still_shrinks_the_dim():
+    """3 -> 1 columns where the one output reads input column 0: the taps look like an identity, but
+    the dim shrinks (fuzz-found: rows of 3 were stored into a 146x1 output, caught by the IR's bounds
+    check)."""
+    m = resize_model((1, 1, 49, 3), sizes=[1, 1, 146, 1], mode="nearest", coordinate_transformation_mode="asymmetric")
+    for target in TARGETS:
+        compile_and_check(m, target, unroll=None, sanitize=target == "ansi-c")
+
+
 @pytest.mark.parametrize("unroll", [None, 0])
 def test_resize_under_sanitizers(unroll):
     m = resize_model((1, 3, 4, 5), scales=[1, 1, 2.5, 1.5], with_conv=True, mode="linear")

@@ -70,7 +70,7 @@ def _lower_dim_by_dim(ctx: LoweringContext, node: Node, x: TensorRef, taps: list
     """One nest per resized dim, the shrinking ones first so the intermediate tensors stay small."""
     out_shape = ctx.graph.shape(node.outputs[0])
     rank = len(out_shape)
-    resized = [d for d in range(rank) if not _is_identity(taps[d])]
+    resized = [d for d in range(rank) if not _is_identity(taps[d], x.shape[d])]
     resized.sort(key=lambda d: out_shape[d] / x.shape[d])
     source = x
     for i, d in enumerate(resized):
@@ -109,8 +109,10 @@ def _plain(n: int) -> list[Piece]:
     return periodic_pieces([((o, 1.0),) for o in range(n)])
 
 
-def _is_identity(taps: list[Taps]) -> bool:
-    return all(t == ((o, 1.0),) for o, t in enumerate(taps))
+def _is_identity(taps: list[Taps], n_in: int) -> bool:
+    """Output coordinate o reads input o alone, over the input's whole extent (3 -> 1 reading
+    pixel 0 is no identity: the dim still shrinks)."""
+    return len(taps) == n_in and all(t == ((o, 1.0),) for o, t in enumerate(taps))
 
 
 def _emit(ctx: LoweringContext, node: Node, x: TensorRef, out: TensorRef, pieces: list[list[Piece]]) -> None:
