@@ -13,7 +13,7 @@ from onnx import TensorProto, helper
 from nncg.frontend.ops import CONVERTERS
 from nncg.fuzz.__main__ import main
 from nncg.fuzz.build import build, value_shapes
-from nncg.fuzz.case import Case, evaluate, make_case, size_limit
+from nncg.fuzz.case import WINOGRAD_NODE_BYTES, Case, evaluate, make_case, size_limit
 from nncg.fuzz.generator import generate
 from nncg.fuzz.options import Options, host_targets
 from nncg.fuzz.recipe import Recipe, Step
@@ -174,6 +174,15 @@ def test_size_limit_tracks_the_unroll_setting():
     model = _single_node_model("Relu")
     assert size_limit(model, Options(unroll="none")) < size_limit(model, Options(unroll="0"))
     assert size_limit(model, Options(unroll="0", code_budget=None)) is None
+
+
+def test_size_limit_counts_a_layer_forced_to_winograd():
+    """The winograd pass takes any 3x3 conv a per-layer choice names, not only those it would pick
+    (fuzz-found: one input channel forced to Winograd outgrew the limit of a direct conv)."""
+    model = _single_node_model("Relu")
+    model.graph.node[0].name = "layer"
+    forced = Options(unroll="none", layers={"winograd": {"layer": True}})
+    assert size_limit(model, forced) - size_limit(model, Options(unroll="none")) == WINOGRAD_NODE_BYTES
 
 
 # ---------------------------------------------------------------------------- smoke run

@@ -80,7 +80,8 @@ def size_limit(model: onnx.ModelProto, options: Options) -> int | None:
     unrolling may add under the code budget. None when nothing caps unrolling (--code-budget 0)."""
     nodes = sum(1 for n in model.graph.node if n.op_type != "Constant")
     weights = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
-    winograd = sum(1 for n in model.graph.node if _winograd_shaped(n, weights))
+    forced = {name for name, on in options.layers.get("winograd", {}).items() if on}
+    winograd = sum(1 for n in model.graph.node if n.name in forced or _winograd_shaped(n, weights))
     fixed = BASE_BYTES + BYTES_PER_NODE * nodes + WINOGRAD_NODE_BYTES * winograd
     fixed += BYTES_PER_WEIGHT * sum(w.size for w in weights.values())
     layer_budgets = options.layers.get("unroll", {})
