@@ -81,7 +81,7 @@ def compile(
     input_shapes: dict[str, tuple[int, ...]] | None = None,
     pipeline: str | None = None,
     print_ir_after_all: TextIO | None = None,
-    verify_ir: bool = False,
+    verify_ir: bool = True,
     profile: bool = False,
     weights: str = "auto",
     code_budget: int | None = CODE_BUDGET,

@@ -19,6 +19,7 @@ from nncg.fuzz.options import Options, host_targets
 from nncg.fuzz.recipe import Recipe, Step
 from nncg.fuzz.runner import run_case, validate
 from nncg.fuzz.shrinker import shrink
+from nncg.fuzz.ties import has_nearest_resize_tie
 
 REGRESSIONS = Path(__file__).resolve().parent / "fuzz_regressions"
 ALL_TARGETS = ("ansi-c", "ssse3", "avx2", "avx512")
@@ -237,3 +238,18 @@ def test_every_target_builds_each_graph_for_each_target():
     cases = [make_case(5, i, targets, 0.0, every_target=True) for i in range(6)]
     assert [c.options.target for c in cases] == targets * 2
     assert cases[0].recipe == cases[1].recipe == cases[2].recipe != cases[3].recipe
+
+
+def test_nearest_resize_ties_are_recognised():
+    def resize(shape, scales, mode="nearest"):
+        node = helper.make_node("Resize", ["x", "", "s"], ["y"], mode=mode, coordinate_transformation_mode="half_pixel")
+        graph = helper.make_graph(
+            [node], "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, shape)],
+            [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+            [helper.make_tensor("s", TensorProto.FLOAT, [len(shape)], scales)],
+        )  # fmt: skip
+        return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+
+    assert has_nearest_resize_tie(resize([3, 64], [1.5, 1.3]))  # 71.5 / 1.3 - 0.5 = 54.5
+    assert not has_nearest_resize_tie(resize([3, 64], [2.0, 2.0]))
+    assert not has_nearest_resize_tie(resize([3, 64], [1.5, 1.3], mode="linear"))

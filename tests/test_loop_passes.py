@@ -256,3 +256,20 @@ def test_unrolling_prunes_border_check_sides_that_always_hold():
     assert first == If((Bound(A("o") - 1, 0, None),), (Store("y", A("o"), Load("x", A("o") - 1)),))
     assert middle == Store("y", A("o"), Load("x", A("o")))
     assert last == If((Bound(A("o") + 1, None, 4),), (Store("y", A("o"), Load("x", A("o") + 1)),))
+
+
+def test_verifier_checks_indices_against_buffers_loop_kinds_and_lanes():
+    inside = program([Loop("c", 8, (Store("y", A("c"), Load("x", A("c"))),), parallel=True)], size=8)
+    assert verify_program(inside) == []
+    beyond = program([Loop("c", 9, (Store("y", A("c"), Load("x", A("c") + 1)),), parallel=True)], size=8)
+    problems = verify_program(beyond)
+    assert any("x[c + 1] reaches [1, 10) outside its 8 elements" in p for p in problems)
+    assert any("y[c] reaches [0, 9) outside its 8 elements" in p for p in problems)
+    guarded = program(
+        [Loop("c", 9, (If((Bound(A("c"), None, 8),), (Store("y", A("c"), Load("x", A("c"))),)),))], size=8
+    )
+    assert verify_program(guarded) == []  # the border check keeps the access in
+    odd = program([Loop("c", 8, (Store("y", A("c"), Load("x", A("c"))),), lanes=3)], size=8)
+    assert any("has 3 lanes" in p for p in verify_program(odd))
+    with pytest.raises(ValueError, match="Loop.kind is 'vectorised', not one of"):
+        Loop("c", 8, (), kind="vectorised")

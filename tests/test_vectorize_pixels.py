@@ -28,7 +28,7 @@ from nncg.ir.loops import (
     walk_stmts,
 )
 from nncg.passes import PassManager, default_pipeline
-from nncg.passes.register_block import reads_across_planes
+from nncg.passes.register_block import planar_tensors, reads_across_planes
 from nncg.passes.vectorize import vectorize
 from nncg.tune import with_layer_choices
 
@@ -215,5 +215,6 @@ def test_a_channels_last_consumer_of_a_planar_tensor_jams_channels_only():
     for on, expected in ((True, {"Conv_0": False, "MaxPool_2": True}), (False, {"Conv_0": False, "MaxPool_2": False})):
         specs = pipeline("avx512", Conv_0=on).split(",register-block")[0]
         program = PassManager(specs, nncg.get_target("avx512"), finish=False).run(import_onnx(m))
-        strided = {k.name: reads_across_planes(k.body) for k in program.kernels if k.name in expected}
+        planar = planar_tensors(program)
+        strided = {k.name: reads_across_planes(k.body, planar) for k in program.kernels if k.name in expected}
         assert strided == expected

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..errors import NncgError
+from ..ir.kinds import BufferRole
 from ..ir.loops import Kernel, Let, Load, Loop, Program, Store, stmt_exprs, walk_exprs, walk_stmts
 from ..ir.rename import rename_variables
 from .c_header import run_signature, signature
@@ -63,7 +64,7 @@ def _constants(program: Program) -> list[str]:
     if external_weights(program):
         return weights_check(program)
     lines = []
-    for buf in program.role("constant"):
+    for buf in program.role(BufferRole.CONSTANT):
         values = [c_float(v) for v in program.constants[buf.name].ravel()]
         lines.append(f"static NNCG_ALIGNED const float {buf.name}[{buf.size}] = {{")
         for i in range(0, len(values), VALUES_PER_LINE):
@@ -82,7 +83,9 @@ def _kernel_params(program: Program, kernel: Kernel) -> list:
         for e in walk_exprs(top)
         if isinstance(e, Load)
     }
-    return [b for b in program.buffers if b.name in used and (b.role != "constant" or external_weights(program))]
+    return [
+        b for b in program.buffers if b.name in used and (b.role != BufferRole.CONSTANT or external_weights(program))
+    ]
 
 
 def _without_clashes(kernel: Kernel, program: Program) -> Kernel:
@@ -115,7 +118,7 @@ def _run_function(program: Program, calls: list[str], passed: set[str], profile:
     `passed` names the buffers some layer takes; an input no layer reads is cast to void."""
     decls = [
         f"const float *const {b.name} = (const float *)weights + {b.offset};"
-        for b in program.role("constant")
+        for b in program.role(BufferRole.CONSTANT)
         if external_weights(program)
     ]
     decls += [
@@ -125,7 +128,7 @@ def _run_function(program: Program, calls: list[str], passed: set[str], profile:
     if profile:
         decls.append("double start = nncg_now(), end;")
         calls = _timed(program, calls)
-    params = [b.name for b in (*program.role("input"), *program.role("output"))]
+    params = [b.name for b in (*program.role(BufferRole.INPUT), *program.role(BufferRole.OUTPUT))]
     unused = [f"(void){name};" for name in params if name not in passed]
     unused += [] if _planned(program) else ["(void)arena;"]
     body = [*decls, *unused, *calls]
@@ -134,7 +137,7 @@ def _run_function(program: Program, calls: list[str], passed: set[str], profile:
 
 def _static_arena_function(program: Program) -> list[str]:
     """NAME: NAME_run with an arena of static storage, for callers that run one inference at a time."""
-    args = [b.name for b in (*program.role("input"), *program.role("output"))]
+    args = [b.name for b in (*program.role(BufferRole.INPUT), *program.role(BufferRole.OUTPUT))]
     args += ["weights"] if external_weights(program) else []
     lines = []
     if program.arena.floats:
@@ -146,7 +149,7 @@ def _static_arena_function(program: Program) -> list[str]:
 
 
 def _planned(program: Program) -> tuple:
-    return tuple(b for b in program.role("internal") if b.offset is not None)
+    return tuple(b for b in program.role(BufferRole.INTERNAL) if b.offset is not None)
 
 
 def _profile_globals(program: Program) -> list[str]:

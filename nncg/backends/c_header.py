@@ -3,6 +3,7 @@ points' signatures (which the .c repeats)."""
 
 from __future__ import annotations
 
+from ..ir.kinds import BufferRole
 from ..ir.loops import Program
 from ..safe_text import comment_name
 from .weights import external_weights, weights_header
@@ -22,7 +23,7 @@ def header(program: Program, first_line: str) -> str:
         "#endif",
         "",
     ]
-    for buf in (*program.role("input"), *program.role("output")):
+    for buf in (*program.role(BufferRole.INPUT), *program.role(BufferRole.OUTPUT)):
         shape = ",".join(map(str, buf.shape))
         lines.append(f"/* {buf.role} {comment_name(buf.onnx_name)}: float32[{shape}], row-major as in ONNX */")
         lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
@@ -62,6 +63,6 @@ def run_signature(program: Program) -> str:
 
 
 def _io_params(program: Program) -> list[str]:
-    params = [f"const float *{b.name}" for b in program.role("input")]
-    params += [f"float *{b.name}" for b in program.role("output")]
+    params = [f"const float *{b.name}" for b in program.role(BufferRole.INPUT)]
+    params += [f"float *{b.name}" for b in program.role(BufferRole.OUTPUT)]
     return params + (["const void *weights"] if external_weights(program) else [])

@@ -4,6 +4,7 @@ and select as conditional moves; the SIMD printer (simd.py) extends it, c_file.p
 from __future__ import annotations
 
 from ..errors import NncgError
+from ..ir.kinds import LoopKind
 from ..ir.loops import (
     Affine,
     Assign,
@@ -63,7 +64,7 @@ class ScalarPrinter:
         return out
 
     def _stmt_Loop(self, loop: Loop, depth: int) -> list[str]:
-        if loop.kind != "serial":
+        if loop.kind != LoopKind.SERIAL:
             raise NncgError(f"loop '{loop.var}' is still marked {loop.kind}: run the pass that materialises it")
         pad = INDENT * depth
         head = f"{pad}for ({loop.var} = 0; {loop.var} < {loop.extent}; ++{loop.var}) {{"

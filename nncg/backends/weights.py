@@ -7,6 +7,7 @@ import zlib
 
 import numpy as np
 
+from ..ir.kinds import BufferRole
 from ..ir.loops import Program
 from .c_text import INDENT
 
@@ -19,7 +20,7 @@ def external_weights(program: Program) -> bool:
 def weights_blob(program: Program) -> bytes:
     """The NAME.weights file: each constant array at its offset, little-endian float32, zero gaps."""
     blob = np.zeros(program.arena.weights_floats, dtype="<f4")
-    for buf in program.role("constant"):
+    for buf in program.role(BufferRole.CONSTANT):
         blob[buf.offset : buf.offset + buf.size] = program.constants[buf.name].ravel()
     return blob.tobytes()
 

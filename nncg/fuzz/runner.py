@@ -20,6 +20,7 @@ from .. import compile as compile_model
 from ..errors import NncgError
 from ..verify import VerificationError, compare, random_inputs, reference_outputs, run_compiled, verify
 from .options import CROSS, Options
+from .ties import has_nearest_resize_tie
 
 OUTCOMES = (
     "pass",
@@ -34,6 +35,7 @@ OUTCOMES = (
     "code-size",  # the C is far larger than the model and options call for
     "ill-conditioned",  # a mismatch on a model whose output float rounding alone moves past the tolerance
     "onnxruntime-differs",  # a mismatch where NNCG agrees with the ONNX reference implementation (onnx.reference)
+    "resize-tie",  # a mismatch on a model whose nearest Resize maps a pixel exactly half-way (nncg/fuzz/ties.py)
     "invalid",  # onnxruntime or the checker rejects the model: a generator bug, NNCG not blamed
 )
 BUGS = ("mismatch", "crash", "refused", "build-fail", "run-fail", "sanitizer", "timeout", "code-size")
@@ -194,6 +196,8 @@ def _verify(model: onnx.ModelProto, compiled, options: Options) -> Outcome:
         return Outcome("ill-conditioned", problems, worst)
     if agrees_with_onnx_reference(model, compiled, where):
         return Outcome("onnxruntime-differs", problems, worst)
+    if has_nearest_resize_tie(model):
+        return Outcome("resize-tie", problems, worst)
     return Outcome("mismatch", problems, worst)
 
 

@@ -9,8 +9,12 @@ at raw ONNX attributes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Union
 
 import numpy as np
+
+from .arrays import same_arrays
+from .kinds import ActivationKind, ConvAlgorithm, VectorAxis, coerce
 
 Shape = tuple[int, ...]
 
@@ -22,11 +26,14 @@ class Activation:
     max(0, min(1, alpha*x + beta)), hard_swish x * hard_sigmoid(x) with alpha 1/6 and beta 0.5, and
     elu with scale alpha."""
 
-    kind: str  # "relu" | "leaky_relu" | "clip" | "sigmoid" | "tanh" | "hard_sigmoid" | "hard_swish" | "elu"
+    kind: ActivationKind
     alpha: float = 0.0
     low: float = float("-inf")
     high: float = float("inf")
     beta: float = 0.0
+
+    def __post_init__(self) -> None:
+        coerce(self, kind=ActivationKind)
 
     def __str__(self) -> str:
         if self.kind == "clip":
@@ -35,7 +42,7 @@ class Activation:
             return f"hard_sigmoid(alpha={self.alpha:g}, beta={self.beta:g})"
         if self.kind in ("leaky_relu", "elu"):
             return f"{self.kind}(alpha={self.alpha:g})"
-        return self.kind
+        return str(self.kind)
 
 
 @dataclass(frozen=True)
@@ -54,9 +61,12 @@ class ConvAttrs:
     group: int = 1
     activation: Activation | None = None
     residual: bool = False
-    algorithm: str = "direct"  # or "winograd" (set by the winograd pass)
+    algorithm: ConvAlgorithm = ConvAlgorithm.DIRECT  # set by the winograd pass
     gemm_channels: int = 0  # Winograd: output channels padded to this many in its GEMMs (0: not padded)
-    vector_axis: str = "channels"  # or "pixels": planar output, SIMD along its rows (vectorize-pixels pass)
+    vector_axis: VectorAxis = VectorAxis.CHANNELS  # set by the vectorize-pixels pass, read by the lowering
+
+    def __post_init__(self) -> None:
+        coerce(self, algorithm=ConvAlgorithm, vector_axis=VectorAxis)
 
 
 @dataclass(frozen=True)
@@ -210,6 +220,14 @@ class ResizeAttrs:
     nearest_mode: str = "round_prefer_floor"
 
 
+# Every attribute record a node may carry.
+AttrRecord = Union[
+    Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
+    SoftmaxAttrs, LrnAttrs, ReduceAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs, SplitAttrs, TransposeAttrs,
+    PadAttrs, ResizeAttrs,
+]  # fmt: skip
+
+
 @dataclass(frozen=True)
 class Value:
     """A graph input or output: a float32 tensor with a static shape."""
@@ -224,7 +242,7 @@ class Node:
     name: str
     inputs: tuple[str, ...]
     outputs: tuple[str, ...]
-    attrs: object = None
+    attrs: AttrRecord | None = None  # the record nncg.ir.ops.IR_OPS names for `op` (the verifier checks)
 
 
 @dataclass(frozen=True)
@@ -235,8 +253,17 @@ class Graph:
     inputs: tuple[Value, ...]
     outputs: tuple[Value, ...]
     nodes: tuple[Node, ...]
-    constants: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
+    constants: dict[str, np.ndarray] = field(default_factory=dict)
     shapes: dict[str, Shape] = field(default_factory=dict)
+
+    def __eq__(self, other: object) -> bool:
+        """Structural equality, constants included (same names, dtypes, shapes and values)."""
+        if not isinstance(other, Graph):
+            return NotImplemented
+        same = (self.name, self.inputs, self.outputs, self.nodes, self.shapes)
+        return same == (other.name, other.inputs, other.outputs, other.nodes, other.shapes) and same_arrays(
+            self.constants, other.constants
+        )
 
     def is_constant(self, name: str) -> bool:
         return name in self.constants

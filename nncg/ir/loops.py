@@ -13,6 +13,9 @@ from typing import Union
 
 import numpy as np
 
+from .arrays import same_arrays
+from .kinds import BinaryOp, BufferRole, Comparison, Layout, LoopKind, MathFunction, coerce
+
 # ---------------------------------------------------------------------------- integer indices
 
 
@@ -129,9 +132,12 @@ class Broadcast:
 
 @dataclass(frozen=True)
 class Binary:
-    op: str  # "+", "-", "*", "/", "max", "min"
+    op: BinaryOp
     a: Expr
     b: Expr
+
+    def __post_init__(self) -> None:
+        coerce(self, op=BinaryOp)
 
     @property
     def lanes(self) -> int:
@@ -142,11 +148,14 @@ class Binary:
 class Select:
     """The paper's conditional move: (lhs cmp rhs) ? then : otherwise, per lane."""
 
-    cmp: str  # ">", ">=", "<", "<="
+    cmp: Comparison
     lhs: Expr
     rhs: Expr
     then: Expr
     otherwise: Expr
+
+    def __post_init__(self) -> None:
+        coerce(self, cmp=Comparison)
 
     @property
     def lanes(self) -> int:
@@ -155,10 +164,13 @@ class Select:
 
 @dataclass(frozen=True)
 class Call:
-    """fn(arg) per lane, fn one of FUNCTIONS (the math.h functions of C89, in float)."""
+    """fn(arg) per lane: a math.h function of C89, in float."""
 
-    fn: str
+    fn: MathFunction
     arg: Expr
+
+    def __post_init__(self) -> None:
+        coerce(self, fn=MathFunction)
 
     @property
     def lanes(self) -> int:
@@ -180,26 +192,32 @@ class Fma:
 
 Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call, Fma]
 
-BINARY_OPS = ("+", "-", "*", "/", "max", "min")
-COMPARISONS = (">", ">=", "<", "<=")
-FUNCTIONS = ("exp", "log", "tanh")
+BINARY_OPS = tuple(BinaryOp)
+COMPARISONS = tuple(Comparison)
+FUNCTIONS = tuple(MathFunction)
 
 # ---------------------------------------------------------------------------- statements
 
-LOOP_KINDS = ("serial", "unrolled", "vectorized")
+LOOP_KINDS = tuple(LoopKind)
 
 
 @dataclass(frozen=True)
 class Loop:
     """for var in [0, extent). `parallel`: iterations are independent (a spatial, not a reduction,
-    axis), set by the lowering. `kind` is a pass's decision that a later pass materialises."""
+    axis), set by the lowering. `kind` is a pass's mark that the same pass materialises (only serial
+    loops leave a pipeline). `lanes`: the vector width of one iteration, i.e. how many elements along
+    the loop's axis each iteration covers — set when vectorize marks the loop and kept on the loop
+    over vector blocks it becomes; 1 for every scalar loop."""
 
     var: str
     extent: int
     body: tuple[Stmt, ...]
-    kind: str = "serial"
+    kind: LoopKind = LoopKind.SERIAL
     parallel: bool = False
-    lanes: int = 1  # the vector width chosen when kind == "vectorized"
+    lanes: int = 1
+
+    def __post_init__(self) -> None:
+        coerce(self, kind=LoopKind)
 
 
 @dataclass(frozen=True)
@@ -252,7 +270,7 @@ Stmt = Union[Loop, Store, Let, Assign, If]
 
 # ---------------------------------------------------------------------------- program
 
-BUFFER_ROLES = ("input", "output", "internal", "constant")
+BUFFER_ROLES = tuple(BufferRole)
 
 
 @dataclass(frozen=True)
@@ -261,11 +279,14 @@ class Buffer:
 
     name: str
     size: int
-    role: str
+    role: BufferRole
     shape: tuple[int, ...] = ()
-    layout: str = ""
+    layout: Layout = Layout.UNSPECIFIED
     onnx_name: str = ""
     offset: int | None = None  # floats into the arena (internal) or the weights blob (constant), by plan-memory
+
+    def __post_init__(self) -> None:
+        coerce(self, role=BufferRole, layout=Layout)
 
 
 @dataclass(frozen=True)
@@ -303,8 +324,17 @@ class Program:
     name: str
     buffers: tuple[Buffer, ...]
     kernels: tuple[Kernel, ...]
-    constants: dict[str, np.ndarray] = field(default_factory=dict, compare=False)
+    constants: dict[str, np.ndarray] = field(default_factory=dict)
     arena: ArenaPlan | None = None  # set by the plan-memory pass
+
+    def __eq__(self, other: object) -> bool:
+        """Structural equality, constants included (same names, dtypes, shapes and values)."""
+        if not isinstance(other, Program):
+            return NotImplemented
+        same = (self.name, self.buffers, self.kernels, self.arena)
+        return same == (other.name, other.buffers, other.kernels, other.arena) and same_arrays(
+            self.constants, other.constants
+        )
 
     def buffer(self, name: str) -> Buffer:
         for buf in self.buffers:

@@ -8,6 +8,7 @@ import numpy as np
 
 from ..safe_text import capped, escaped
 from .graph import Activation, Graph
+from .kinds import LoopKind
 from .loops import (
     Assign,
     Binary,
@@ -90,7 +91,7 @@ def _stmts(body: tuple[Stmt, ...], depth: int) -> list[str]:
     out: list[str] = []
     for stmt in body:
         if isinstance(stmt, Loop):
-            tags = [stmt.kind] if stmt.kind != "serial" else []
+            tags = [stmt.kind] if stmt.kind != LoopKind.SERIAL else []
             tags += ["parallel"] if stmt.parallel else []
             tags += [f"lanes={stmt.lanes}"] if stmt.lanes > 1 else []
             tag = f" [{', '.join(tags)}]" if tags else ""

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 from ..ir.graph import Graph, Node
 from ..ir.loops import (
-    FUNCTIONS,
-    Assign,
+    Affine,
     Binary,
     Broadcast,
-    Call,
+    Buffer,
     Expr,
     Fma,
     If,
@@ -23,6 +24,9 @@ from ..ir.loops import (
     walk_exprs,
 )
 from ..ir.ops import IR_OPS
+from .kinds import BufferRole, LoopKind
+
+VECTOR_WIDTHS = (1, 2, 4, 8, 16)  # lanes a loop or expression may have
 
 
 def verify_ir(ir: Graph | Program) -> list[str]:
@@ -59,49 +63,83 @@ def _node_op_problems(node: Node) -> list[str]:
 def verify_program(program: Program) -> list[str]:
     problems: list[str] = []
     buffers = {b.name: b for b in program.buffers}
-    for buf in program.role("constant"):
+    for buf in program.role(BufferRole.CONSTANT):
         if buf.name not in program.constants or program.constants[buf.name].size != buf.size:
             problems.append(f"constant {buf.name} has no data of size {buf.size}")
     for kernel in program.kernels:
-        _check_body(kernel.body, buffers, set(), {}, problems, kernel.name)
+        _check_body(kernel.body, _Scope(buffers, {}, frozenset(), {}), problems, kernel.name)
     return problems
 
 
-def _check_body(body: tuple[Stmt, ...], buffers, loop_vars: set[str], locals_: dict[str, int], problems, where):
+@dataclass(frozen=True)
+class _Scope:
+    """What a statement sees: the buffers, the enclosing loops' extents, the loop variables an
+    enclosing border check constrains, and the declared locals with their lanes."""
+
+    buffers: dict[str, Buffer]
+    extents: dict[str, int]
+    guarded: frozenset[str]
+    locals_: dict[str, int]
+
+
+def _check_body(body: tuple[Stmt, ...], scope: _Scope, problems: list[str], where: str) -> None:
     for stmt in body:
         if isinstance(stmt, Loop):
-            if stmt.var in loop_vars:
-                problems.append(f"{where}: loop variable {stmt.var} shadows an outer loop")
-            _check_body(stmt.body, buffers, loop_vars | {stmt.var}, locals_, problems, where)
-            continue
-        if isinstance(stmt, If):
+            _check_loop(stmt, problems, where, scope)
+            inner = replace(scope, extents=scope.extents | {stmt.var: stmt.extent})
+            _check_body(stmt.body, inner, problems, where)
+        elif isinstance(stmt, If):
             for bound in stmt.bounds:
-                _check_vars(bound.expr.vars, loop_vars, problems, where)
-            _check_body(stmt.body, buffers, loop_vars, locals_, problems, where)
-            continue
-        if isinstance(stmt, Let):
-            _check_expr(stmt.init, buffers, loop_vars, locals_, problems, where)
-            inner = locals_ | {stmt.name: stmt.init.lanes}
-            _check_body(stmt.body, buffers, loop_vars, inner, problems, where)
-            continue
-        _check_expr(stmt.value, buffers, loop_vars, locals_, problems, where)
-        if isinstance(stmt, Store):
-            buf = buffers.get(stmt.buffer)
-            if buf is None or buf.role not in ("internal", "output"):
-                problems.append(f"{where}: store to {stmt.buffer}, which is not a writable buffer")
-            _check_vars(stmt.index.vars, loop_vars, problems, where)
-        elif isinstance(stmt, Assign):
-            if locals_.get(stmt.name) != stmt.value.lanes:
+                _check_vars(bound.expr.vars, scope.extents, problems, where)
+            guarded = scope.guarded | {v for bound in stmt.bounds for v in bound.expr.vars}
+            _check_body(stmt.body, replace(scope, guarded=guarded), problems, where)
+        elif isinstance(stmt, Let):
+            _check_expr(stmt.init, scope, problems, where)
+            inner = replace(scope, locals_=scope.locals_ | {stmt.name: stmt.init.lanes})
+            _check_body(stmt.body, inner, problems, where)
+        else:
+            _check_expr(stmt.value, scope, problems, where)
+            if isinstance(stmt, Store):
+                buf = scope.buffers.get(stmt.buffer)
+                if buf is None or buf.role not in (BufferRole.INTERNAL, BufferRole.OUTPUT):
+                    problems.append(f"{where}: store to {stmt.buffer}, which is not a writable buffer")
+                _check_access(stmt.buffer, stmt.index, stmt.value.lanes, scope, problems, where)
+            elif scope.locals_.get(stmt.name) != stmt.value.lanes:
                 problems.append(f"{where}: assignment to {stmt.name} with {stmt.value.lanes} lanes, not declared so")
 
 
-def _check_expr(expr: Expr, buffers, loop_vars, locals_, problems, where):
+def _check_loop(loop: Loop, problems: list[str], where: str, scope: _Scope) -> None:
+    if loop.var in scope.extents:
+        problems.append(f"{where}: loop variable {loop.var} shadows an outer loop")
+    if loop.extent < 1:
+        problems.append(f"{where}: loop {loop.var} has extent {loop.extent}")
+    if loop.lanes not in VECTOR_WIDTHS:
+        problems.append(f"{where}: loop {loop.var} has {loop.lanes} lanes, not one of {VECTOR_WIDTHS}")
+    if loop.kind == LoopKind.VECTORIZED and not 1 < loop.lanes <= loop.extent:
+        problems.append(f"{where}: loop {loop.var} is vectorised with {loop.lanes} lanes over {loop.extent}")
+    if loop.kind == LoopKind.UNROLLED and loop.lanes != 1:
+        problems.append(f"{where}: unrolled loop {loop.var} has {loop.lanes} lanes")
+
+
+def _check_access(buffer: str, index: Affine, lanes: int, scope: _Scope, problems: list[str], where: str) -> None:
+    """The index uses enclosing loop variables only, and stays inside the buffer for every value of
+    them (an access under a border check on one of its variables is exempt: the check keeps it in)."""
+    _check_vars(index.vars, scope.extents, problems, where)
+    buf = scope.buffers.get(buffer)
+    if buf is None or not set(index.vars) <= scope.extents.keys() or scope.guarded & set(index.vars):
+        return
+    lo, hi = index.bounds(scope.extents)
+    if lo < 0 or hi + lanes > buf.size:
+        problems.append(f"{where}: {buffer}[{index}] reaches [{lo}, {hi + lanes}) outside its {buf.size} elements")
+
+
+def _check_expr(expr: Expr, scope: _Scope, problems: list[str], where: str) -> None:
     for e in walk_exprs(expr):
         if isinstance(e, Load):
-            if e.buffer not in buffers:
+            if e.buffer not in scope.buffers:
                 problems.append(f"{where}: load from unknown buffer {e.buffer}")
-            _check_vars(e.index.vars, loop_vars, problems, where)
-        elif isinstance(e, LocalRef) and locals_.get(e.name) != e.lanes:
+            _check_access(e.buffer, e.index, e.lanes, scope, problems, where)
+        elif isinstance(e, LocalRef) and scope.locals_.get(e.name) != e.lanes:
             problems.append(f"{where}: {e.name} read with {e.lanes} lanes, not declared so")
         elif isinstance(e, Binary) and e.a.lanes != e.b.lanes:
             problems.append(f"{where}: operands of {e.op} have {e.a.lanes} and {e.b.lanes} lanes")
@@ -111,11 +149,9 @@ def _check_expr(expr: Expr, buffers, loop_vars, locals_, problems, where):
             problems.append(f"{where}: fma operands differ in lanes")
         elif isinstance(e, Broadcast) and e.value.lanes != 1:
             problems.append(f"{where}: broadcast of a vector")
-        elif isinstance(e, Call) and e.fn not in FUNCTIONS:
-            problems.append(f"{where}: call of unknown function {e.fn}")
 
 
-def _check_vars(vars_, loop_vars, problems, where):
+def _check_vars(vars_, extents: dict[str, int], problems: list[str], where: str) -> None:
     for var in vars_:
-        if var not in loop_vars:
+        if var not in extents:
             problems.append(f"{where}: index uses {var} outside its loop")

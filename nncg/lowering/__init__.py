@@ -8,6 +8,7 @@ from __future__ import annotations
 from ..errors import NncgError
 from ..ir.c_names import program_name
 from ..ir.graph import Graph, Node
+from ..ir.kinds import ConvAlgorithm
 from ..ir.loops import Program
 from .concat import lower_concat
 from .context import LoweringContext, row_major
@@ -29,7 +30,7 @@ from .winograd import lower_winograd
 
 def lower_any_conv(ctx: LoweringContext, node: Node) -> None:
     """Direct convolution, or Winograd where the winograd pass chose it."""
-    (lower_winograd if node.attrs.algorithm == "winograd" else lower_conv)(ctx, node)
+    (lower_winograd if node.attrs.algorithm == ConvAlgorithm.WINOGRAD else lower_conv)(ctx, node)
 
 
 LOWERINGS = {

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..ir.c_names import Namespace, buffer_name, layer_name
 from ..ir.graph import Graph
+from ..ir.kinds import Layout
 from ..ir.loops import Affine, Buffer, Kernel, Loop, Stmt
 from .halo import conv_halos, zero_halo
 
@@ -22,10 +23,8 @@ def channels_last(rank: int) -> tuple[int, ...]:
     return (0, *range(2, rank), 1) if rank >= 3 else row_major(rank)
 
 
-def layout_name(shape: tuple[int, ...], order: tuple[int, ...]) -> str:
-    if order == row_major(len(shape)):
-        return "row-major"
-    return "channels-last"
+def layout_of(shape: tuple[int, ...], order: tuple[int, ...]) -> Layout:
+    return Layout.ROW_MAJOR if order == row_major(len(shape)) else Layout.CHANNELS_LAST
 
 
 @dataclass(frozen=True)
@@ -122,7 +121,7 @@ class LoweringContext:
         shape = tuple(int(d) for d in shape)
         ident = self._buffer_names.claim(name)
         size = int(np.prod(shape)) if shape else 1
-        self.buffers.append(Buffer(ident, size, role, shape, layout_name(shape, order), onnx_name))
+        self.buffers.append(Buffer(ident, size, role, shape, layout_of(shape, order), onnx_name))
         return TensorRef(ident, shape, tuple(order))
 
     def add_constant(self, name: str, data: np.ndarray) -> TensorRef:

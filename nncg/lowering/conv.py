@@ -9,6 +9,7 @@ the group loop is the contiguous one and vectorises. A fused residual is added a
 from __future__ import annotations
 
 from ..ir.graph import ConvAttrs, Node
+from ..ir.kinds import VectorAxis
 from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
 from .activation import apply_activation
 from .context import LoweringContext, channels_last, nest, row_major
@@ -33,7 +34,7 @@ def lower_conv(ctx: LoweringContext, node: Node) -> None:
     bias_name, residual_name = conv_extras(node)
     bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
     residual = ctx.ref(residual_name) if residual_name else None
-    pixels = attrs.vector_axis == "pixels"
+    pixels = attrs.vector_axis == VectorAxis.PIXELS
     out = ctx.output(node.outputs[0], row_major(rank + 2) if pixels else channels_last(rank + 2))
     names = spatial_names(rank)
     out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]

@@ -118,4 +118,3 @@ def broadcast(ctx: LoweringContext, node: Node, combine: Callable[[list[Load]], 
     full = [r for name, r in zip(node.inputs, refs) if not ctx.graph.is_constant(name) and r.shape == out_shape]
     order = full[0].order if full else row_major(len(out_shape))
     elementwise(ctx, node, order, lambda idx: combine([broadcast_load(r, idx) for r in refs]))
-

@@ -52,8 +52,6 @@ A_T = ((1, 1, 1, 0), (0, 1, -1, -1))
 CHUNK_TILES = 24  # tiles per chunk (rounded up to whole tile rows): scratch that stays in L1
 
 
-
-
 def transformed_filters(w: np.ndarray) -> np.ndarray:
     """U[e][ci][co] = (G g G^T)[e] of filter g = w[co, ci], computed in double precision."""
     g = np.asarray(G, dtype=np.float64)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..ir.kinds import BufferRole
 from ..ir.loops import Const, Expr, Load, Program, map_body, map_stmt_exprs, stmt_exprs, walk_exprs, walk_stmts
 
 
@@ -28,6 +29,6 @@ def inline_constants(program: Program) -> Program:
         for e in walk_exprs(top)
         if isinstance(e, Load)
     }
-    buffers = tuple(b for b in program.buffers if b.role != "constant" or b.name in read)
+    buffers = tuple(b for b in program.buffers if b.role != BufferRole.CONSTANT or b.name in read)
     constants = {name: arr for name, arr in data.items() if name in read}
     return replace(program, buffers=buffers, kernels=kernels, constants=constants)

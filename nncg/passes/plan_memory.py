@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from ..ir.kinds import BufferRole
 from ..ir.loops import (
     ArenaPlan,
     Buffer,
@@ -39,13 +40,13 @@ WEIGHTS_MODES = ("auto", "embed", "bin")
 def plan_memory(program: Program, align: int = 64, reuse: bool = True, weights: str = "auto") -> Program:
     """`align` is in bytes; `reuse=False` lays the buffers out back to back (no sharing)."""
     align_floats = max(1, align // FLOAT_BYTES)
-    activation_floats = sum(b.size for b in program.role("internal"))
+    activation_floats = sum(b.size for b in program.role(BufferRole.INTERNAL))
     if reuse:
         program = _compute_in_place(program)
     offsets, size = _place(program, align_floats, reuse)
     weights_floats = 0
     if _weights_in_blob(program, weights):
-        constants = list(program.role("constant"))
+        constants = list(program.role(BufferRole.CONSTANT))
         constant_offsets, weights_floats = _back_to_back(constants, align_floats)
         offsets.update(constant_offsets)
     buffers = tuple(replace(b, offset=offsets[b.name]) if b.name in offsets else b for b in program.buffers)
@@ -55,7 +56,7 @@ def plan_memory(program: Program, align: int = 64, reuse: bool = True, weights: 
 
 def _weights_in_blob(program: Program, mode: str) -> bool:
     if mode == "auto":
-        return sum(b.size for b in program.role("constant")) * FLOAT_BYTES > WEIGHTS_FILE_THRESHOLD
+        return sum(b.size for b in program.role(BufferRole.CONSTANT)) * FLOAT_BYTES > WEIGHTS_FILE_THRESHOLD
     return mode == "bin"
 
 
@@ -109,7 +110,7 @@ def kernel_access(kernel: Kernel) -> Access:
 
 def lifetimes(program: Program, accesses: list[Access] | None = None) -> dict[str, tuple[int, int]]:
     """Internal buffer -> (first, last) index of the kernels that touch it."""
-    internal = {b.name for b in program.role("internal")}
+    internal = {b.name for b in program.role(BufferRole.INTERNAL)}
     spans: dict[str, tuple[int, int]] = {}
     for i, access in enumerate(accesses or [kernel_access(k) for k in program.kernels]):
         for name in access.touched & internal:
@@ -125,7 +126,7 @@ def _compute_in_place(program: Program) -> Program:
     """Renames each elementwise kernel's output to its dying input, kernel by kernel."""
     accesses = [kernel_access(k) for k in program.kernels]
     spans = lifetimes(program, accesses)
-    sizes = {b.name: b.size for b in program.role("internal")}
+    sizes = {b.name: b.size for b in program.role(BufferRole.INTERNAL)}
     renames: dict[str, str] = {}
     for i, kernel in enumerate(program.kernels):
         pair = _in_place_pair(kernel, i, accesses[i], spans, sizes, renames)
@@ -195,7 +196,7 @@ def _rename(program: Program, renames: dict[str, str]) -> Program:
 def _place(program: Program, align: int, reuse: bool) -> tuple[dict[str, int], int]:
     """Buffer -> offset (floats) and the arena size, both multiples of `align`."""
     spans = lifetimes(program)
-    internal = [b for b in program.role("internal") if b.name in spans]
+    internal = [b for b in program.role(BufferRole.INTERNAL) if b.name in spans]
     if not reuse:
         return _back_to_back(internal, align)
     order = sorted(internal, key=lambda b: (-b.size, spans[b.name][0], b.name))

@@ -19,9 +19,11 @@ overrides it per layer (what `--tune` measured), `jam_loop` does the rewriting."
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 from ..ir.analysis import holds_accumulators, is_accumulator
+from ..ir.kinds import BufferRole, Layout
 from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
 from ..ir.rename import rename_variables
 from ..ir.target import Target
@@ -62,17 +64,13 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
             kernels.append(kernel)
             continue
         pixels, channels = layers.get(kernel.name) or choose_blocks(shape, registers)
-        if kernel.name not in layers and reads_across_planes(kernel.body):
+        if kernel.name not in layers and reads_across_planes(kernel.body, planar_tensors(program)):
             pixels = 1
         kernels.append(replace(kernel, body=block_body(kernel.body, pixels, channels)))
     return replace(program, kernels=tuple(kernels))
 
 
 # ---------------------------------------------------------------------------- structure
-
-
-
-
 
 
 def pixel_loop_of(stmt: Stmt) -> Loop | None:
@@ -152,24 +150,36 @@ def choose_blocks(shape: tuple[int, int], registers: int) -> tuple[int, int]:
     return pixels, channels
 
 
-def reads_across_planes(body: tuple[Stmt, ...]) -> bool:
-    """Whether a channel loop of the first blockable nest loads with a stride (a channels-last
-    consumer of a planar tensor, element by element). Jamming its pixels as well measured slower
-    (robot pool1 after a pixel-vectorised conv1, avx512: 6x4 5.9 us, 2x4 5.9, 1x4 2.3), so such a
-    layer jams channels only."""
+def planar_tensors(program: Program) -> dict[str, int]:
+    """The activation buffers stored row-major with channels before the pixels (NCHW), with the size
+    of one channel's plane: the graph's inputs and outputs, and what a layer vectorised over pixels
+    writes (the layout the lowering recorded, typed, on each buffer)."""
+    return {
+        b.name: math.prod(b.shape[2:])
+        for b in program.buffers
+        if b.role != BufferRole.CONSTANT and b.layout == Layout.ROW_MAJOR and len(b.shape) >= 3
+    }
+
+
+def reads_across_planes(body: tuple[Stmt, ...], planar: dict[str, int]) -> bool:
+    """Whether a channel loop of the first blockable nest reads a planar tensor channel by channel
+    (a channels-last consumer of a planar tensor, element by element). Jamming its pixels as well
+    measured slower (robot pool1 after a pixel-vectorised conv1, avx512: 6x4 5.9 us, 2x4 5.9, 1x4
+    2.3), so such a layer jams channels only."""
     pixel = first_pixel_loop(body)
     if pixel is None:
         return False
-    return any(_strided_loads(s) for s in walk_stmts(pixel.body) if isinstance(s, Loop) and is_channel_loop(s))
+    return any(_reads_planes(s, planar) for s in walk_stmts(pixel.body) if isinstance(s, Loop) and is_channel_loop(s))
 
 
-def _strided_loads(loop: Loop) -> bool:
-    """A load whose step along the loop exceeds the loop's whole extent: each iteration reads
-    another plane (not a stride-2 window along a row)."""
+def _reads_planes(loop: Loop, planar: dict[str, int]) -> bool:
+    """A load from a planar tensor that moves a whole plane per iteration of the channel loop."""
+    if loop.extent < 2:
+        return False
     for stmt in walk_stmts(loop.body):
         for top in stmt_exprs(stmt):
             for e in walk_exprs(top):
-                if isinstance(e, Load) and abs(e.index.coeff(loop.var)) >= e.lanes * loop.extent > e.lanes:
+                if isinstance(e, Load) and e.buffer in planar and abs(e.index.coeff(loop.var)) >= planar[e.buffer] > 1:
                     return True
     return False
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..ir.kinds import LoopKind
 from ..ir.loops import Affine, If, Let, Loop, Program, Stmt
 from .per_layer import check_layer_names, parse_layer_map
 from .substitute import prune_bounds, substitute_body
@@ -68,7 +69,7 @@ def emitted_size(body: tuple[Stmt, ...]) -> int:
     """Statements printed for a marked body: unrolled loops are copied, the others appear once."""
     total = 0
     for stmt in body:
-        if isinstance(stmt, Loop) and stmt.kind == "unrolled":
+        if isinstance(stmt, Loop) and stmt.kind == LoopKind.UNROLLED:
             total += stmt.extent * emitted_size(stmt.body)
         elif isinstance(stmt, Loop | Let | If):
             total += 1 + emitted_size(stmt.body)
@@ -91,7 +92,7 @@ def mark_unroll(
             inner = mark_unroll(stmt.body, level, budget, depth + 1)
             deep = level == "auto" or depth >= level
             fits = deep and (budget is None or unrolled_size((stmt,)) <= budget)
-            stmt = replace(stmt, body=inner, kind="unrolled" if fits else stmt.kind)
+            stmt = replace(stmt, body=inner, kind=LoopKind.UNROLLED if fits else stmt.kind)
         elif isinstance(stmt, Let | If):
             stmt = replace(stmt, body=mark_unroll(stmt.body, level, budget, depth))
         out.append(stmt)
@@ -117,7 +118,7 @@ def expand_unrolled(body: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
     for stmt in body:
         if isinstance(stmt, Loop | Let | If):
             stmt = replace(stmt, body=expand_unrolled(stmt.body))
-        if isinstance(stmt, Loop) and stmt.kind == "unrolled":
+        if isinstance(stmt, Loop) and stmt.kind == LoopKind.UNROLLED:
             for i in range(stmt.extent):
                 out.extend(substitute_body(stmt.body, {stmt.var: Affine.of(i)}))
         else:

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..ir.analysis import is_accumulator, vector_instructions
+from ..ir.kinds import LoopKind
 from ..ir.loops import (
     Affine,
     Assign,
@@ -53,7 +54,7 @@ def vectorize(program: Program, target: Target) -> Program:
     for kernel in program.kernels:
         body = mark_vector_loop(kernel.body, widths)
         overlaps = any(
-            isinstance(s, Loop) and s.kind == "vectorized" and _overlapped_tail_pays(s, widths)
+            isinstance(s, Loop) and s.kind == LoopKind.VECTORIZED and _overlapped_tail_pays(s, widths)
             for s in walk_stmts(body)
         )
         body = map_body(body, lambda s: materialize(s, widths))
@@ -70,9 +71,9 @@ def mark_vector_loop(body: tuple[Stmt, ...], widths: int | tuple[int, ...]) -> t
     widths = (widths,) if isinstance(widths, int) else widths
 
     def mark(stmt: Stmt) -> Stmt | tuple[Stmt, ...]:
-        if not isinstance(stmt, Loop) or stmt.kind != "serial":
+        if not isinstance(stmt, Loop) or stmt.kind != LoopKind.SERIAL:
             return stmt
-        if any(isinstance(s, Loop) and s.kind == "vectorized" for s in walk_stmts(stmt.body)):
+        if any(isinstance(s, Loop) and s.kind == LoopKind.VECTORIZED for s in walk_stmts(stmt.body)):
             return stmt
         if vectorizable(stmt, widths[-1]):
             return _marked(stmt, widths)
@@ -86,7 +87,7 @@ def mark_vector_loop(body: tuple[Stmt, ...], widths: int | tuple[int, ...]) -> t
 
 
 def _marked(loop: Loop, widths: tuple[int, ...]) -> Loop:
-    return replace(loop, kind="vectorized", lanes=next(w for w in widths if w <= loop.extent))
+    return replace(loop, kind=LoopKind.VECTORIZED, lanes=next(w for w in widths if w <= loop.extent))
 
 
 def vectorizable(loop: Loop, lanes: int, borders: bool = False) -> bool:
@@ -121,7 +122,7 @@ def materialize(stmt: Stmt, widths: tuple[int, ...] = ()) -> Stmt | tuple[Stmt, 
     """A marked loop as blocks of its width, then of each narrower width of `widths` that fits the
     rest, then a scalar tail; or, where that pays, blocks of its width and one more ending at the
     last iteration."""
-    if not isinstance(stmt, Loop) or stmt.kind != "vectorized":
+    if not isinstance(stmt, Loop) or stmt.kind != LoopKind.VECTORIZED:
         return stmt
     var, start = stmt.var, 0
     out: list[Stmt] = []

@@ -20,6 +20,7 @@ from dataclasses import replace
 
 from ..errors import NncgError
 from ..ir.graph import ConvAttrs, Graph, Node, PadAttrs
+from ..ir.kinds import ConvAlgorithm, VectorAxis
 from ..ir.names import fresh_name
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
@@ -52,7 +53,7 @@ def vectorize_pixels(graph: Graph, target: Target, layers: dict[str, bool] | Non
             if any(node.attrs.pads_begin) or any(node.attrs.pads_end):
                 pad, node = explicit_padding(graph, node, shapes)
                 nodes.append(pad)
-            node = replace(node, attrs=replace(node.attrs, vector_axis="pixels"))
+            node = replace(node, attrs=replace(node.attrs, vector_axis=VectorAxis.PIXELS))
             planar.add(node.outputs[0])
         nodes.append(node)
     return replace(graph, shapes=shapes).with_nodes(nodes)
@@ -77,7 +78,7 @@ def pixel_axis_applies(graph: Graph, node: Node, planar: set[str]) -> bool:
     return (
         node.op == "Conv"
         and isinstance(attrs, ConvAttrs)
-        and attrs.algorithm == "direct"
+        and attrs.algorithm == ConvAlgorithm.DIRECT
         and attrs.strides[-1] == 1
         and node.inputs[0] in planar
     )

@@ -20,6 +20,7 @@ from ..errors import NncgError
 from ..ir.analysis import vector_instructions
 from ..ir.applicability import winograd_applies
 from ..ir.graph import Graph
+from ..ir.kinds import ConvAlgorithm
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
@@ -46,7 +47,7 @@ def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None
         if chosen_by_cost_model(graph, node) if wanted is None else wanted:
             c_out = graph.shape(node.inputs[1])[0]
             width = padded_channels(c_out, lanes)
-            attrs = replace(node.attrs, algorithm="winograd", gemm_channels=width if width != c_out else 0)
+            attrs = replace(node.attrs, algorithm=ConvAlgorithm.WINOGRAD, gemm_channels=width if width != c_out else 0)
             node = replace(node, attrs=attrs)
         nodes.append(node)
     return graph.with_nodes(nodes)

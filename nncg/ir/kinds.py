@@ -1,0 +1,105 @@
+"""The closed vocabularies of both IRs as enums: loop kinds, operators, comparisons, buffer roles and
+layouts, activation kinds, conv algorithms and vector axes. Each member is also its text (it compares,
+hashes, prints and formats as its value), so IR text and generated C spell them as before, and IR
+nodes built from text are converted on construction: a misspelt kind fails where it is made."""
+
+from __future__ import annotations
+
+from enum import Enum
+
+
+class TextEnum(str, Enum):
+    """A str-valued enum that behaves as its value everywhere a string is used."""
+
+    def __str__(self) -> str:
+        return str.__str__(self)
+
+    def __format__(self, spec: str) -> str:
+        return str.__format__(str.__str__(self), spec)
+
+    __hash__ = str.__hash__
+
+
+class LoopKind(TextEnum):
+    """A pass's mark on a loop, which the same or a later pass materialises; only serial loops remain."""
+
+    SERIAL = "serial"
+    UNROLLED = "unrolled"
+    VECTORIZED = "vectorized"
+
+
+class BinaryOp(TextEnum):
+    ADD = "+"
+    SUB = "-"
+    MUL = "*"
+    DIV = "/"
+    MAX = "max"
+    MIN = "min"
+
+
+class Comparison(TextEnum):
+    GT = ">"
+    GE = ">="
+    LT = "<"
+    LE = "<="
+
+
+class MathFunction(TextEnum):
+    """The math.h functions (C89, double) kernels call."""
+
+    EXP = "exp"
+    LOG = "log"
+    TANH = "tanh"
+
+
+class BufferRole(TextEnum):
+    INPUT = "input"
+    OUTPUT = "output"
+    INTERNAL = "internal"
+    CONSTANT = "constant"
+
+
+class Layout(TextEnum):
+    """How a buffer orders a tensor's dims: row-major as in ONNX (NCHW: planar), or channels last."""
+
+    UNSPECIFIED = ""
+    ROW_MAJOR = "row-major"
+    CHANNELS_LAST = "channels-last"
+
+
+class ActivationKind(TextEnum):
+    RELU = "relu"
+    LEAKY_RELU = "leaky_relu"
+    CLIP = "clip"
+    SIGMOID = "sigmoid"
+    TANH = "tanh"
+    HARD_SIGMOID = "hard_sigmoid"
+    HARD_SWISH = "hard_swish"
+    ELU = "elu"
+
+
+class ConvAlgorithm(TextEnum):
+    DIRECT = "direct"
+    WINOGRAD = "winograd"
+
+
+class VectorAxis(TextEnum):
+    """What a Conv's SIMD runs over: output channels (channels-last output) or output pixels (a
+    planar output, its rows vectorised). Decided once, by the vectorize-pixels pass."""
+
+    CHANNELS = "channels"
+    PIXELS = "pixels"
+
+
+def coerce(instance: object, **kinds: type[TextEnum]) -> None:
+    """In a frozen dataclass's __post_init__: each named field converted to its enum (ValueError names
+    the field and the values it takes)."""
+    for field_name, kind in kinds.items():
+        value = getattr(instance, field_name)
+        if isinstance(value, kind):
+            continue
+        try:
+            object.__setattr__(instance, field_name, kind(value))
+        except ValueError:
+            allowed = ", ".join(repr(m.value) for m in kind)
+            raise ValueError(f"{type(instance).__name__}.{field_name} is {value!r}, not one of {allowed}") from None
