@@ -9,9 +9,10 @@ from onnx import helper
 
 import nncg
 from nncg.cli import main
-from nncg.passes import parse_pipeline
-from nncg.passes.register_block import choose_blocks
-from nncg.tune import UNROLL_BUDGETS, block_candidates, tunable_layers, tune, with_layer_choices
+from nncg.passes import REGISTRY, parse_pipeline
+from nncg.passes.register_block import block_candidates, choose_blocks
+from nncg.passes.unroll import TUNED_BUDGETS
+from nncg.tune import tune, tuning_candidates, with_layer_choices
 
 
 def conv_pool_conv():
@@ -39,11 +40,31 @@ def test_candidates_start_with_the_cost_model_and_fit_the_registers():
         assert all(p <= shape[0] and p * c <= registers - 2 for p, c in candidates[1:])
 
 
-def test_with_layer_choices_sets_both_passes():
+def test_with_layer_choices_spells_values_as_each_pass_does():
     base = nncg.default_pipeline(nncg.get_target("ssse3"))
-    tuned = with_layer_choices(base, {"conv1": (3, 2)}, {"conv1": 16})
+    tuned = with_layer_choices(
+        base, {"register-block": {"conv1": (3, 2)}, "unroll": {"conv1": 16}, "winograd": {"conv1": True}}
+    )
     assert layer_choices(tuned, "register-block") == {"conv1": "3x2"}
     assert layer_choices(tuned, "unroll") == {"conv1": "16"}
+    assert layer_choices(tuned, "winograd") == {"conv1": "true"}
+
+
+def test_every_tunable_pass_of_the_pipeline_is_a_round_in_pipeline_order(tmp_path):
+    lines = []
+    tune(conv_pool_conv(), "ssse3", cache=tmp_path / "tune.json", batches=1, progress=lines.append)
+    rounds = [
+        line.split(":")[1].strip()
+        for line in lines
+        if re.fullmatch(
+            r"tune: [\w-]+: \d+ layers, .*|tune: [\w-]+: no layer to tune|tune: [\w-]+: \d+ builds of the model", line
+        )
+    ]
+    tunable = [
+        s.name for s in parse_pipeline(nncg.default_pipeline(nncg.get_target("ssse3"))) if REGISTRY[s.name].tunable
+    ]
+    assert tunable == ["winograd", "vectorize-pixels", "register-block", "unroll"]
+    assert list(dict.fromkeys(rounds)) == tunable
 
 
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
@@ -52,20 +73,21 @@ def test_tuned_pipeline_matches_onnxruntime_and_is_cached(tmp_path, target):
     lines = []
     pipeline = tune(m, target, cache=tmp_path / "tune.json", batches=2, progress=lines.append)
     ssse3 = nncg.get_target("ssse3")
-    layers = set(tunable_layers(m, nncg.default_pipeline(ssse3), ssse3))
+    layers = set(tuning_candidates(m, nncg.default_pipeline(ssse3), "register-block", ssse3))
     assert layers == {"Conv_0", "MaxPool_2", "Conv_3"}
     blocks = layer_choices(pipeline, "register-block")
     assert set(blocks) == layers and all(re.fullmatch(r"\d+x\d+", b) for b in blocks.values())
-    assert {int(b) for b in layer_choices(pipeline, "unroll").values()} <= set(UNROLL_BUDGETS)
+    assert {int(b) for b in layer_choices(pipeline, "unroll").values()} <= set(TUNED_BUDGETS)
     assert any("builds of the model" in line for line in lines)
-    assert "tune: direct or Winograd for Conv_0, Conv_3" in lines
+    assert "tune: winograd: 2 layers, 0 cached, 2 to measure" in lines
     assert set(layer_choices(pipeline, "winograd").values()) <= {"true", "false"}
     assert set(layer_choices(pipeline, "winograd")) == {"Conv_0", "Conv_3"}
     check_against_onnxruntime(m, nncg.compile(m, target, pipeline=pipeline, verify_ir=True), opt="-O1")
 
     again = []
     assert tune(m, target, cache=tmp_path / "tune.json", batches=2, progress=again.append) == pipeline
-    assert "tune: 3 layers, 3 cached, 0 to measure" in again and not any("builds" in line for line in again)
+    assert "tune: register-block: 3 layers, 3 cached, 0 to measure" in again
+    assert not any("builds" in line for line in again)
 
 
 def test_cli_tune_writes_tuned_code_through_a_runner(tmp_path, monkeypatch, capsys):
@@ -78,7 +100,7 @@ def test_cli_tune_writes_tuned_code_through_a_runner(tmp_path, monkeypatch, caps
     source = (tmp_path / "out" / "net.c").read_text()
     assert "register-block{layers=Conv_0:" in source.splitlines()[0]
     assert (tmp_path / "cache" / "nncg" / "tune.json").exists()
-    assert "tune: Conv_3:" in capsys.readouterr().err
+    assert "tune: register-block: Conv_3: " in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
@@ -106,8 +128,8 @@ def test_pixel_axis_round_times_whole_models_and_is_cached(tmp_path):
     m = onnx_model(nodes, inputs={"x": (1, 3, 8, 40)}, initializers={"w": weights(2, 3, 5, 5), "b": weights(2)})
     lines = []
     pipeline = tune(m, "ssse3", cache=tmp_path / "tune.json", batches=2, progress=lines.append)
-    assert "tune: vectorise over pixels or channels: Conv_0" in lines
     assert "tune: 2 builds of the model" in lines  # Conv_0 over channels, over pixels
+    assert any(line.startswith("tune: vectorize-pixels: Conv_0: ") for line in lines)
     assert set(layer_choices(pipeline, "vectorize-pixels")) == {"Conv_0"}
     check_against_onnxruntime(m, nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True))
     again = []
@@ -124,7 +146,7 @@ def test_layers_named_like_torch_and_tf2onnx_exports_are_tuned(tmp_path):
         node.name = name
     lines = []
     pipeline = tune(m, "ssse3", cache=tmp_path / "tune.json", batches=1, progress=lines.append)
-    assert "tune: direct or Winograd for c_2, layer1_layer1_0_conv1_Conv" in lines
+    assert {"tune: winograd: c_2: true", "tune: winograd: c_2: false"} & set(lines)
     assert set(layer_choices(pipeline, "winograd")) == {"layer1_layer1_0_conv1_Conv", "c_2"}
     assert set(layer_choices(pipeline, "register-block")) == {"layer1_layer1_0_conv1_Conv", "pool_1", "c_2"}
     check_against_onnxruntime(m, nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True))

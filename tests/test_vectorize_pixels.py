@@ -45,7 +45,7 @@ def pipeline(target: str, **layers: bool) -> str:
     base = default_pipeline(get_target(target))
     if "vectorize-pixels" not in base:
         base = base.replace(",lower,", ",vectorize-pixels,lower,")
-    return with_layer_choices(base, {}, {}, pixels=layers) if layers else base
+    return with_layer_choices(base, {"vectorize-pixels": layers}) if layers else base
 
 
 def test_cost_model_takes_few_channels_on_long_rows():

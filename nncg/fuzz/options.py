@@ -16,8 +16,9 @@ from ..backends import get_target
 from ..bench.peak import supported_isas
 from ..errors import NncgError
 from ..options import CompileOptions
+from ..passes.register_block import block_candidates, block_shape
 from ..passes.unroll import CODE_BUDGET
-from ..tune import algorithm_layers, block_candidates, tunable_layers, with_layer_choices
+from ..tune import ir_before, tuning_candidates, with_layer_choices
 from .draw import Draw
 
 HOST_ISA_TARGETS = {"ssse3": "sse", "avx2": "avx2-fma", "avx512": "avx512-fma"}
@@ -48,14 +49,10 @@ class Options:
         """The pass pipeline with the per-layer choices; None for the default one."""
         if self.default_layers:
             return None
-        text = _base(self)
-        text = with_layer_choices(
-            text,
-            {name: tuple(shape) for name, shape in self.layers.get("register-block", {}).items()},
-            self.layers.get("unroll", {}),
-            self.layers.get("winograd"),
-            self.layers.get("vectorize-pixels"),
-        )
+        choices = {name: dict(layers) for name, layers in self.layers.items()}
+        if "register-block" in choices:
+            choices["register-block"] = {n: tuple(shape) for n, shape in choices["register-block"].items()}
+        text = with_layer_choices(_base(self), choices)
         return text.replace(",lower,", ",lower{halos=true},") if self.halos else text
 
     def compile_kwargs(self) -> dict[str, Any]:
@@ -136,7 +133,7 @@ def _layer_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[st
     choices: dict[str, dict[str, Any]] = {}
     try:
         target = get_target(options.target)
-        names = list(algorithm_layers(model, _base(options), target, None))
+        names = list(tuning_candidates(model, _base(options), "winograd", target))
         if names:
             choices["winograd"] = {n: d.chance(0.5) for n in names}
         pixels = _pixel_candidates(model, replace(options, layers=choices))
@@ -146,8 +143,8 @@ def _layer_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[st
                 n: i < taken if d.chance(0.85) else d.chance(0.5) for i, n in enumerate(pixels)
             }
         registers = target.registers
-        layers = tunable_layers(model, replace(options, layers=choices).pipeline() or _base(options), target, None)
-        blocks = {n: list(_block_choice(d, shape, registers)) for n, (shape, _) in layers.items() if d.chance(0.7)}
+        layers = _blockable(model, replace(options, layers=choices).pipeline() or _base(options), target)
+        blocks = {n: list(_block_choice(d, shape, registers)) for n, shape in layers.items() if d.chance(0.7)}
         budgets = {n: d.pick(LAYER_BUDGETS) for n in layers if d.chance(0.5)}
     except NncgError:
         return {}
@@ -161,13 +158,17 @@ def _base(options: Options) -> str:
 
 
 def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
-    from ..passes.vectorize_pixels import pixel_candidates
-    from ..tune import ir_before
-
     pipeline = options.pipeline() or _base(options)
     if "vectorize-pixels" not in pipeline:
         return []
-    return pixel_candidates(ir_before(model, pipeline, "vectorize-pixels", get_target(options.target), None))
+    return list(tuning_candidates(model, pipeline, "vectorize-pixels", get_target(options.target)))
+
+
+def _blockable(model: onnx.ModelProto, pipeline: str, target) -> dict[str, tuple[int, int]]:
+    """Layer -> (pixel extent, channel vectors) of every layer register-block would block."""
+    program = ir_before(model, pipeline, "register-block", target)
+    shapes = {k.name: block_shape(k.body) for k in program.kernels}
+    return {name: shape for name, shape in shapes.items() if shape is not None}
 
 
 def _block_choice(d: Draw, shape: tuple[int, int], registers: int) -> tuple[int, int]:

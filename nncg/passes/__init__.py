@@ -15,14 +15,18 @@ from .fuse_activation import fuse_activation
 from .fuse_bias import fuse_bias
 from .fuse_residual import fuse_residual
 from .inline_constants import inline_constants
-from .manager import REGISTRY, PassManager, PassSpec, format_pipeline, parse_pipeline, register
-from .plan_memory import parse_align, parse_bool, parse_weights, plan_memory
-from .register_block import parse_layers, register_block
+from .manager import REGISTRY, PassManager, PassSpec, Tunable, format_pipeline, parse_pipeline, register
+from .plan_memory import format_bool, parse_align, parse_bool, parse_weights, plan_memory
+from .register_block import format_block, parse_layers, register_block
+from .register_block import tuning_candidates as block_choices
 from .unroll import AUTO_BUDGET, NEST_BUDGET, parse_layer_budgets, unroll
+from .unroll import tuning_candidates as unroll_choices
 from .vectorize import vectorize
 from .vectorize_pixels import parse_layers as parse_pixel_layers
+from .vectorize_pixels import tuning_candidates as pixel_choices
 from .vectorize_pixels import vectorize_pixels
 from .winograd import parse_layers as parse_winograd_layers
+from .winograd import tuning_candidates as winograd_choices
 from .winograd import winograd
 
 
@@ -44,12 +48,32 @@ register("fold-batchnorm", "graph", fold_batchnorm)
 register("fuse-bias", "graph", fuse_bias)
 register("fuse-residual", "graph", fuse_residual)
 register("fuse-activation", "graph", fuse_activation)
-register("winograd", "graph", winograd, target=True, layers=parse_winograd_layers)
-register("vectorize-pixels", "graph", vectorize_pixels, target=True, layers=parse_pixel_layers)
+register(
+    "winograd",
+    "graph",
+    winograd,
+    target=True,
+    tunable=Tunable(winograd_choices, format_bool),
+    layers=parse_winograd_layers,
+)
+register(
+    "vectorize-pixels", "graph", vectorize_pixels, target=True,
+    tunable=Tunable(pixel_choices, format_bool, whole_model=True), layers=parse_pixel_layers,
+)  # fmt: skip
 register("lower", "lower", lower, halos=parse_bool)
 register("vectorize", "loop", vectorize, target=True)
-register("register-block", "loop", register_block, target=True, layers=parse_layers)
-register("unroll", "loop", unroll, level=parse_unroll_level, budget=int, total=int, layers=parse_layer_budgets)
+register(
+    "register-block",
+    "loop",
+    register_block,
+    target=True,
+    tunable=Tunable(block_choices, format_block),
+    layers=parse_layers,
+)
+register(
+    "unroll", "loop", unroll, tunable=Tunable(unroll_choices),
+    level=parse_unroll_level, budget=int, total=int, layers=parse_layer_budgets,
+)  # fmt: skip
 register("inline-constants", "loop", inline_constants)
 register("plan-memory", "loop", plan_memory, finishing=True, align=parse_align, reuse=parse_bool, weights=parse_weights)
 

@@ -28,6 +28,20 @@ STAGES = {"graph": Graph, "lower": Graph, "loop": Program}
 
 
 @dataclass(frozen=True)
+class Tunable:
+    """A per-layer choice of a pass that --tune measures; the pass records choices as `layers=`.
+
+    candidates(ir, target): layer -> the values worth timing, from the IR the pass receives.
+    format_value: a value as the pass's `layers=` parameter spells it.
+    whole_model: the choice changes other layers' time too (their input layout): builds are timed
+    as whole models, layer i taking its last value in builds k > i (layers in graph order)."""
+
+    candidates: Callable[[Graph | Program, Target], dict[str, tuple]]
+    format_value: Callable[[object], str] = str
+    whole_model: bool = False
+
+
+@dataclass(frozen=True)
 class PassInfo:
     name: str
     stage: str  # "graph" (Graph -> Graph), "lower" (Graph -> Program), "loop" (Program -> Program)
@@ -36,6 +50,7 @@ class PassInfo:
     doc: str
     target: bool = False  # run(ir, target=..., **params): it needs the hardware facts
     finishing: bool = False  # runs last; appended to a lowering pipeline that lacks it
+    tunable: Tunable | None = None  # what --tune may choose per layer (through the `layers` parameter)
 
 
 REGISTRY: dict[str, PassInfo] = {}
@@ -48,11 +63,14 @@ def register(
     *,
     target: bool = False,
     finishing: bool = False,
+    tunable: Tunable | None = None,
     **params: Callable[[str], object],
 ) -> None:
+    if tunable is not None and "layers" not in params:
+        raise ValueError(f"pass {name} is tunable but has no `layers` parameter to record the choices")
     doc = (sys.modules[run.__module__].__doc__ or "").strip()
     first = doc.splitlines()[0] if doc else ""
-    REGISTRY[name] = PassInfo(name, stage, run, params, first, target, finishing)
+    REGISTRY[name] = PassInfo(name, stage, run, params, first, target, finishing, tunable)
 
 
 @dataclass(frozen=True)

@@ -66,6 +66,10 @@ def parse_weights(text: str) -> str:
     return text
 
 
+def format_bool(value: bool) -> str:
+    return "true" if value else "false"
+
+
 def parse_bool(text: str) -> bool:
     """A boolean parameter: true or false."""
     if text not in ("true", "false"):

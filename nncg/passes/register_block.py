@@ -30,6 +30,7 @@ from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
 from .substitute import interior, iterations, prune_bounds, substitute_body
 
+PIXEL_BLOCKS = (1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24)  # pixels per block --tune times
 # The cost model: channel vectors jammed per pixel at most, and registers left besides accumulators
 # (the broadcast input, a product, weights the compiler keeps).
 MAX_CHANNEL_BLOCK = 5
@@ -138,6 +139,26 @@ def jammable(loop: Loop) -> bool:
 
 
 # ---------------------------------------------------------------------------- cost model
+
+
+def tuning_candidates(program: Program, target: Target) -> dict[str, tuple[tuple[int, int], ...]]:
+    """For --tune: each blockable layer's block shapes worth timing."""
+    shapes = {k.name: block_shape(k.body) for k in program.kernels}
+    return {name: tuple(block_candidates(shape, target.registers)) for name, shape in shapes.items() if shape}
+
+
+def block_candidates(shape: tuple[int, int], registers: int) -> list[tuple[int, int]]:
+    """Block shapes worth timing: the cost model's first, then pixel counts up to a register file
+    of accumulators, with all channel vectors of a pixel (or 2, 3, 4 of them when there are many)."""
+    extent, vectors = shape
+    first = choose_blocks(shape, registers)
+    channel_options = [vectors] if vectors <= 5 else [2, 3, 4]
+    out = [first]
+    for channels in channel_options:
+        for pixels in PIXEL_BLOCKS:
+            if pixels <= extent and pixels * channels <= registers - 2 and (pixels, channels) not in out:
+                out.append((pixels, channels))
+    return out
 
 
 def choose_blocks(shape: tuple[int, int], registers: int) -> tuple[int, int]:

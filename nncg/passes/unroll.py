@@ -11,8 +11,10 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..ir.analysis import is_accumulator
 from ..ir.kinds import LoopKind
-from ..ir.loops import Affine, If, Let, Loop, Program, Stmt
+from ..ir.loops import Affine, If, Let, Loop, Program, Stmt, walk_stmts
+from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
 from .substitute import prune_bounds, substitute_body
 
@@ -25,6 +27,7 @@ CODE_BUDGET = 16384
 # layers keep their reduction loops (straight-line reductions spill), tiny loops go (measured on the
 # paper's networks: 64 beats 16 and 256 on SSE and AVX-512).
 AUTO_BUDGET = 64
+TUNED_BUDGETS = (AUTO_BUDGET, 0, 16, 256)  # what --tune times per layer, the default first
 
 
 def unroll(
@@ -124,3 +127,8 @@ def expand_unrolled(body: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
         else:
             out.append(stmt)
     return tuple(out)
+
+
+def tuning_candidates(program: Program, target: Target) -> dict[str, tuple[int, ...]]:
+    """For --tune: unroll budgets for each layer with a reduction (what register-block blocks)."""
+    return {k.name: TUNED_BUDGETS for k in program.kernels if any(is_accumulator(s) for s in walk_stmts(k.body))}

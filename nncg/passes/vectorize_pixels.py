@@ -95,6 +95,11 @@ def chosen_by_cost_model(graph: Graph, node: Node, lanes: tuple[int, ...]) -> bo
     return widest > 1 and 2 * c_out <= widest and graph.shape(node.outputs[0])[-1] >= MIN_ROW_VECTORS * widest
 
 
+def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[bool, ...]]:
+    """For --tune: channels or pixels for each layer the pixel axis applies to (in graph order)."""
+    return {name: (False, True) for name in pixel_candidates(graph)}
+
+
 def pixel_candidates(graph: Graph) -> list[str]:
     """The layers the pixel axis applies to, if every earlier one took it (what --tune measures)."""
     planar = {value.name for value in graph.inputs}

@@ -62,6 +62,11 @@ def winograd_candidates(graph: Graph) -> list[str]:
     return [node.name for node in graph.nodes if winograd_applies(graph, node)]
 
 
+def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[bool, ...]]:
+    """For --tune: direct or Winograd for each layer Winograd applies to."""
+    return {name: (False, True) for name in winograd_candidates(graph)}
+
+
 def padded_channels(channels: int, lanes: tuple[int, ...]) -> int:
     best = channels
     for width in lanes:
