@@ -2,7 +2,6 @@
 legalisation (Before/Expected), the helpers collected before printing, and the dependency rule."""
 
 import re
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ from nncg.ir.loops import (
 from nncg.ir.target import Target
 from nncg.ir.text import expr_to_text
 from nncg.ir.verify import verify_program
+from nncg.tools import run_tool
 from nncg.verify import find_c_compiler
 
 A = Affine.of
@@ -161,10 +161,8 @@ def test_the_new_isa_builds_and_computes(tmp_path):
         '    for (i = 0; i < 16; ++i) printf("%.9g %.9g\\n", y[i], z[i]);\n    return 0;\n}\n'
     )
     flags = ["-std=gnu99", "-Wall", "-Wextra", "-Werror", "-Wno-psabi", "-O1"]
-    subprocess.run([find_c_compiler(), *flags, "p.c", "main.c", "-lm", "-o", "main"], cwd=tmp_path, check=True)
-    out = np.loadtxt(
-        subprocess.run(["./main"], cwd=tmp_path, check=True, capture_output=True, text=True).stdout.split("\n")
-    )
+    run_tool([find_c_compiler(), *flags, "p.c", "main.c", "-lm", "-o", "main"], "building main", cwd=tmp_path)
+    out = np.loadtxt(run_tool(["./main"], "running main", cwd=tmp_path).stdout.split("\n"))
     x = (np.arange(16, dtype=np.float32) - 6) / 4
     scales = np.tile(np.arange(1, 9, dtype=np.float32), 2)
     np.testing.assert_allclose(out[:, 0], np.exp(x) * scales + 0.5, rtol=1e-6)

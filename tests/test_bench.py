@@ -2,11 +2,10 @@
 
 import math
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import nncg_onnx
 
 from nncg.bench.benchmark import benchmark, format_profile, format_results, profile
 from nncg.bench.macs import total_macs
@@ -46,7 +45,7 @@ def test_profile_reports_every_layer_with_its_macs():
 
 def test_cli_benchmark_and_profile_print_their_tables(tmp_path):
     args = [BALL, "--target", "ssse3", "-o", tmp_path, "--benchmark", "--profile", "--cpu", "0"]
-    result = subprocess.run([sys.executable, "-m", "nncg", *args], capture_output=True, text=True)
+    result = nncg_onnx(*args)
     assert result.returncode == 0, result.stderr
     assert re.search(r"^ball\s+ssse3\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+[\d.]+x", result.stdout, re.M)
     assert re.search(r"^conv1\s+[\d.]+\s+[\d.]+\s+12800\s", result.stdout, re.M)

@@ -2,20 +2,15 @@
 
 import hashlib
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import onnx
 import pytest
+from helpers import nncg_onnx
 from onnx import TensorProto, helper, numpy_helper
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-
-
-def nncg_onnx(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "nncg", *map(str, args)], capture_output=True, text=True, cwd=cwd)
 
 
 def test_writes_c_and_header_with_the_documented_contract(tmp_path):

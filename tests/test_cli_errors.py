@@ -7,12 +7,12 @@ import os
 import shutil
 import stat
 import subprocess
-import sys
 import tempfile
 from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from helpers import NNCG_CLI, nncg_onnx
 
 import nncg
 from nncg import cli
@@ -21,13 +21,6 @@ from nncg.errors import NncgError
 ROOT = Path(__file__).resolve().parent.parent
 BALL = ROOT / "examples" / "ball.onnx"
 NAME_MAX = os.pathconf(tempfile.gettempdir(), "PC_NAME_MAX")  # bytes of a file name where tmp_path is
-
-
-def nncg_onnx(*args, umask=None):
-    preexec = None if umask is None else (lambda: os.umask(umask))
-    return subprocess.run(
-        [sys.executable, "-m", "nncg", *map(str, args)], capture_output=True, text=True, cwd=ROOT, preexec_fn=preexec
-    )
 
 
 def snapshot(folder: Path) -> dict:
@@ -196,9 +189,7 @@ def in_mount_namespace(setup: str, args: list, after: str = "") -> subprocess.Co
         pytest.skip("needs unshare --mount (root with CAP_SYS_ADMIN) to mount a read-only or full file system")
     script = f'{setup} || exit 99\n"$@"\nstatus=$?\n{after}\nexit $status'
     command = ["unshare", "--mount", "--propagation", "private", "sh", "-c", script, "sh"]
-    result = subprocess.run(
-        [*command, sys.executable, "-m", "nncg", *map(str, args)], capture_output=True, text=True, cwd=ROOT
-    )
+    result = subprocess.run([*command, *NNCG_CLI, *map(str, args)], capture_output=True, text=True, cwd=ROOT)
     if result.returncode == 99:
         pytest.skip(f"cannot mount here: {result.stderr.strip()}")
     return result

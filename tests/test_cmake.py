@@ -5,15 +5,16 @@ The app built against it is nncg.verify's harness, run on random inputs and comp
 import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from helpers import nncg_onnx
 
 import nncg
+from nncg.c_harness import harness_source
 from nncg.cmake import cmake_lists
 from nncg.errors import NncgError
-from nncg.verify import BuiltModel, compare, harness_source, random_inputs, reference_outputs
+from nncg.verify import BuiltModel, compare, random_inputs, reference_outputs
 
 BALL = Path(__file__).resolve().parent.parent / "examples" / "ball.onnx"
 APP_CMAKE_LISTS = """\
@@ -23,10 +24,6 @@ add_subdirectory(build)
 add_executable(app main.c)
 target_link_libraries(app PRIVATE {name})
 """
-
-
-def nncg_onnx(*args):
-    return subprocess.run([sys.executable, "-m", "nncg", *map(str, args)], capture_output=True, text=True)
 
 
 def require_cmake() -> str:

@@ -31,9 +31,9 @@ from cross_helpers import (
     verify_on,
     verify_on_cortex_m4,
 )
+from helpers import onnx_model
 from onnx import helper
 from test_ops import conv_model
-from test_ops import model as onnx_model
 from test_x86_targets import HOOKS
 
 import nncg
@@ -89,7 +89,7 @@ def divide_by_tensor():
         helper.make_node("Add", ["s", "one"], ["t"]),
         helper.make_node("Div", ["x", "t"], ["y"]),
     ]
-    return onnx_model(nodes, {"x": (1, 4, 5, 8), "d": (1, 4, 5, 8)}, None, [("one", np.float32(1.0))])
+    return onnx_model(nodes, inputs={"x": (1, 4, 5, 8), "d": (1, 4, 5, 8)}, initializers={"one": np.float32(1.0)})
 
 
 # The x86 targets' vector hooks (20 channels: five NEON vectors), 21 channels for a scalar tail

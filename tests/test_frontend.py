@@ -6,6 +6,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
+from helpers import onnx_model
 from onnx import TensorProto, helper, numpy_helper
 
 from nncg.errors import NncgError, UnsupportedOpsError
@@ -24,6 +25,7 @@ from nncg.ir.graph import (
     ReshapeAttrs,
     SoftmaxAttrs,
 )
+from nncg.ir.names import fresh_name
 from nncg.ir.ops import IR_OPS
 
 F = TensorProto.FLOAT
@@ -45,20 +47,10 @@ def rand(*shape):
     return RNG.standard_normal(shape).astype(np.float32)
 
 
-def model(nodes, inputs, outputs, inits=(), opset=13, ir_version=None):
-    """A model from helper pieces; inputs/outputs are (name, shape) pairs or ValueInfoProtos."""
-    inputs = [v if isinstance(v, onnx.ValueInfoProto) else value(*v) for v in inputs]
-    outputs = [v if isinstance(v, onnx.ValueInfoProto) else value(*v) for v in outputs]
-    graph = helper.make_graph(nodes, "test", inputs, outputs, initializer=list(inits))
-    opsets = [helper.make_opsetid("", opset)]
-    ir = ir_version or max(helper.find_min_ir_version_for(opsets), 4)
-    return helper.make_model(graph, opset_imports=opsets, ir_version=ir)
-
-
-def one_op(op, in_shape, out_shape=None, inits=(), extra_inputs=(), opset=13, outputs=("y",), **attrs):
-    """A model with a single node reading x (and constants), writing y."""
+def one_op(op, in_shape, out_shape=None, inits=None, extra_inputs=(), opset=13, outputs=("y",), **attrs):
+    """A model with a single node reading x (and constants by name), writing y."""
     node = helper.make_node(op, ["x", *extra_inputs], list(outputs), **attrs)
-    return model([node], [("x", in_shape)], [("y", out_shape)], inits, opset)
+    return onnx_model([node], inputs={"x": in_shape}, outputs={"y": out_shape}, initializers=inits, opset=opset)
 
 
 def run_ort(proto, feeds):
@@ -91,9 +83,9 @@ def fails(source, *fragments, error=NncgError, **kwargs) -> str:
 
 def conv_model(x_shape=(1, 2, 7, 7), w_shape=(3, 2, 3, 3), bias=True, opset=13, **attrs):
     inputs = ["x", "w", "b"] if bias else ["x", "w"]
-    inits = [const("w", rand(*w_shape))] + ([const("b", rand(w_shape[0]))] if bias else [])
+    inits = {"w": rand(*w_shape), **({"b": rand(w_shape[0])} if bias else {})}
     node = helper.make_node("Conv", inputs, ["y"], name="conv", **attrs)
-    return model([node], [("x", x_shape)], [("y", None)], inits, opset)
+    return onnx_model([node], inputs={"x": x_shape}, initializers=inits, opset=opset)
 
 
 # --- loading -------------------------------------------------------------------------------------
@@ -159,12 +151,17 @@ def test_cut_before_opset_import_parses_but_is_detected():
 
 def test_model_failing_the_checker():
     node = helper.make_node("Relu", ["x", "x"], ["y"])  # Relu takes one input
-    fails(model([node], [("x", [1, 2])], [("y", [1, 2])]), "Relu node 'Relu_0'", "Relu-13 schema", "input size 2")
+    fails(
+        onnx_model([node], inputs={"x": [1, 2]}, outputs={"y": [1, 2]}),
+        "Relu node 'Relu_0'",
+        "Relu-13 schema",
+        "input size 2",
+    )
 
 
 def test_non_default_domain_is_refused():
     node = helper.make_node("FusedConv", ["x"], ["y"], name="fc", domain="com.microsoft")
-    proto = model([node], [("x", [1, 2])], [("y", [1, 2])])
+    proto = onnx_model([node], inputs={"x": [1, 2]}, outputs={"y": [1, 2]})
     proto.opset_import.append(helper.make_opsetid("com.microsoft", 1))
     fails(proto, "com.microsoft.FusedConv (node 'fc')", "non-default domain", error=UnsupportedOpsError)
 
@@ -189,7 +186,7 @@ def test_declared_output_shape_must_match():
 
 def test_shape_inference_errors_are_wrapped():
     node = helper.make_node("Add", ["x", "c"], ["y"])
-    proto = model([node], [("x", [1, 3])], [("y", None)], [const("c", rand(1, 4))])
+    proto = onnx_model([node], inputs={"x": [1, 3]}, initializers={"c": rand(1, 4)})
     fails(proto, "shape inference")
 
 
@@ -199,7 +196,14 @@ def test_shape_inference_errors_are_wrapped():
 def test_inputs_with_initializers_are_constants():
     # Old exporters (IR 3) list every initializer among the graph inputs.
     node = helper.make_node("Add", ["x", "c"], ["y"])
-    proto = model([node], [("x", [1, 3]), ("c", [1, 3])], [("y", [1, 3])], [const("c", rand(1, 3))], 7, 3)
+    proto = onnx_model(
+        [node],
+        inputs={"x": [1, 3], "c": [1, 3]},
+        outputs={"y": [1, 3]},
+        initializers={"c": rand(1, 3)},
+        opset=7,
+        ir_version=3,
+    )
     graph = import_onnx(proto)
     assert [v.name for v in graph.inputs] == ["x"]
     assert graph.is_constant("c") and graph.constants["c"].dtype == np.float32
@@ -207,13 +211,13 @@ def test_inputs_with_initializers_are_constants():
 
 def test_non_float32_input():
     node = helper.make_node("Cast", ["ids"], ["y"], to=F)
-    proto = model([node], [value("ids", [1, 4], TensorProto.INT64)], [("y", [1, 4])])
+    proto = onnx_model([node], inputs={"ids": value("ids", [1, 4], TensorProto.INT64)}, outputs={"y": [1, 4]})
     fails(proto, "NNCG compiles float32 models; input 'ids' is int64")
 
 
 def test_non_float32_output():
     node = helper.make_node("Cast", ["x"], ["y"], to=TensorProto.INT64)
-    proto = model([node], [("x", [1, 4])], [value("y", [1, 4], TensorProto.INT64)])
+    proto = onnx_model([node], inputs={"x": [1, 4]}, outputs={"y": value("y", [1, 4], TensorProto.INT64)})
     fails(proto, "output 'y' is int64")
 
 
@@ -257,13 +261,13 @@ def test_input_shapes_give_unknown_rank():
 )
 def test_bad_input_shapes(shapes, fragments):
     node = helper.make_node("Add", ["x", "c"], ["y"])
-    proto = model([node], [("x", ["N", 3]), ("c", [1, 3])], [("y", None)], [const("c", rand(1, 3))])
+    proto = onnx_model([node], inputs={"x": ["N", 3], "c": [1, 3]}, initializers={"c": rand(1, 3)})
     fails(proto, *fragments, input_shapes=shapes)
 
 
 def test_inputs_outputs_keep_onnx_order_and_all_shapes_are_recorded():
     nodes = [helper.make_node("Relu", ["b"], ["r"]), helper.make_node("Add", ["r", "a"], ["s"])]
-    proto = model(nodes, [("b", [1, 2]), ("a", [1, 2])], [("s", None), ("r", None)])
+    proto = onnx_model(nodes, inputs={"b": [1, 2], "a": [1, 2]}, outputs={"s": None, "r": None})
     graph = import_onnx(proto)
     assert [v.name for v in graph.inputs] == ["b", "a"]
     assert [v.name for v in graph.outputs] == ["s", "r"]
@@ -276,8 +280,14 @@ def test_node_names_default_to_op_and_index_and_are_unique():
         helper.make_node("Relu", ["a"], ["b"], name="act"),
         helper.make_node("Relu", ["b"], ["y"]),
     ]
-    graph = import_onnx(model(nodes, [("x", [1, 2])], [("y", None)]))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [1, 2]}))
     assert [n.name for n in graph.nodes] == ["act", "act_1", "Relu_2"]
+
+
+def test_fresh_name_counts_up_past_every_taken_collection():
+    assert fresh_name("w", set()) == "w"
+    assert fresh_name("w", {"w", "w_1"}, {"w_2": 0}) == "w_3"
+    assert fresh_name("w", {"w_1"}) == "w"
 
 
 def test_every_ir_node_uses_a_canonical_op_and_its_attr_record():
@@ -299,8 +309,8 @@ def test_shape_gather_concat_reshape_chain_folds_away():
         helper.make_node("Cast", ["target"], ["target64"], to=TensorProto.INT64),
         helper.make_node("Reshape", ["x", "target64"], ["y"], name="flat"),
     ]
-    inits = [const("zero", np.array(0, np.int64)), const("axes", [0]), const("minus1", [-1])]
-    proto = model(nodes, [("x", ["N", 3, 4, 4])], [("y", ["N", "K"])], inits)
+    inits = {"zero": np.array(0, np.int64), "axes": [0], "minus1": [-1]}
+    proto = onnx_model(nodes, inputs={"x": ["N", 3, 4, 4]}, outputs={"y": ["N", "K"]}, initializers=inits)
     graph = import_onnx(proto, {"x": (2, 3, 4, 4)})
     assert only(graph) == Node("Reshape", "flat", ("x",), ("y",), ReshapeAttrs((2, 48)))
     assert graph.constants == {}
@@ -314,7 +324,7 @@ def test_shape_start_end_folds():
         helper.make_node("Concat", ["minus1", "tail"], ["target"], axis=0),
         helper.make_node("Reshape", ["x", "target"], ["y"]),
     ]
-    graph = import_onnx(model(nodes, [("x", [2, 3, 4, 5])], [("y", None)], [const("minus1", [-1])], opset=15))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [2, 3, 4, 5]}, initializers={"minus1": [-1]}, opset=15))
     assert only(graph).attrs == ReshapeAttrs((6, 4, 5))
 
 
@@ -326,7 +336,7 @@ def test_constant_of_shape_and_size_fold():
         helper.make_node("Mul", ["x", "twos"], ["m"]),
         helper.make_node("Div", ["m", "nf"], ["y"]),
     ]
-    graph = import_onnx(model(nodes, [("x", [1, 3])], [("y", None)], [const("shape", [1, 3])]))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [1, 3]}, initializers={"shape": [1, 3]}))
     assert [n.op for n in graph.nodes] == ["Mul", "Div"]
     np.testing.assert_array_equal(graph.constants["twos"], np.full((1, 3), 2.0, np.float32))
     assert graph.constants["nf"] == np.float32(3)
@@ -356,7 +366,7 @@ def test_constant_value_forms_fold(attrs, expected):
         helper.make_node("Cast", ["c"], ["cf"], to=F),  # value_int(s) are int64
         helper.make_node("Add", ["x", "cf"], ["y"], name="add"),
     ]
-    graph = import_onnx(model(nodes, [("x", [1, 3])], [("y", None)]))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [1, 3]}))
     assert only(graph) == Node("Add", "add", ("x", "cf"), ("y",))
     assert graph.constants["cf"].dtype == np.float32
     np.testing.assert_array_equal(graph.constants["cf"], np.asarray(expected, np.float32))
@@ -369,7 +379,7 @@ def test_weight_computed_from_constants_folds_to_float32():
         helper.make_node("Conv", ["x", "w"], ["y"]),
     ]
     w16 = rand(2, 3, 1, 1).astype(np.float16)
-    graph = import_onnx(model(nodes, [("x", [1, 2, 4, 4])], [("y", None)], [const("w16", w16)]))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [1, 2, 4, 4]}, initializers={"w16": w16}))
     node = only(graph)
     assert node.inputs == ("x", "w")
     np.testing.assert_array_equal(graph.constants["w"], w16.transpose(1, 0, 2, 3).astype(np.float32))
@@ -377,12 +387,12 @@ def test_weight_computed_from_constants_folds_to_float32():
 
 def test_constant_graph_output_is_refused():
     nodes = [helper.make_node("Relu", ["x"], ["y"]), helper.make_node("Constant", [], ["k"], value_float=1.0)]
-    fails(model(nodes, [("x", [1, 2])], [("y", None), value("k", [])]), "output 'k'", "constant")
+    fails(onnx_model(nodes, inputs={"x": [1, 2]}, outputs={"y": None, "k": value("k", [])}), "output 'k'", "constant")
 
 
 def test_dead_branches_are_not_compiled():
     nodes = [helper.make_node("Relu", ["x"], ["y"]), helper.make_node("Tanh", ["x"], ["unused"])]
-    graph = import_onnx(model(nodes, [("x", [1, 2])], [("y", None)]))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [1, 2]}))
     assert [n.op for n in graph.nodes] == ["Relu"]
 
 
@@ -396,7 +406,7 @@ def test_all_unsupported_ops_are_listed_at_once():
         helper.make_node("Cos", ["r"], ["y"]),
     ]
     message = fails(
-        model(nodes, [("x", [1, 2])], [("y", None)]),
+        onnx_model(nodes, inputs={"x": [1, 2]}),
         "Sin (node 't1')",
         "Cos (node 'Cos_2')",
         error=UnsupportedOpsError,
@@ -411,7 +421,7 @@ def test_all_unsupported_ops_are_listed_at_once():
 def test_unsupported_op_with_constant_inputs_is_folded_not_refused():
     nodes = [helper.make_node("Tanh", ["c"], ["t"]), helper.make_node("Add", ["x", "t"], ["y"])]
     c = np.array([[0.5, 1.0]], np.float32)
-    graph = import_onnx(model(nodes, [("x", [1, 2])], [("y", None)], [const("c", c)]))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [1, 2]}, initializers={"c": c}))
     assert only(graph).inputs == ("x", "t")
     np.testing.assert_allclose(graph.constants["t"], np.tanh(c), rtol=1e-6)
 
@@ -477,7 +487,7 @@ def test_conv_group_is_kept_and_checked():
 
 def test_conv_runtime_weight_is_kept_as_an_input():
     node = helper.make_node("Conv", ["x", "w"], ["y"], name="conv")
-    graph = import_onnx(model([node], [("x", [1, 2, 5, 5]), ("w", [3, 2, 3, 3])], [("y", None)]))
+    graph = import_onnx(onnx_model([node], inputs={"x": [1, 2, 5, 5], "w": [3, 2, 3, 3]}))
     assert only(graph).inputs == ("x", "w") and not graph.is_constant("w")
     assert only(graph).attrs.kernel == (3, 3) and graph.shapes["y"] == (1, 3, 3, 3)
 
@@ -519,8 +529,8 @@ def test_ceil_maxpool_shape_reaches_downstream_shapes_and_folding_in_old_opsets(
         helper.make_node("Reshape", ["p", "target"], ["f"]),
         helper.make_node("Gemm", ["f", "B"], ["y"]),
     ]
-    inits = [const("zero", np.array(0, np.int64)), const("minus1", [-1]), const("B", rand(4, 3))]
-    proto = model(nodes, [("x", [1, 1, 4, 4])], [("y", None)], inits, opset=12)
+    inits = {"zero": np.array(0, np.int64), "minus1": [-1], "B": rand(4, 3)}
+    proto = onnx_model(nodes, inputs={"x": [1, 1, 4, 4]}, initializers=inits, opset=12)
     graph = import_onnx(proto)
     assert [n.op for n in graph.nodes] == ["MaxPool", "Reshape", "Dense"]
     assert graph.shapes["p"] == (1, 1, 2, 2) and graph.shapes["f"] == (1, 4)
@@ -547,7 +557,9 @@ def converter_context(shapes, used, opset=13):
 def test_maxpool_used_indices_are_refused():
     node = helper.make_node("MaxPool", ["x"], ["y", "idx"], name="pool", kernel_shape=[2, 2])
     # Through import, Indices can only escape as an (int64) graph output, which is refused as such.
-    proto = model([node], [("x", [1, 1, 4, 4])], [("y", None), value("idx", None, TensorProto.INT64)], opset=12)
+    proto = onnx_model(
+        [node], inputs={"x": [1, 1, 4, 4]}, outputs={"y": None, "idx": value("idx", None, TensorProto.INT64)}, opset=12
+    )
     fails(proto, "output 'idx' is int64")
     ctx = converter_context({"x": (1, 1, 4, 4)}, used={"idx"})
     with pytest.raises(NncgError, match="MaxPool 'pool' has its Indices output 'idx' used"):
@@ -556,7 +568,7 @@ def test_maxpool_used_indices_are_refused():
 
 def test_maxpool_storage_order_is_refused():
     node = helper.make_node("MaxPool", ["x"], ["y"], name="pool", kernel_shape=[2, 2], storage_order=1)
-    fails(model([node], [("x", [1, 1, 4, 4])], [("y", None)], opset=12), "MaxPool 'pool'", "storage_order")
+    fails(onnx_model([node], inputs={"x": [1, 1, 4, 4]}, opset=12), "MaxPool 'pool'", "storage_order")
 
 
 # --- activations, BatchNormalization, Softmax ----------------------------------------------------
@@ -568,7 +580,7 @@ def test_relu_and_leaky_relu():
         helper.make_node("LeakyRelu", ["a"], ["b"]),
         helper.make_node("LeakyRelu", ["b"], ["y"], alpha=0.25),
     ]
-    graph = import_onnx(model(nodes, [("x", [1, 2])], [("y", None)]))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [1, 2]}))
     assert [(n.op, n.attrs) for n in graph.nodes] == [
         ("Relu", Activation("relu")),
         ("LeakyRelu", Activation("leaky_relu", pytest.approx(0.01))),
@@ -578,10 +590,9 @@ def test_relu_and_leaky_relu():
 
 def bn_model(opset, outputs=("y",), params_dtype=np.float32, **attrs):
     names = ["scale", "bias", "mean", "var"]
-    inits = [const(n, (np.abs(rand(3)) + 0.1).astype(params_dtype)) for n in names]
+    inits = {n: (np.abs(rand(3)) + 0.1).astype(params_dtype) for n in names}
     node = helper.make_node("BatchNormalization", ["x", *names], list(outputs), name="bn", **attrs)
-    outs = [(o, None) for o in outputs]
-    return model([node], [("x", [1, 3, 4, 4])], outs, inits, opset)
+    return onnx_model([node], inputs={"x": [1, 3, 4, 4]}, outputs=outputs, initializers=inits, opset=opset)
 
 
 @pytest.mark.parametrize(("opset", "attrs"), [(7, {"spatial": 1}), (9, {}), (15, {"training_mode": 0})])
@@ -639,17 +650,17 @@ def test_softmax_axis_per_opset(opset, attrs, expected):
 def test_dropout_becomes_identity(opset):
     if opset < 12:
         node = helper.make_node("Dropout", ["x"], ["y"], name="drop", ratio=0.3)
-        inits = []
+        inits = {}
     else:
         node = helper.make_node("Dropout", ["x", "ratio", "mode"], ["y"], name="drop")
-        inits = [const("ratio", np.array(0.3, np.float32)), const("mode", np.array(False))]
-    graph = import_onnx(model([node], [("x", [1, 4])], [("y", None)], inits, opset))
+        inits = {"ratio": np.array(0.3, np.float32), "mode": np.array(False)}
+    graph = import_onnx(onnx_model([node], inputs={"x": [1, 4]}, initializers=inits, opset=opset))
     assert only(graph) == Node("Identity", "drop", ("x",), ("y",))
 
 
 def test_dropout_unused_mask_is_fine_but_a_used_one_is_refused():
     node = helper.make_node("Dropout", ["x"], ["y", "mask"], name="drop")
-    assert only(import_onnx(model([node], [("x", [1, 4])], [("y", None)], opset=13))).outputs == ("y",)
+    assert only(import_onnx(onnx_model([node], inputs={"x": [1, 4]}))).outputs == ("y",)
     ctx = converter_context({"x": (1, 4)}, used={"mask"})
     with pytest.raises(NncgError, match="Dropout 'drop' has its mask output 'mask' used"):
         convert_dropout(OnnxOp.of(node, "drop"), ctx)
@@ -657,7 +668,7 @@ def test_dropout_unused_mask_is_fine_but_a_used_one_is_refused():
 
 def test_dropout_training_mode_is_refused():
     node = helper.make_node("Dropout", ["x", "", "mode"], ["y"], name="drop")
-    proto = model([node], [("x", [1, 4])], [("y", None)], [const("mode", np.array(True))], 13)
+    proto = onnx_model([node], inputs={"x": [1, 4]}, initializers={"mode": np.array(True)})
     fails(proto, "Dropout 'drop'", "training_mode")
 
 
@@ -675,7 +686,7 @@ def test_identity():
     ],
 )
 def test_reshape_zero_and_minus_one(target, expected, opset, attrs):
-    proto = one_op("Reshape", [2, 3, 4], extra_inputs=["t"], inits=[const("t", target)], opset=opset, **attrs)
+    proto = one_op("Reshape", [2, 3, 4], extra_inputs=["t"], inits={"t": target}, opset=opset, **attrs)
     graph = import_onnx(proto)
     assert only(graph) == Node("Reshape", "Reshape_0", ("x",), ("y",), ReshapeAttrs(expected))
     assert graph.shapes["y"] == expected == ort_shape(proto)
@@ -693,7 +704,7 @@ def test_flatten_axis(axis, expected):
 
 def axes_model(op, in_shape, axes, opset):
     if axes is not None and opset >= 13:
-        return one_op(op, in_shape, extra_inputs=["axes"], inits=[const("axes", axes)], opset=opset)
+        return one_op(op, in_shape, extra_inputs=["axes"], inits={"axes": axes}, opset=opset)
     attrs = {} if axes is None else {"axes": axes}
     return one_op(op, in_shape, opset=opset, **attrs)
 
@@ -749,14 +760,14 @@ def test_gemm_folds_alpha_beta_trans_into_w_and_b(alpha, beta, trans_a, trans_b,
     m, k, n = 3, 4, 5
     a_shape = [k, m] if trans_a else [m, k]
     b = rand(n, k) if trans_b else rand(k, n)
-    inputs, inits = ["x", "B"], [const("B", b)]
+    inputs, inits = ["x", "B"], {"B": b}
     if c_shape is not None:
         c = np.broadcast_to(rand(n), (m, n)).copy() if c_shape == (m, n) else rand(*c_shape)
         inputs.append("C")
-        inits.append(const("C", c))
+        inits["C"] = c
     attrs = {"alpha": alpha, "beta": beta, "transA": trans_a, "transB": trans_b}
     node = helper.make_node("Gemm", inputs, ["y"], name="fc", **attrs)
-    proto = model([node], [("x", a_shape)], [("y", None)], inits)
+    proto = onnx_model([node], inputs={"x": a_shape}, initializers=inits)
     graph = import_onnx(proto)
     dense = only(graph)
     has_bias = c_shape is not None and beta != 0
@@ -776,33 +787,33 @@ def test_gemm_folds_alpha_beta_trans_into_w_and_b(alpha, beta, trans_a, trans_b,
 
 def test_gemm_opset_7_with_required_c():
     node = helper.make_node("Gemm", ["x", "B", "C"], ["y"], transB=1)
-    proto = model([node], [("x", [2, 3])], [("y", None)], [const("B", rand(4, 3)), const("C", rand(4))], 7)
+    proto = onnx_model([node], inputs={"x": [2, 3]}, initializers={"B": rand(4, 3), "C": rand(4)}, opset=7)
     x = rand(2, 3)
     np.testing.assert_allclose(dense_reference(import_onnx(proto), x), run_ort(proto, {"x": x})[0], rtol=1e-5)
 
 
 def test_gemm_c_with_distinct_rows_is_refused():
     node = helper.make_node("Gemm", ["x", "B", "C"], ["y"], name="fc")
-    proto = model([node], [("x", [2, 3])], [("y", None)], [const("B", rand(3, 4)), const("C", rand(2, 4))])
+    proto = onnx_model([node], inputs={"x": [2, 3]}, initializers={"B": rand(3, 4), "C": rand(2, 4)})
     fails(proto, "Gemm 'fc'", "different rows")
 
 
 def test_gemm_new_constant_names_do_not_collide():
     node = helper.make_node("Gemm", ["x", "fc_w"], ["y"], name="fc")
-    graph = import_onnx(model([node], [("x", [2, 3])], [("y", None)], [const("fc_w", rand(3, 4))]))
+    graph = import_onnx(onnx_model([node], inputs={"x": [2, 3]}, initializers={"fc_w": rand(3, 4)}))
     assert only(graph).inputs == ("x", "fc_w_1")
 
 
 def test_gemm_runtime_b_keeps_trans_b_and_alpha():
     node = helper.make_node("Gemm", ["x", "w"], ["y"], name="fc", transB=1, alpha=0.5)
-    graph = import_onnx(model([node], [("x", [2, 3]), ("w", [4, 3])], [("y", None)]))
+    graph = import_onnx(onnx_model([node], inputs={"x": [2, 3], "w": [4, 3]}))
     assert only(graph) == Node("Dense", "fc", ("x", "w"), ("y",), DenseAttrs(trans_w=True, alpha=0.5))
 
 
 def test_matmul_becomes_dense_without_bias():
     node = helper.make_node("MatMul", ["x", "W"], ["y"], name="mm")
     w = rand(4, 5)
-    proto = model([node], [("x", [2, 3, 4])], [("y", None)], [const("W", w)])
+    proto = onnx_model([node], inputs={"x": [2, 3, 4]}, initializers={"W": w})
     graph = import_onnx(proto)
     assert only(graph) == Node("Dense", "mm", ("x", "W"), ("y",), DenseAttrs())
     assert graph.shapes["y"] == (2, 3, 5)
@@ -813,14 +824,14 @@ def test_matmul_becomes_dense_without_bias():
 @pytest.mark.parametrize(
     ("inputs", "w_shape", "fragment"),
     [
-        ([("x", [4])], (4, 5), "1-D input A"),
-        ([("x", [2, 4])], (4,), "1-D input B"),
+        ({"x": [4]}, (4, 5), "1-D input A"),
+        ({"x": [2, 4]}, (4,), "1-D input B"),
     ],
 )
 def test_matmul_refusals(inputs, w_shape, fragment):
     node = helper.make_node("MatMul", ["x", "w"], ["y"], name="mm")
-    inits = [] if w_shape is None else [const("w", rand(*w_shape))]
-    fails(model([node], inputs, [("y", None)], inits), "MatMul 'mm'", fragment)
+    inits = {} if w_shape is None else {"w": rand(*w_shape)}
+    fails(onnx_model([node], inputs=inputs, initializers=inits), "MatMul 'mm'", fragment)
 
 
 @pytest.mark.parametrize("op", ["Add", "Sub", "Mul", "Div"])
@@ -829,7 +840,7 @@ def test_elementwise_ops_keep_both_inputs(op):
         helper.make_node(op, ["c", "x"], ["t"], name="first"),  # constant on the left
         helper.make_node(op, ["t", "x"], ["y"], name="second"),  # both at runtime
     ]
-    graph = import_onnx(model(nodes, [("x", [2, 3])], [("y", None)], [const("c", rand(3))]))
+    graph = import_onnx(onnx_model(nodes, inputs={"x": [2, 3]}, initializers={"c": rand(3)}))
     assert graph.nodes == (Node(op, "first", ("c", "x"), ("t",)), Node(op, "second", ("t", "x"), ("y",)))
     assert graph.shapes["t"] == (2, 3) and graph.constants["c"].shape == (3,)
 
@@ -839,7 +850,7 @@ def test_elementwise_ops_keep_both_inputs(op):
 
 def test_value_with_two_sources_is_refused():
     nodes = [helper.make_node("Relu", ["x"], ["x"], name="loop")]
-    fails(model(nodes, [("x", [1, 2])], [("x", None)]), "value 'x' is both a graph input and", "'loop'")
+    fails(onnx_model(nodes, inputs={"x": [1, 2]}, outputs={"x": None}), "value 'x' is both a graph input and", "'loop'")
 
 
 def test_three_node_cycle_names_every_node():
@@ -849,7 +860,7 @@ def test_three_node_cycle_names_every_node():
         helper.make_node("Sigmoid", ["a"], ["b"], name="second"),
         helper.make_node("Tanh", ["b"], ["c"], name="third"),
     ]
-    message = fails(model(nodes, [("x", [1, 2])], [("a", None)]), "cycle")
+    message = fails(onnx_model(nodes, inputs={"x": [1, 2]}, outputs={"a": None}), "cycle")
     assert "'entry'" not in message  # not on the cycle
     for part in ("Add node 'first' reads 'c' from Tanh node 'third'", "reads 'b' from Sigmoid node 'second'"):
         assert part in message
@@ -857,13 +868,13 @@ def test_three_node_cycle_names_every_node():
 
 def test_node_reading_its_own_output_is_a_cycle():
     nodes = [helper.make_node("Add", ["x", "y"], ["y"], name="self")]
-    fails(model(nodes, [("x", [1, 2])], [("y", None)]), "cycle", "Add node 'self' reads 'y' from Add node 'self'")
+    fails(onnx_model(nodes, inputs={"x": [1, 2]}), "cycle", "Add node 'self' reads 'y' from Add node 'self'")
 
 
 def test_operator_newer_than_the_models_opset_is_named():
     proto = one_op("Gelu", [1, 4], opset=13)
     fails(proto, "opset 13 does not have", "Gelu (node 'Gelu_0')", error=UnsupportedOpsError)
-    proto = one_op("Upsample", [1, 1, 2, 2], extra_inputs=["s"], inits=[const("s", np.ones(4, np.float32))], opset=10)
+    proto = one_op("Upsample", [1, 1, 2, 2], extra_inputs=["s"], inits={"s": np.ones(4, np.float32)}, opset=10)
     fails(proto, "deprecated", "Upsample (node 'Upsample_0')", "Resize", error=UnsupportedOpsError)
 
 
@@ -890,7 +901,7 @@ def test_sparse_constant_too_large_to_make_dense_is_refused_before_allocating():
         helper.make_node("ReduceSum", ["c"], ["r"], keepdims=0),
         helper.make_node("Add", ["x", "r"], ["y"]),
     ]
-    proto = model(nodes, [("x", [1])], [("y", None)])
+    proto = onnx_model(nodes, inputs={"x": [1]})
     fails(proto, "sparse tensor 'sv'", "10,000,000,000 elements", "MAX_FOLDED_ELEMENTS")
 
 
@@ -900,21 +911,21 @@ def test_fold_cap_uses_the_nodes_own_shape_inference_when_the_model_has_none(mon
     monkeypatch.setattr(folding, "_evaluate", lambda *args: pytest.fail("the node was evaluated"))
     node = helper.make_node("ConstantOfShape", ["s"], ["c"], name="big")
     add = helper.make_node("Add", ["x", "c"], ["y"])
-    proto = model([node, add], [("x", [1])], [("y", None)], [const("s", np.array([20000, 20000], np.int64))])
+    proto = onnx_model([node, add], inputs={"x": [1]}, initializers={"s": np.array([20000, 20000], np.int64)})
     with pytest.raises(NncgError, match=r"ConstantOfShape node 'big' would fold to a constant 'c' of shape \[20000"):
         folding.fold_constants(proto, shapes={})  # no whole-model shapes: the node's own inference
 
 
 def test_infinite_weights_are_kept():
     w = np.array([np.inf, -np.inf], np.float32)
-    proto = model([helper.make_node("Add", ["x", "w"], ["y"])], [("x", [1, 2])], [("y", None)], [const("w", w)])
+    proto = onnx_model([helper.make_node("Add", ["x", "w"], ["y"])], inputs={"x": [1, 2]}, initializers={"w": w})
     np.testing.assert_array_equal(import_onnx(proto).constants["w"], np.array([np.inf, -np.inf], np.float32))
 
 
 def test_outside_names_are_escaped_and_capped_in_messages():
     name = "evil\n\x1b[31mred" + "x" * 200
     nodes = [helper.make_node("Reshape", ["x", "s"], ["y"], name=name)]
-    proto = model(nodes, [("x", [1, 12])], [("y", None)], [const("s", np.array([5, 5], np.int64))])
+    proto = onnx_model(nodes, inputs={"x": [1, 12]}, initializers={"s": np.array([5, 5], np.int64)})
     message = fails(proto, "Reshape 'evil\\n\\x1b[31mred", "12 elements", "25 elements")
     assert "\x1b" not in message and "x" * 100 not in message
 

@@ -2,9 +2,8 @@
 read it without bounds checks. Structure of the lowered program, and numerics against onnxruntime."""
 
 import pytest
-from helpers import check_against_onnxruntime
+from helpers import check_against_onnxruntime, onnx_model, weights
 from onnx import helper
-from test_ops import model, weights
 
 import nncg
 from nncg.frontend import import_onnx
@@ -15,12 +14,12 @@ from nncg.lowering.halo import conv_halos
 
 def chain(x_shape, layers, residual=False):
     """Conv/MaxPool layers in sequence: ("conv", c_out, kernel, attrs) or ("pool", kernel, attrs)."""
-    nodes, inits, value, c = [], [], "x", x_shape[1]
+    nodes, inits, value, c = [], {}, "x", x_shape[1]
     for i, layer in enumerate(layers):
         out = f"v{i}"
         if layer[0] == "conv":
             _, c_out, kernel, attrs = layer
-            inits += [(f"w{i}", weights(c_out, c, *kernel)), (f"b{i}", weights(c_out))]
+            inits |= {f"w{i}": weights(c_out, c, *kernel), f"b{i}": weights(c_out)}
             nodes.append(helper.make_node("Conv", [value, f"w{i}", f"b{i}"], [out], **attrs))
             c = c_out
         else:
@@ -31,7 +30,7 @@ def chain(x_shape, layers, residual=False):
         nodes.append(helper.make_node("Add", [value, f"v{len(layers) - 2}"], ["s"]))
         value = "s"
     nodes.append(helper.make_node("Relu", [value], ["y"]))
-    return model(nodes, {"x": x_shape}, None, inits)
+    return onnx_model(nodes, inputs={"x": x_shape}, initializers=inits)
 
 
 def with_halos(target: str) -> str:

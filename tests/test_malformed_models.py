@@ -5,41 +5,22 @@ compile to C that builds with the strict flags and matches onnxruntime."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import onnx
 import pytest
-from helpers import check_against_onnxruntime
+from helpers import check_against_onnxruntime, nncg_onnx, onnx_model
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg
 from nncg.errors import NncgError
 from nncg.frontend.folding import MAX_FOLDED_ELEMENTS
 
-REPO = Path(__file__).resolve().parents[1]
 F = TensorProto.FLOAT
 F_NP = np.float32
 
 
-def model(nodes, inputs, outputs=(("y", None),), inits=(), opset=13) -> onnx.ModelProto:
-    """inputs/outputs: (name, shape) pairs or ValueInfoProtos; inits: (name, array) pairs."""
-    graph = helper.make_graph(
-        nodes,
-        "malformed",
-        [v if isinstance(v, onnx.ValueInfoProto) else helper.make_tensor_value_info(v[0], F, v[1]) for v in inputs],
-        [v if isinstance(v, onnx.ValueInfoProto) else helper.make_tensor_value_info(v[0], F, v[1]) for v in outputs],
-        [numpy_helper.from_array(np.asarray(a), name) for name, a in inits],
-    )
-    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
-    m.ir_version = 8
-    return m
-
-
 def relu(shape=(1, 4)) -> onnx.ModelProto:
-    return model([helper.make_node("Relu", ["x"], ["y"])], [("x", list(shape))])
+    return onnx_model([helper.make_node("Relu", ["x"], ["y"])], inputs={"x": list(shape)})
 
 
 def data(proto: onnx.ModelProto) -> bytes:
@@ -65,29 +46,37 @@ def broken_files() -> dict:
 def broken_graphs() -> dict:
     cases = {}
     cycle = [helper.make_node("Add", ["x", "b"], ["a"], name="n1"), helper.make_node("Relu", ["a"], ["b"], name="n2")]
-    cases["cycle"] = (model(cycle, [("x", [1, 2])], [("a", None)]), ["cycle", "'n1'", "'n2'", "acyclic"])
-    untyped = model([helper.make_node("Relu", ["x"], ["y"])], [("x", [1, 2])], [onnx.ValueInfoProto(name="y")])
+    cases["cycle"] = (
+        onnx_model(cycle, inputs={"x": [1, 2]}, outputs={"a": None}),
+        ["cycle", "'n1'", "'n2'", "acyclic"],
+    )
+    untyped = onnx_model(
+        [helper.make_node("Relu", ["x"], ["y"])], inputs={"x": [1, 2]}, outputs={"y": onnx.ValueInfoProto(name="y")}
+    )
     cases["output_without_type"] = (untyped, ["graph output 'y' has no type", "float32"])
-    undefined = model([helper.make_node("Add", ["x", "ghost"], ["y"], name="add")], [("x", [1, 2])])
+    undefined = onnx_model([helper.make_node("Add", ["x", "ghost"], ["y"], name="add")], inputs={"x": [1, 2]})
     cases["undefined_input"] = (undefined, ["'add'", "'ghost'", "no node, graph input or initializer"])
     twice = [helper.make_node("Relu", ["x"], ["y"], name="a"), helper.make_node("Neg", ["x"], ["y"], name="b")]
-    cases["two_producers"] = (model(twice, [("x", [1, 2])]), ["'y'", "node 'a'", "node 'b'", "one source"])
+    cases["two_producers"] = (onnx_model(twice, inputs={"x": [1, 2]}), ["'y'", "node 'a'", "node 'b'", "one source"])
     big_kernel = [helper.make_node("Conv", ["x", "w"], ["y"], name="conv")]
     cases["negative_dims"] = (
-        model(big_kernel, [("x", [1, 1, 3, 3])], inits=[("w", np.ones((1, 1, 5, 5), np.float32))]),
+        onnx_model(big_kernel, inputs={"x": [1, 1, 3, 3]}, initializers={"w": np.ones((1, 1, 5, 5), np.float32)}),
         ["Conv node 'conv'", "[1, 1, -1, -1]", "negative", "--input-shape"],
     )
     strided = [helper.make_node("Conv", ["x", "w"], ["y"], strides=[2, 2], name="conv")]
     cases["conv_window_past_padding"] = (
-        model(strided, [("x", [1, 1, 2, 2])], inits=[("w", np.ones((1, 1, 3, 3), np.float32))]),
+        onnx_model(strided, inputs={"x": [1, 1, 2, 2]}, initializers={"w": np.ones((1, 1, 3, 3), np.float32)}),
         ["Conv 'conv'", "window of 3", "padded input (2 + pads 0 + 0)"],
     )
     cases["empty_pool_output"] = (
-        model([helper.make_node("MaxPool", ["x"], ["y"], kernel_shape=[3], name="pool")], [("x", [1, 1, 2])]),
+        onnx_model([helper.make_node("MaxPool", ["x"], ["y"], kernel_shape=[3], name="pool")], inputs={"x": [1, 1, 2]}),
         ["'pool'", "[1, 1, 0]", "empty tensors"],
     )
     cases["pool_window_past_padding"] = (
-        model([helper.make_node("MaxPool", ["x"], ["y"], kernel_shape=[3], strides=[2], name="p")], [("x", [1, 1, 2])]),
+        onnx_model(
+            [helper.make_node("MaxPool", ["x"], ["y"], kernel_shape=[3], strides=[2], name="p")],
+            inputs={"x": [1, 1, 2]},
+        ),
         ["MaxPool 'p'", "window of 3", "padded input", "ceil_mode=1"],
     )
     cases["huge_input"] = (relu((1, 3, 100000, 100000)), ["input 'x'", "30,000,000,000 elements", "--input-shape"])
@@ -99,40 +88,40 @@ def broken_graphs() -> dict:
         helper.make_node("Add", ["x", "r"], ["y"]),
     ]
     cases["constant_of_shape_bomb"] = (
-        model(bomb, [("x", [1])], inits=[("s", np.array([28000, 28000], np.int64))]),
+        onnx_model(bomb, inputs={"x": [1]}, initializers={"s": np.array([28000, 28000], np.int64)}),
         ["ConstantOfShape node 'bomb'", "[28000, 28000]", "784,000,000 elements", "MAX_FOLDED_ELEMENTS"],
     )
     nan = np.array([[1.0, np.nan, 2.0]], np.float32)
     cases["nan_weights"] = (
-        model([helper.make_node("Add", ["x", "w"], ["y"])], [("x", [1, 3])], inits=[("w", nan)]),
+        onnx_model([helper.make_node("Add", ["x", "w"], ["y"])], inputs={"x": [1, 3]}, initializers={"w": nan}),
         ["initializer 'w'", "NaN", "[0, 1]", "nan_to_num"],
     )
     folded_nan = [helper.make_node("Log", ["minus"], ["w"], name="log"), helper.make_node("Mul", ["x", "w"], ["y"])]
     cases["nan_folded"] = (
-        model(folded_nan, [("x", [1, 2])], inits=[("minus", np.array([-1.0, 1.0], np.float32))]),
+        onnx_model(folded_nan, inputs={"x": [1, 2]}, initializers={"minus": np.array([-1.0, 1.0], np.float32)}),
         ["constant 'w' (computed at compile time by node 'log')", "NaN"],
     )
     reshape = [helper.make_node("Reshape", ["x", "s"], ["y"], name="r")]
     cases["reshape_mismatch"] = (
-        model(reshape, [("x", [1, 12])], inits=[("s", np.array([5, 5], np.int64))]),
+        onnx_model(reshape, inputs={"x": [1, 12]}, initializers={"s": np.array([5, 5], np.int64)}),
         ["Reshape 'r'", "12 elements", "25 elements", "shape input"],
     )
     cases["unsupported_op"] = (
-        model([helper.make_node("Sin", ["x"], ["y"], name="sin")], [("x", [1, 2])]),
+        onnx_model([helper.make_node("Sin", ["x"], ["y"], name="sin")], inputs={"x": [1, 2]}),
         ["unsupported operators", "Sin (node 'sin')"],
     )
     cases["unknown_op"] = (
-        model([helper.make_node("Frobnicate", ["x"], ["y"])], [("x", [1, 2])]),
+        onnx_model([helper.make_node("Frobnicate", ["x"], ["y"])], inputs={"x": [1, 2]}),
         ["opset 13 does not have", "Frobnicate"],
     )
     cases["bad_node_arity"] = (
-        model([helper.make_node("Relu", ["x", "x"], ["y"], name="r")], [("x", [1, 2])]),
+        onnx_model([helper.make_node("Relu", ["x", "x"], ["y"], name="r")], inputs={"x": [1, 2]}),
         ["Relu node 'r'", "Relu-13", "input size 2"],
     )
     cases["dynamic_shape"] = (relu(("N", 4)), ["dynamic shape", "--input-shape x=1x4"])
-    int_input = model(
+    int_input = onnx_model(
         [helper.make_node("Cast", ["ids"], ["y"], to=F)],
-        [helper.make_tensor_value_info("ids", TensorProto.INT64, [1, 4])],
+        inputs={"ids": helper.make_tensor_value_info("ids", TensorProto.INT64, [1, 4])},
     )
     cases["non_float_input"] = (int_input, ["input 'ids' is int64", "float32"])
     return {name: (data(proto), [], fragments) for name, (proto, fragments) in cases.items()}
@@ -152,8 +141,7 @@ def test_cli_refuses_in_one_line_and_writes_nothing(case, tmp_path):
     path = tmp_path / f"{case}.onnx"
     path.write_bytes(contents)
     out = tmp_path / "out"
-    command = [sys.executable, "-m", "nncg", str(path), "-o", str(out), *arguments]
-    result = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300)
+    result = nncg_onnx(path, "-o", out, *arguments)
     assert result.returncode == 2, result.stderr
     assert "Traceback" not in result.stderr
     lines = result.stderr.splitlines()
@@ -191,7 +179,7 @@ def test_fold_cap_is_checked_before_evaluating(monkeypatch):
 
 def test_unsorted_acyclic_graph_is_sorted_and_keeps_its_node_names():
     nodes = [helper.make_node("Relu", ["a"], ["y"]), helper.make_node("Sigmoid", ["x"], ["a"], name="sig")]
-    proto = model(nodes, [("x", [1, 4])])
+    proto = onnx_model(nodes, inputs={"x": [1, 4]})
     graph = nncg.import_onnx(proto)
     assert [(n.op, n.name) for n in graph.nodes] == [("Sigmoid", "sig"), ("Relu", "Relu_0")]
     check_against_onnxruntime(proto, nncg.compile(proto))
@@ -250,6 +238,6 @@ ODD_POOLS = {
 @pytest.mark.parametrize("case", ODD_POOLS)
 def test_pool_window_wider_than_the_input_matches_onnxruntime(case, target):
     op, opset, shape, attrs = ODD_POOLS[case]
-    proto = model([helper.make_node(op, ["x"], ["y"], **attrs)], [("x", list(shape))], opset=opset)
+    proto = onnx_model([helper.make_node(op, ["x"], ["y"], **attrs)], inputs={"x": list(shape)}, opset=opset)
     for unroll in (None, "auto"):
         check_against_onnxruntime(proto, nncg.compile(proto, target=target, unroll=unroll, verify_ir=True))

@@ -1,6 +1,5 @@
 """The static memory plan: lifetimes, reuse, in-place, and the reentrant NAME_run with a caller's arena."""
 
-import subprocess
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,6 +13,7 @@ from nncg.ir.loops import Affine, Binary, Buffer, Const, Kernel, Load, Loop, Pro
 from nncg.ir.target import Target
 from nncg.passes.plan_memory import kernel_access, lifetimes, plan_memory
 from nncg.passes.vectorize import vectorize
+from nncg.tools import run_tool
 from nncg.verify import find_c_compiler, random_inputs, reference_outputs
 
 EXAMPLES = Path(__file__).parent.parent / "examples"
@@ -169,9 +169,9 @@ def test_run_with_callers_arena_matches_onnxruntime(tmp_path, target):
     cc = find_c_compiler()
     sanitizers = ["-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
     flags = ["-O1", "-g", *sanitizers, *compiled.cflags, *compiled.strict_cflags]
-    subprocess.run([cc, *flags, "main.c", f"{compiled.name}.c", "-o", "main", "-lm"], cwd=tmp_path, check=True)
+    run_tool([cc, *flags, "main.c", f"{compiled.name}.c", "-o", "main", "-lm"], "building main", cwd=tmp_path)
     (x,) = random_inputs(compiled.inputs, seed=3)
-    run = subprocess.run([tmp_path / "main"], input=x.tobytes(), capture_output=True, check=True)
+    run = run_tool([tmp_path / "main"], "running main", stdin=x.tobytes(), text=False)
     outs = np.frombuffer(run.stdout, dtype=np.float32).reshape(3, *out.shape)
     (ref,) = reference_outputs(load_model(model), compiled.inputs, [x])
     for result in outs:

@@ -5,13 +5,12 @@ generated API or with what standard and intrinsics headers define."""
 import re
 import shutil
 import subprocess
-import sys
 
 import numpy as np
 import onnx
 import pytest
 from cross_helpers import TOOLCHAINS, missing_tools, verify_on
-from helpers import check_against_onnxruntime
+from helpers import check_against_onnxruntime, nncg_onnx
 from onnx import TensorProto, helper, numpy_helper
 from test_x86_targets import TARGETS
 
@@ -26,6 +25,7 @@ from nncg.ir.c_names import (
     program_name,
 )
 from nncg.safe_text import c_comment, comment_name, escaped, shown, terminal_line
+from nncg.tools import run_tool
 
 HOSTILE = [
     "x*/ int EVIL = 1; /*",
@@ -201,9 +201,8 @@ def test_hostile_names_in_weights_file_and_profile_builds(names, tmp_path):
     layers = re.search(r"m_profile_layers\[\d+\] = \{(.*)\};", profiled.source).group(1)
     assert all(is_identifier(layer) for layer in re.findall(r'"([^"]*)"', layers))
     profiled.write(tmp_path)
-    built = subprocess.run(["cc", "-c", "-std=c99", "-Wall", "-Wextra", "-Werror", str(tmp_path / "m.c"), "-o",
-                            str(tmp_path / "m.o")], capture_output=True, text=True)  # fmt: skip
-    assert built.returncode == 0, built.stderr
+    strict = ["-std=c99", "-Wall", "-Wextra", "-Werror"]
+    run_tool(["cc", "-c", *strict, tmp_path / "m.c", "-o", tmp_path / "m.o"], "compiling the profile build")
 
 
 @pytest.mark.parametrize("names", NAME_SETS, ids=str)
@@ -220,10 +219,8 @@ def test_header_builds_after_every_standard_header_in_c_and_cpp(names, tmp_path)
         if shutil.which(cc) is None:
             continue
         lang = ["-x", "c++"] if cc == "g++" else []
-        result = subprocess.run([cc, std, *flags, *lang, str(tmp_path / "main.c")], capture_output=True, text=True)
-        assert result.returncode == 0, result.stderr
-    result = subprocess.run(["gcc", "-c", "-mssse3", *flags[:4], str(tmp_path / "m.c"), "-o", str(tmp_path / "m.o")])
-    assert result.returncode == 0
+        run_tool([cc, std, *flags, *lang, tmp_path / "main.c"], f"checking main.c with {cc} {std}")
+    run_tool(["gcc", "-c", "-mssse3", *flags[:4], tmp_path / "m.c", "-o", tmp_path / "m.o"], "compiling m.c")
 
 
 @pytest.mark.parametrize("toolchain", ["aarch64-neon", "armhf-neon"])
@@ -237,10 +234,6 @@ def test_colliding_names_on_neon(toolchain):
 
 
 # ---------------------------------------------------------------------------- the command line
-
-
-def nncg_onnx(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "nncg", *map(str, args)], capture_output=True, text=True, cwd=cwd)
 
 
 def test_input_shape_key_and_cmake_stay_inside_their_comments(tmp_path):

@@ -1,58 +1,30 @@
 """Per-operator tests: a one- or two-node ONNX model per attribute combination, compiled for every
 target, run, and compared with onnxruntime on the same inputs."""
 
-import re
-
 import numpy as np
 import pytest
-from helpers import check_against_onnxruntime
-from onnx import TensorProto, helper, numpy_helper
+from helpers import RNG, compile_and_check, kernel_ops, onnx_model, weights
+from onnx import helper
 
-import nncg
-
-RNG = np.random.default_rng(1234)
 TARGETS = ["ansi-c", "ssse3"]
 
 
-def model(nodes, inputs, output_shape, initializers=(), opset=13, output="y"):
-    """A float32 model; `inputs` maps name -> shape, initializers are numpy arrays by name."""
-    graph = helper.make_graph(
-        nodes,
-        "op_test",
-        [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in inputs.items()],
-        [helper.make_tensor_value_info(output, TensorProto.FLOAT, output_shape)],
-        [numpy_helper.from_array(np.asarray(a, dtype=np.float32), name) for name, a in initializers],
-    )
-    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
-    m.ir_version = 8
-    return m
-
-
-def weights(*shape):
-    return (RNG.standard_normal(shape) / np.sqrt(np.prod(shape[1:]) or 1)).astype(np.float32)
-
-
 def batchnorm_params(c):
-    """Inference statistics for BatchNormalization inputs g, beta, mu, var."""
-    return [
-        ("g", RNG.uniform(0.5, 1.5, c)),
-        ("beta", RNG.normal(0, 0.1, c)),
-        ("mu", RNG.normal(0, 0.1, c)),
-        ("var", RNG.uniform(0.5, 1.5, c)),
-    ]
+    """Inference statistics for BatchNormalization inputs g, beta, mu, var (float32)."""
+    params = {
+        "g": RNG.uniform(0.5, 1.5, c),
+        "beta": RNG.normal(0, 0.1, c),
+        "mu": RNG.normal(0, 0.1, c),
+        "var": RNG.uniform(0.5, 1.5, c),
+    }
+    return {name: p.astype(np.float32) for name, p in params.items()}
 
 
 def conv_model(x_shape, c_out, kernel, bias=True, **attrs):
     c_in = x_shape[1] // attrs.get("group", 1)
-    inits = [("w", weights(c_out, c_in, *kernel))] + ([("b", weights(c_out))] if bias else [])
+    inits = {"w": weights(c_out, c_in, *kernel), **({"b": weights(c_out)} if bias else {})}
     node = helper.make_node("Conv", ["x", "w"] + (["b"] if bias else []), ["y"], **attrs)
-    return model([node], {"x": x_shape}, None, inits)
-
-
-def compile_and_check(m, target, unroll=1, sanitize=False):
-    compiled = nncg.compile(m, target=target, unroll=unroll, verify_ir=True)
-    check_against_onnxruntime(m, compiled, sanitize=sanitize)
-    return compiled
+    return onnx_model([node], inputs={"x": x_shape}, initializers=inits)
 
 
 CONV_CASES = {
@@ -106,7 +78,7 @@ POOL_CASES = {
 def test_maxpool(case, target):
     x_shape, attrs = POOL_CASES[case]
     node = helper.make_node("MaxPool", ["x"], ["y"], **attrs)
-    compile_and_check(model([node], {"x": x_shape}, None), target, sanitize=case == "ceil_mode_pads")
+    compile_and_check(onnx_model([node], inputs={"x": x_shape}), target, sanitize=case == "ceil_mode_pads")
 
 
 AVERAGE_POOL_CASES = {
@@ -133,21 +105,23 @@ AVERAGE_POOL_CASES = {
 def test_averagepool(case, target):
     x_shape, attrs = AVERAGE_POOL_CASES[case]
     node = helper.make_node("AveragePool", ["x"], ["y"], **attrs)
-    compile_and_check(model([node], {"x": x_shape}, None, opset=19), target, unroll=1)
+    compile_and_check(onnx_model([node], inputs={"x": x_shape}, opset=19), target, unroll=1)
 
 
 @pytest.mark.parametrize("target", TARGETS)
 @pytest.mark.parametrize("op", ["GlobalAveragePool", "GlobalMaxPool"])
 @pytest.mark.parametrize("unroll", [2, None])
 def test_global_pools(op, unroll, target):
-    compile_and_check(model([helper.make_node(op, ["x"], ["y"])], {"x": (1, 12, 5, 7)}, None), target, unroll=unroll)
+    compile_and_check(
+        onnx_model([helper.make_node(op, ["x"], ["y"])], inputs={"x": (1, 12, 5, 7)}), target, unroll=unroll
+    )
 
 
 CLIP_CASES = {
-    "relu6": (13, [("lo", np.float32(0.0)), ("hi", np.float32(6.0))], ["x", "lo", "hi"], {}),
-    "min_only": (13, [("lo", np.float32(-0.5))], ["x", "lo"], {}),
-    "max_only": (13, [("hi", np.float32(0.25))], ["x", "", "hi"], {}),
-    "opset10_attributes": (10, [], ["x"], dict(min=-0.3, max=0.4)),
+    "relu6": (13, {"lo": np.float32(0.0), "hi": np.float32(6.0)}, ["x", "lo", "hi"], {}),
+    "min_only": (13, {"lo": np.float32(-0.5)}, ["x", "lo"], {}),
+    "max_only": (13, {"hi": np.float32(0.25)}, ["x", "", "hi"], {}),
+    "opset10_attributes": (10, {}, ["x"], dict(min=-0.3, max=0.4)),
 }
 
 
@@ -156,7 +130,7 @@ CLIP_CASES = {
 def test_clip(case, target):
     opset, inits, inputs, attrs = CLIP_CASES[case]
     node = helper.make_node("Clip", inputs, ["y"], **attrs)
-    compile_and_check(model([node], {"x": (1, 3, 4, 8)}, None, inits, opset=opset), target)
+    compile_and_check(onnx_model([node], inputs={"x": (1, 3, 4, 8)}, initializers=inits, opset=opset), target)
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -165,9 +139,9 @@ def test_depthwise_conv_clip_is_fused_relu6(target):
         helper.make_node("Conv", ["x", "w", "b"], ["c"], group=8, pads=[1, 1, 1, 1]),
         helper.make_node("Clip", ["c", "lo", "hi"], ["y"]),
     ]
-    inits = [("w", 3 * weights(8, 1, 3, 3)), ("b", weights(8)), ("lo", np.float32(0)), ("hi", np.float32(6))]
-    compiled = compile_and_check(model(nodes, {"x": (1, 8, 5, 5)}, None, inits), target)
-    assert "Clip" not in re.findall(r"^/\* \w+: (\w+) \*/$", compiled.source, re.M)
+    inits = {"w": 3 * weights(8, 1, 3, 3), "b": weights(8), "lo": np.float32(0), "hi": np.float32(6)}
+    compiled = compile_and_check(onnx_model(nodes, inputs={"x": (1, 8, 5, 5)}, initializers=inits), target)
+    assert "Clip" not in kernel_ops(compiled)
 
 
 ACTIVATIONS = {
@@ -183,7 +157,7 @@ ACTIVATIONS = {
 @pytest.mark.parametrize("case", ACTIVATIONS)
 def test_standalone_activation(case, target):
     op, attrs = ACTIVATIONS[case]
-    compile_and_check(model([helper.make_node(op, ["x"], ["y"], **attrs)], {"x": (1, 3, 4, 8)}, None), target)
+    compile_and_check(onnx_model([helper.make_node(op, ["x"], ["y"], **attrs)], inputs={"x": (1, 3, 4, 8)}), target)
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -196,9 +170,9 @@ def test_conv_batchnorm_activation_fused(act, target):
         helper.make_node("BatchNormalization", ["c", "g", "beta", "mu", "var"], ["bn"], epsilon=1e-3),
         helper.make_node(act, ["bn"], ["y"], **({"alpha": 0.1} if act == "LeakyRelu" else {})),
     ]
-    m = model(nodes, {"x": (1, 3, 6, 6)}, None, [("w", weights(c, 3, 3, 3)), *bn])
+    m = onnx_model(nodes, inputs={"x": (1, 3, 6, 6)}, initializers={"w": weights(c, 3, 3, 3), **bn})
     compiled = compile_and_check(m, target)
-    kernels = re.findall(r"^/\* \w+: (\w+) \*/$", compiled.source, re.M)
+    kernels = kernel_ops(compiled)
     assert kernels[0] == "Conv" and "ScaleShift" not in kernels and "BatchNormalization" not in kernels
 
 
@@ -207,25 +181,29 @@ def test_standalone_batchnorm(target):
     c = 4
     bn = batchnorm_params(c)
     node = helper.make_node("BatchNormalization", ["x", "g", "beta", "mu", "var"], ["y"])
-    compile_and_check(model([node], {"x": (1, c, 3, 5)}, None, bn), target)
+    compile_and_check(onnx_model([node], inputs={"x": (1, c, 3, 5)}, initializers=bn), target)
 
 
 @pytest.mark.parametrize("target", TARGETS)
 @pytest.mark.parametrize("axis", [0, 1, 2, 3, -1])
 def test_softmax(axis, target):
     node = helper.make_node("Softmax", ["x"], ["y"], axis=axis)
-    compile_and_check(model([node], {"x": (2, 3, 4, 5)}, None), target)
+    compile_and_check(onnx_model([node], inputs={"x": (2, 3, 4, 5)}), target)
 
 
 @pytest.mark.parametrize("axis", [1, 2])
 def test_softmax_opset_11_flattens_from_axis(axis):
     node = helper.make_node("Softmax", ["x"], ["y"], axis=axis)
-    compile_and_check(model([node], {"x": (2, 3, 4, 5)}, None, opset=11), "ansi-c")
+    compile_and_check(onnx_model([node], inputs={"x": (2, 3, 4, 5)}, opset=11), "ansi-c")
 
 
 def test_softmax_is_stable_for_large_inputs():
     node = helper.make_node("Softmax", ["x"], ["y"], axis=1)
-    m = model([helper.make_node("Mul", ["x", "k"], ["big"]), node], {"x": (1, 6)}, None, [("k", np.float32(500.0))])
+    m = onnx_model(
+        [helper.make_node("Mul", ["x", "k"], ["big"]), node],
+        inputs={"x": (1, 6)},
+        initializers={"k": np.float32(500.0)},
+    )
     m.graph.node[1].input[0] = "big"
     compile_and_check(m, "ansi-c")
 
@@ -239,8 +217,8 @@ def test_conv_dropout_flatten_gemm(target):
         helper.make_node("Flatten", ["d"], ["f"]),
         helper.make_node("Gemm", ["f", "fc_w", "fc_b"], ["y"], transB=1),
     ]
-    inits = [("w", weights(4, 2, 3, 3)), ("b", weights(4)), ("fc_w", weights(10, 4 * 5 * 6)), ("fc_b", weights(10))]
-    compile_and_check(model(nodes, {"x": (1, 2, 5, 6)}, None, inits), target)
+    inits = {"w": weights(4, 2, 3, 3), "b": weights(4), "fc_w": weights(10, 4 * 5 * 6), "fc_b": weights(10)}
+    compile_and_check(onnx_model(nodes, inputs={"x": (1, 2, 5, 6)}, initializers=inits), target)
 
 
 GEMM_CASES = {
@@ -256,23 +234,25 @@ GEMM_CASES = {
 @pytest.mark.parametrize("case", GEMM_CASES)
 def test_gemm(case, target):
     attrs, a_shape, b_shape, c_shape = GEMM_CASES[case]
-    inits = [("B", weights(*b_shape))] + (
-        [("C", RNG.standard_normal(c_shape).astype(np.float32))] if c_shape is not None else []
-    )
+    inits = {"B": weights(*b_shape)}
+    if c_shape is not None:
+        inits["C"] = RNG.standard_normal(c_shape).astype(np.float32)
     node = helper.make_node("Gemm", ["x", "B"] + (["C"] if c_shape is not None else []), ["y"], **attrs)
-    compile_and_check(model([node], {"x": a_shape}, None, inits), target)
+    compile_and_check(onnx_model([node], inputs={"x": a_shape}, initializers=inits), target)
 
 
 @pytest.mark.parametrize("target", TARGETS)
 def test_matmul_add_is_a_dense_layer(target):
     nodes = [helper.make_node("MatMul", ["x", "w"], ["mm"]), helper.make_node("Add", ["mm", "b"], ["y"])]
-    m = model(nodes, {"x": (1, 20)}, None, [("w", weights(20, 9)), ("b", weights(9))])
+    m = onnx_model(nodes, inputs={"x": (1, 20)}, initializers={"w": weights(20, 9), "b": weights(9)})
     compile_and_check(m, target)
 
 
 @pytest.mark.parametrize("target", TARGETS)
 def test_matmul_rank3(target):
-    m = model([helper.make_node("MatMul", ["x", "w"], ["y"])], {"x": (1, 3, 10)}, None, [("w", weights(10, 8))])
+    m = onnx_model(
+        [helper.make_node("MatMul", ["x", "w"], ["y"])], inputs={"x": (1, 3, 10)}, initializers={"w": weights(10, 8)}
+    )
     compile_and_check(m, target)
 
 
@@ -283,8 +263,8 @@ def test_binary_broadcasting(op, target):
         helper.make_node(op, ["x", "per_channel"], ["t"]),
         helper.make_node(op, ["t", "x2"], ["y"]),
     ]
-    inits = [("per_channel", RNG.uniform(0.5, 2.0, (3, 1, 1)))]
-    m = model(nodes, {"x": (1, 3, 4, 5), "x2": (1, 1, 4, 5)}, None, inits)
+    inits = {"per_channel": RNG.uniform(0.5, 2.0, (3, 1, 1)).astype(np.float32)}
+    m = onnx_model(nodes, inputs={"x": (1, 3, 4, 5), "x2": (1, 1, 4, 5)}, initializers=inits)
     if op == "Div":  # keep the divisor away from zero
         m.graph.node[1].op_type = "Mul"
     compile_and_check(m, target)
@@ -297,19 +277,19 @@ def test_reshape_between_layouts(target):
         helper.make_node("Conv", ["x", "w"], ["c"], pads=[1, 1, 1, 1]),
         helper.make_node("Reshape", ["c", "shape"], ["y"]),
     ]
-    m = model(nodes, {"x": (1, 2, 3, 4)}, None, [("w", weights(4, 2, 3, 3))])
-    m.graph.initializer.append(numpy_helper.from_array(np.array([1, 4, 12], dtype=np.int64), "shape"))
+    inits = {"w": weights(4, 2, 3, 3), "shape": np.array([1, 4, 12], dtype=np.int64)}
+    m = onnx_model(nodes, inputs={"x": (1, 2, 3, 4)}, initializers=inits)
     compile_and_check(m, target)
 
 
 def test_identity_model_copies_input_to_output():
-    compile_and_check(model([helper.make_node("Identity", ["x"], ["y"])], {"x": (1, 3)}, None), "ansi-c")
+    compile_and_check(onnx_model([helper.make_node("Identity", ["x"], ["y"])], inputs={"x": (1, 3)}), "ansi-c")
 
 
 @pytest.mark.parametrize("target", TARGETS)
 def test_tensors_named_like_loop_variables_and_locals(target):
     """Inputs called `w` and `acc` and an output `oh` must not clash with the C function's locals."""
     node = helper.make_node("Conv", ["w", "acc"], ["oh"], pads=[1, 1, 1, 1])
-    m = model([node], {"w": (1, 3, 5, 5), "acc": (4, 3, 3, 3)}, (1, 4, 5, 5), output="oh")
+    m = onnx_model([node], inputs={"w": (1, 3, 5, 5), "acc": (4, 3, 3, 3)}, outputs={"oh": (1, 4, 5, 5)})
     for unroll in (None, 2):
         compile_and_check(m, target, unroll=unroll)

@@ -7,44 +7,16 @@ import re
 
 import numpy as np
 import pytest
-from helpers import check_against_onnxruntime
-from onnx import TensorProto, helper, numpy_helper
+from helpers import RNG, compile_and_check, kernel_ops, onnx_model, weights
+from onnx import helper
 
 import nncg
 from nncg.errors import NncgError
 from nncg.lowering.context import TensorRef
 from nncg.lowering.weights import permuted, split
 
-RNG = np.random.default_rng(4321)
 TARGETS = ["ansi-c", "ssse3"]
-
-
-def model(nodes, inputs, initializers=(), opset=17):
-    """A float32 model with output y; `inputs` maps name -> shape, initializers are (name, array)."""
-    graph = helper.make_graph(
-        nodes,
-        "conv_test",
-        [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in inputs.items()],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
-        [numpy_helper.from_array(np.asarray(a, dtype=np.float32), name) for name, a in initializers],
-    )
-    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
-    m.ir_version = 8
-    return m
-
-
-def weights(*shape):
-    return (RNG.standard_normal(shape) / np.sqrt(np.prod(shape[1:]) or 1)).astype(np.float32)
-
-
-def compile_and_check(m, target, unroll=1, sanitize=False):
-    compiled = nncg.compile(m, target=target, unroll=unroll, verify_ir=True)
-    check_against_onnxruntime(m, compiled, sanitize=sanitize)
-    return compiled
-
-
-def kernel_ops(compiled) -> list[str]:
-    return re.findall(r"^/\* \w+: (\w+) \*/$", compiled.source, re.M)
+OPSET = 17
 
 
 # ------------------------------------------------------------------------------ runtime weights
@@ -84,7 +56,7 @@ def test_conv_with_runtime_weights(case, target):
     inputs = {"x": x_shape, "W": (c_out, x_shape[1] // attrs.get("group", 1), *kernel)}
     if bias:
         inputs["B"] = (c_out,)
-    m = model([helper.make_node("Conv", list(inputs), ["y"], **attrs)], inputs)
+    m = onnx_model([helper.make_node("Conv", list(inputs), ["y"], **attrs)], inputs=inputs, opset=OPSET)
     compile_and_check(m, target)
 
 
@@ -92,7 +64,7 @@ def test_conv_runtime_weights_under_sanitizers():
     inputs = {"x": (1, 4, 5, 6), "W": (6, 2, 3, 3), "B": (6,)}
     node = helper.make_node("Conv", list(inputs), ["y"], group=2, strides=[2, 1], pads=[1, 0, 2, 1])
     for target in TARGETS:
-        compile_and_check(model([node], inputs), target, unroll=2, sanitize=True)
+        compile_and_check(onnx_model([node], inputs=inputs, opset=OPSET), target, unroll=2, sanitize=True)
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -104,9 +76,11 @@ def test_conv_weight_computed_by_another_layer_in_channels_last_order(target):
         helper.make_node("Conv", ["x", "W", "b"], ["c"], pads=[1, 1, 1, 1]),
         helper.make_node("BatchNormalization", ["c", "g", "beta", "mu", "var"], ["y"]),
     ]
-    bn = [("g", RNG.uniform(0.5, 1.5, 4)), ("beta", RNG.normal(0, 0.1, 4)), ("mu", RNG.normal(0, 0.1, 4))]
-    inits = [("mix", weights(3, 3, 1, 1)), ("b", weights(4)), *bn, ("var", RNG.uniform(0.5, 1.5, 4))]
-    compiled = compile_and_check(model(nodes, {"x": (1, 3, 5, 5), "seed": (4, 3, 3, 3)}, inits), target)
+    bn = {"g": RNG.uniform(0.5, 1.5, 4), "beta": RNG.normal(0, 0.1, 4), "mu": RNG.normal(0, 0.1, 4)}
+    bn["var"] = RNG.uniform(0.5, 1.5, 4)
+    inits = {"mix": weights(3, 3, 1, 1), "b": weights(4), **{name: p.astype(np.float32) for name, p in bn.items()}}
+    inputs = {"x": (1, 3, 5, 5), "seed": (4, 3, 3, 3)}
+    compiled = compile_and_check(onnx_model(nodes, inputs=inputs, initializers=inits, opset=OPSET), target)
     assert kernel_ops(compiled)[:3] == ["Conv", "Conv", "ScaleShift"]
 
 
@@ -121,7 +95,10 @@ def test_batchnorm_with_runtime_statistics(target):
         helper.make_node("Relu", ["bn"], ["y"]),
     ]
     inputs = {"x": (1, 3, 5, 6), "g": (6,), "beta": (6,), "mu": (6,), "v": (6,)}
-    compiled = compile_and_check(model(nodes, inputs, [("w", weights(6, 3, 3, 3)), ("eps", np.float32(0.1))]), target)
+    compiled = compile_and_check(
+        onnx_model(nodes, inputs=inputs, initializers={"w": weights(6, 3, 3, 3), "eps": np.float32(0.1)}, opset=OPSET),
+        target,
+    )
     assert "BatchNormalization" in kernel_ops(compiled)
 
 
@@ -139,10 +116,10 @@ GEMM_CASES = {
 @pytest.mark.parametrize("case", GEMM_CASES)
 def test_gemm_with_runtime_operands(case, target):
     attrs, a_shape, runtime, constant = GEMM_CASES[case]
-    inits = [(constant[0], weights(*constant[1]))] if constant else []
+    inits = {constant[0]: weights(*constant[1])} if constant else {}
     names = [n for n in ("B", "C") if n in runtime or (constant and constant[0] == n)]
     node = helper.make_node("Gemm", ["a", *names], ["y"], **attrs)
-    compile_and_check(model([node], {"a": a_shape, **runtime}, inits), target)
+    compile_and_check(onnx_model([node], inputs={"a": a_shape, **runtime}, initializers=inits, opset=OPSET), target)
 
 
 MATMUL_CASES = {
@@ -158,13 +135,14 @@ MATMUL_CASES = {
 @pytest.mark.parametrize("case", MATMUL_CASES)
 def test_matmul_with_runtime_b(case, target):
     inputs, constants = MATMUL_CASES[case]
-    inits = [(name, weights(*shape)) for name, shape in constants]
-    compile_and_check(model([helper.make_node("MatMul", ["a", "b"], ["y"])], inputs, inits), target)
+    inits = {name: weights(*shape) for name, shape in constants}
+    m = onnx_model([helper.make_node("MatMul", ["a", "b"], ["y"])], inputs=inputs, initializers=inits, opset=OPSET)
+    compile_and_check(m, target)
 
 
 def test_matmul_of_activations_under_sanitizers():
     nodes = [helper.make_node("MatMul", ["a", "b"], ["t"]), helper.make_node("Relu", ["t"], ["y"])]
-    m = model(nodes, {"a": (2, 3, 5), "b": (2, 5, 6)})
+    m = onnx_model(nodes, inputs={"a": (2, 3, 5), "b": (2, 5, 6)}, opset=OPSET)
     for target in TARGETS:
         compile_and_check(m, target, unroll=None, sanitize=True)
 
@@ -202,10 +180,11 @@ CONV_TRANSPOSE_CASES = {
 def conv_transpose_model(x_shape, c_out, kernel, runtime=False, bias=True, **attrs):
     w_shape = (x_shape[1], c_out // attrs.get("group", 1), *kernel)
     inputs = {"x": x_shape, **({"W": w_shape} if runtime else {})}
-    inits = [] if runtime else [("W", weights(*w_shape))]
-    inits += [("B", weights(c_out))] if bias else []
+    inits = {} if runtime else {"W": weights(*w_shape)}
+    if bias:
+        inits["B"] = weights(c_out)
     node = helper.make_node("ConvTranspose", ["x", "W"] + (["B"] if bias else []), ["y"], **attrs)
-    return model([node], inputs, inits)
+    return onnx_model([node], inputs=inputs, initializers=inits, opset=OPSET)
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -269,13 +248,15 @@ def resnet_block(stem_input: bool, downsample: bool):
         nodes.append(helper.make_node("Conv", [h, "wd", "bd"], ["d"], strides=stride))
         shortcut = "d"
     nodes += [helper.make_node("Add", ["n2", shortcut], ["sum"]), helper.make_node("Relu", ["sum"], ["y"])]
-    inits = [("w0", weights(c, 3, 3, 3)), ("b0", weights(c)), ("w1", weights(c2, c, 3, 3))]
-    inits += [("w2", weights(c2, c2, 3, 3)), ("wd", weights(c2, c, 1, 1)), ("bd", weights(c2))]
+    inits = {"w0": weights(c, 3, 3, 3), "b0": weights(c), "w1": weights(c2, c, 3, 3)}
+    inits |= {"w2": weights(c2, c2, 3, 3), "wd": weights(c2, c, 1, 1), "bd": weights(c2)}
     for i, ch in (("1", c2), ("2", c2)):
-        inits += [(f"g{i}", RNG.uniform(0.5, 1.5, ch)), (f"be{i}", RNG.normal(0, 0.1, ch))]
-        inits += [(f"m{i}", RNG.normal(0, 0.1, ch)), (f"v{i}", RNG.uniform(0.5, 1.5, ch))]
+        bn = {f"g{i}": RNG.uniform(0.5, 1.5, ch), f"be{i}": RNG.normal(0, 0.1, ch)}
+        bn |= {f"m{i}": RNG.normal(0, 0.1, ch), f"v{i}": RNG.uniform(0.5, 1.5, ch)}
+        inits |= {name: p.astype(np.float32) for name, p in bn.items()}
     used = {name for node in nodes for name in node.input}
-    return model(nodes, {"x": (1, c if stem_input else 3, 6, 6)}, [i for i in inits if i[0] in used])
+    inputs = {"x": (1, c if stem_input else 3, 6, 6)}
+    return onnx_model(nodes, inputs=inputs, initializers={n: a for n, a in inits.items() if n in used}, opset=OPSET)
 
 
 @pytest.mark.parametrize("target", TARGETS)

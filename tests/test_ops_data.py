@@ -6,13 +6,12 @@ the others read the row-major graph input directly."""
 from __future__ import annotations
 
 import itertools
-import re
 
 import numpy as np
 import onnxruntime as ort
 import pytest
-from helpers import check_against_onnxruntime
-from onnx import TensorProto, helper, numpy_helper
+from helpers import check_against_onnxruntime, compile_and_check, kernel_ops, onnx_model
+from onnx import TensorProto, helper
 
 import nncg
 from nncg.errors import NncgError
@@ -29,20 +28,6 @@ TARGETS = ["ansi-c", "ssse3"]
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1
 
 
-def model(nodes, inputs, inits=(), opset=13, outputs=("y",)):
-    """A float32 model; `inputs` maps name -> shape; initializers keep their numpy dtype."""
-    graph = helper.make_graph(
-        nodes,
-        "data_test",
-        [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in inputs.items()],
-        [helper.make_tensor_value_info(o, TensorProto.FLOAT, None) for o in outputs],
-        [numpy_helper.from_array(np.asarray(a), name) for name, a in inits],
-    )
-    m = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
-    m.ir_version = 8
-    return m
-
-
 def ints(*values):
     return np.array(values, dtype=np.int64)
 
@@ -52,29 +37,21 @@ def floats(*values):
 
 
 def conv(x, y, c_in, c_out, name):
-    """A 3x3 'same' Conv node and its weight: its output is a channels-last internal buffer."""
+    """A 3x3 'same' Conv node and its weight by name: its output is a channels-last internal buffer."""
     w = (RNG.standard_normal((c_out, c_in, 3, 3)) / 3).astype(np.float32)
-    return helper.make_node("Conv", [x, f"w_{name}"], [y], pads=[1, 1, 1, 1], name=name), (f"w_{name}", w)
+    return helper.make_node("Conv", [x, f"w_{name}"], [y], pads=[1, 1, 1, 1], name=name), {f"w_{name}": w}
 
 
-def one_op(op, x_shape, extra=(), inits=(), opset=13, with_conv=False, c_out=6, **attrs):
+def one_op(op, x_shape, extra=(), inits=None, opset=13, with_conv=False, c_out=6, **attrs):
     """op(x, *extra) -> y; with_conv makes it Conv -> op -> Relu, so that the op reads and writes
     internal (channels-last) buffers instead of the row-major graph input and output."""
+    inits = inits or {}
     if not with_conv:
-        return model([helper.make_node(op, ["x", *extra], ["y"], **attrs)], {"x": x_shape}, inits, opset)
+        node = helper.make_node(op, ["x", *extra], ["y"], **attrs)
+        return onnx_model([node], inputs={"x": x_shape}, initializers=inits, opset=opset)
     node, weight = conv("x", "c", x_shape[1], c_out, "conv")
     nodes = [node, helper.make_node(op, ["c", *extra], ["t"], **attrs), helper.make_node("Relu", ["t"], ["y"])]
-    return model(nodes, {"x": x_shape}, [*inits, weight], opset)
-
-
-def compile_and_check(m, target, unroll=1, sanitize=False):
-    compiled = nncg.compile(m, target=target, unroll=unroll, verify_ir=True)
-    check_against_onnxruntime(m, compiled, sanitize=sanitize)
-    return compiled
-
-
-def kernel_ops(compiled) -> list[str]:
-    return re.findall(r"^/\* \w+: (\w+) \*/$", compiled.source, re.M)
+    return onnx_model(nodes, inputs={"x": x_shape}, initializers={**inits, **weight}, opset=opset)
 
 
 # --- Concat --------------------------------------------------------------------------------------
@@ -83,9 +60,9 @@ def kernel_ops(compiled) -> list[str]:
 def concat_model(shapes, axis, constant=None, opset=13):
     """Concat of graph inputs x0, x1, ... (and a constant input last when given)."""
     names = [f"x{i}" for i in range(len(shapes))]
-    inits = [] if constant is None else [("k", constant)]
+    inits = {} if constant is None else {"k": constant}
     node = helper.make_node("Concat", names + ([] if constant is None else ["k"]), ["y"], axis=axis)
-    return model([node], dict(zip(names, shapes)), inits, opset)
+    return onnx_model([node], inputs=dict(zip(names, shapes)), initializers=inits, opset=opset)
 
 
 CONCAT_CASES = {
@@ -119,14 +96,14 @@ def test_concat_of_conv_outputs_and_graph_input(axis, unroll, target):
         helper.make_node("Concat", inputs, ["t"], axis=axis),
         helper.make_node("Relu", ["t"], ["y"]),
     ]
-    compile_and_check(model(nodes, {"x": (1, 3, 5, 6)}, [w_a, w_b]), target, unroll=unroll)
+    compile_and_check(onnx_model(nodes, inputs={"x": (1, 3, 5, 6)}, initializers=w_a | w_b), target, unroll=unroll)
 
 
 def test_concat_under_sanitizers():
     conv_a, w_a = conv("x", "a", 2, 5, "conv_a")
     node = helper.make_node("Concat", ["a", "k", "x"], ["y"], axis=1)
     k = RNG.standard_normal((1, 3, 4, 4)).astype(np.float32)
-    m = model([conv_a, node], {"x": (1, 2, 4, 4)}, [w_a, ("k", k)])
+    m = onnx_model([conv_a, node], inputs={"x": (1, 2, 4, 4)}, initializers={**w_a, "k": k})
     for target in TARGETS:
         compile_and_check(m, target, unroll=2, sanitize=True)
 
@@ -138,22 +115,21 @@ def split_model(x_shape, n_out, opset, split=None, with_conv=False, **attrs):
     """Split into y0..y{n-1}; `split` as attribute before opset 13, else input. with_conv makes it
     Conv -> Split with y0 through a Relu (an internal output) and the others graph outputs."""
     outputs = [f"y{i}" for i in range(n_out)]
-    inits, extra = [], []
+    inits, extra = {}, []
     if split is not None and opset >= 13:
-        inits, extra = [("split", ints(*split))], ["split"]
+        inits, extra = {"split": ints(*split)}, ["split"]
     elif split is not None:
         attrs["split"] = split
     if not with_conv:
-        return model(
-            [helper.make_node("Split", ["x", *extra], outputs, **attrs)], {"x": x_shape}, inits, opset, outputs
-        )
+        node = helper.make_node("Split", ["x", *extra], outputs, **attrs)
+        return onnx_model([node], inputs={"x": x_shape}, outputs=outputs, initializers=inits, opset=opset)
     node, weight = conv("x", "c", x_shape[1], 7, "conv")
     nodes = [
         node,
         helper.make_node("Split", ["c", *extra], ["s0", *outputs[1:]], **attrs),
         helper.make_node("Relu", ["s0"], ["y0"]),
     ]
-    return model(nodes, {"x": x_shape}, [*inits, weight], opset, outputs)
+    return onnx_model(nodes, inputs={"x": x_shape}, outputs=outputs, initializers=inits | weight, opset=opset)
 
 
 SPLIT_CASES = {
@@ -185,7 +161,7 @@ def test_split_computes_only_used_outputs():
         helper.make_node("Split", ["x", "split"], ["a", "b", "c"], axis=1, name="split"),
         helper.make_node("Relu", ["b"], ["y"]),
     ]
-    m = model(nodes, {"x": (1, 6, 2)}, [("split", ints(1, 2, 3))])
+    m = onnx_model(nodes, inputs={"x": (1, 6, 2)}, initializers={"split": ints(1, 2, 3)})
     split = import_onnx(m).nodes[0]
     assert (split.outputs, split.attrs) == (("b",), SplitAttrs(1, (1,)))
     compile_and_check(m, "ansi-c")
@@ -202,7 +178,7 @@ def slice_model(x_shape, starts, ends, axes=None, steps=None, opset=13, with_con
     extra = [name if value is not None else "" for name, value in params]
     while extra and not extra[-1]:
         extra.pop()
-    inits = [(name, ints(*value)) for name, value in params if value is not None]
+    inits = {name: ints(*value) for name, value in params if value is not None}
     return one_op("Slice", x_shape, extra, inits, opset, with_conv=with_conv)
 
 
@@ -270,7 +246,9 @@ def test_internal_transpose_moves_no_data(perm, target):
     t_shape = tuple((1, 4, 5, 6)[p] for p in perm)
     conv_b, w_b = conv("r", "y", t_shape[1], 5, "conv_b")
     nodes = [conv_a, helper.make_node("Transpose", ["c"], ["t"], perm=perm), helper.make_node("Relu", ["t"], ["r"])]
-    compiled = compile_and_check(model([*nodes, conv_b], {"x": (1, 3, 5, 6)}, [w_a, w_b]), target, unroll=2)
+    compiled = compile_and_check(
+        onnx_model([*nodes, conv_b], inputs={"x": (1, 3, 5, 6)}, initializers=w_a | w_b), target, unroll=2
+    )
     assert "Transpose" not in kernel_ops(compiled)
 
 
@@ -290,13 +268,13 @@ def pad_model(x_shape, pads, mode="constant", value=None, axes=None, opset=13, w
     if opset < 11:
         attrs.update(pads=pads, **({} if value is None else {"value": value}))
         return one_op("Pad", x_shape, opset=opset, with_conv=with_conv, **attrs)
-    extra, inits = ["pads"], [("pads", ints(*pads))]
+    extra, inits = ["pads"], {"pads": ints(*pads)}
     if value is not None or axes is not None:
         extra.append("" if value is None else "value")
-        inits += [] if value is None else [("value", floats(value))]
+        inits |= {} if value is None else {"value": floats(value)}
     if axes is not None:
         extra.append("axes")
-        inits.append(("axes", ints(*axes)))
+        inits["axes"] = ints(*axes)
     return one_op("Pad", x_shape, extra, inits, opset, with_conv=with_conv, **attrs)
 
 
@@ -352,7 +330,7 @@ def test_pad_attrs_resolve_axes():
 def test_squeeze_unsqueeze_attribute_and_input_forms(op, opset, with_conv, target):
     axes = [0] if op == "Squeeze" else [0, -1]
     if opset >= 13:
-        m = one_op(op, (1, 3, 4, 5), ["axes"], [("axes", ints(*axes))], opset, with_conv=with_conv)
+        m = one_op(op, (1, 3, 4, 5), ["axes"], {"axes": ints(*axes)}, opset, with_conv=with_conv)
     else:
         m = one_op(op, (1, 3, 4, 5), opset=opset, with_conv=with_conv, axes=axes)
     compile_and_check(m, target, unroll=2)
@@ -372,17 +350,17 @@ def resize_model(x_shape, opset=13, scales=None, sizes=None, with_conv=False, **
     """Resize with constant scales or sizes; opset 10 has inputs (X, scales), 11 needs roi and an
     empty scales next to sizes, 13 leaves unused inputs out."""
     if opset == 10:
-        return one_op("Resize", x_shape, ["scales"], [("scales", floats(*scales))], 10, with_conv, **attrs)
-    inits = [("scales", floats(*scales))] if scales is not None else []
+        return one_op("Resize", x_shape, ["scales"], {"scales": floats(*scales)}, 10, with_conv, **attrs)
+    inits = {"scales": floats(*scales)} if scales is not None else {}
     extra = ["roi" if opset < 13 else "", "scales" if scales is not None else ""]
     if opset < 13:
-        inits.append(("roi", np.zeros(0, np.float32)))
+        inits["roi"] = np.zeros(0, np.float32)
         if scales is None:
             extra[1] = "scales"
-            inits.append(("scales", np.zeros(0, np.float32)))
+            inits["scales"] = np.zeros(0, np.float32)
     if sizes is not None:
         extra.append("sizes")
-        inits.append(("sizes", ints(*sizes)))
+        inits["sizes"] = ints(*sizes)
     return one_op("Resize", x_shape, extra, inits, opset, with_conv, **attrs)
 
 
@@ -567,7 +545,7 @@ def test_upsample(opset, mode, with_conv, target):
     if opset == 7:
         m = one_op("Upsample", (1, 3, 4, 5), opset=7, with_conv=with_conv, mode=mode, scales=scales)
     else:
-        m = one_op("Upsample", (1, 3, 4, 5), ["s"], [("s", floats(*scales))], 9, with_conv, mode=mode)
+        m = one_op("Upsample", (1, 3, 4, 5), ["s"], {"s": floats(*scales)}, 9, with_conv, mode=mode)
     (node,) = [n for n in import_onnx(m).nodes if n.op == "Resize"]
     nearest = "simple" if mode == "nearest" else "round_prefer_floor"
     assert node.attrs == ResizeAttrs(tuple(scales), mode, "asymmetric", nearest)
@@ -592,8 +570,8 @@ def test_shape_gather_cast_concat_reshape_folds_to_a_constant_shape(target):
         helper.make_node("Cast", ["target_f"], ["target"], to=TensorProto.INT64),
         helper.make_node("Reshape", ["c", "target"], ["y"], name="flatten"),
     ]
-    inits = [weight, ("zero", np.array(0, np.int64)), ("axes", ints(0)), ("minus1", floats(-1))]
-    m = model(nodes, {"x": (2, 2, 3, 4)}, inits)
+    inits = {**weight, "zero": np.array(0, np.int64), "axes": ints(0), "minus1": floats(-1)}
+    m = onnx_model(nodes, inputs={"x": (2, 2, 3, 4)}, initializers=inits)
     graph = import_onnx(m)
     assert [n.op for n in graph.nodes] == ["Conv", "Reshape"]
     assert graph.nodes[1].attrs.shape == (2, 48)
@@ -788,12 +766,8 @@ def test_resize_copies_only_when_the_whole_shape_stays():
     resizes that dim by its scale when another dim changes size (3 -> 3 reads rows 0, 1, 1)."""
     coords = {"coordinate_transformation_mode": "half_pixel"}
     resize = helper.make_node("Resize", ["x", "", "s"], ["y"], mode="nearest", **coords)
-    model_proto = model(
-        [resize],
-        {"x": (1, 2, 3, 2)},
-        [("s", np.array([1, 1, 1.3, 1.5], np.float32))],
-    )
+    model_proto = onnx_model([resize], inputs={"x": (1, 2, 3, 2)}, initializers={"s": floats(1, 1, 1.3, 1.5)})
     check_against_onnxruntime(model_proto, nncg.compile(model_proto, "ssse3"))
-    same = model([helper.make_node("Resize", ["x", "", "s"], ["y"], mode="nearest")], {"x": (1, 2, 3, 2)},
-                 [("s", np.array([1, 1, 1.3, 1.2], np.float32))])  # fmt: skip
+    same_node = helper.make_node("Resize", ["x", "", "s"], ["y"], mode="nearest")
+    same = onnx_model([same_node], inputs={"x": (1, 2, 3, 2)}, initializers={"s": floats(1, 1, 1.3, 1.2)})
     check_against_onnxruntime(same, nncg.compile(same, "ansi-c"))

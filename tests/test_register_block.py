@@ -3,9 +3,9 @@
 from dataclasses import replace
 
 import pytest
-from helpers import check_against_onnxruntime, target
+from helpers import check_against_onnxruntime, onnx_model, target, weights
 from onnx import helper
-from test_ops import conv_model, model, weights
+from test_ops import conv_model
 
 import nncg
 from nncg.errors import NncgError
@@ -127,8 +127,8 @@ def residual_then_pool():
         helper.make_node("Flatten", ["q"], ["f"]),
         helper.make_node("Gemm", ["f", "g"], ["y"], transB=1),
     ]
-    inits = [("w", weights(8, 8, 3, 3)), ("b", weights(8)), ("g", weights(10, 8 * 7 * 9))]
-    return model(nodes, {"x": (1, 8, 7, 9)}, None, inits)
+    inits = {"w": weights(8, 8, 3, 3), "b": weights(8), "g": weights(10, 8 * 7 * 9)}
+    return onnx_model(nodes, inputs={"x": (1, 8, 7, 9)}, initializers=inits)
 
 
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3"])

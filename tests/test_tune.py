@@ -4,9 +4,8 @@ matches onnxruntime."""
 import re
 
 import pytest
-from helpers import check_against_onnxruntime
+from helpers import check_against_onnxruntime, onnx_model, weights
 from onnx import helper
-from test_ops import model, weights
 
 import nncg
 from nncg.cli import main
@@ -23,8 +22,8 @@ def conv_pool_conv():
         helper.make_node("MaxPool", ["r1"], ["p1"], kernel_shape=[2, 2], strides=[2, 2]),
         helper.make_node("Conv", ["p1", "w2"], ["y"], pads=[1, 1, 1, 1]),
     ]
-    inits = [("w1", weights(8, 3, 3, 3)), ("b1", weights(8)), ("w2", weights(12, 8, 3, 3))]
-    return model(nodes, {"x": (1, 3, 12, 16)}, None, inits)
+    inits = {"w1": weights(8, 3, 3, 3), "b1": weights(8), "w2": weights(12, 8, 3, 3)}
+    return onnx_model(nodes, inputs={"x": (1, 3, 12, 16)}, initializers=inits)
 
 
 def layer_choices(pipeline: str, pass_name: str) -> dict[str, str]:
@@ -126,7 +125,7 @@ def test_pixel_axis_round_times_whole_models_and_is_cached(tmp_path):
         helper.make_node("Conv", ["x", "w", "b"], ["c"], pads=[2, 2, 2, 2]),
         helper.make_node("MaxPool", ["c"], ["y"], kernel_shape=[2, 2], strides=[2, 2]),
     ]
-    m = model(nodes, {"x": (1, 3, 8, 40)}, None, [("w", weights(2, 3, 5, 5)), ("b", weights(2))])
+    m = onnx_model(nodes, inputs={"x": (1, 3, 8, 40)}, initializers={"w": weights(2, 3, 5, 5), "b": weights(2)})
     lines = []
     pipeline = tune(m, "ssse3", cache=tmp_path / "tune.json", batches=2, progress=lines.append)
     assert "tune: 2 builds of the model" in lines  # Conv_0 over channels, over pixels

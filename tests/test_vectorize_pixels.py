@@ -2,9 +2,9 @@
 every padding, stride, group, batch and consumer case against onnxruntime on every x86 target."""
 
 import pytest
-from helpers import check_against_onnxruntime, target
+from helpers import check_against_onnxruntime, onnx_model, target, weights
 from onnx import helper
-from test_ops import conv_model, model, weights
+from test_ops import conv_model
 from test_x86_targets import TARGETS
 
 import nncg
@@ -73,7 +73,9 @@ def test_only_layers_with_planar_rows_qualify():
         helper.make_node("Conv", ["x", "w1"], ["a"], pads=[1, 1, 1, 1]),
         helper.make_node("Conv", ["a", "w2"], ["y"], pads=[1, 1, 1, 1]),
     ]
-    m = model(chain, {"x": (1, 3, 6, 20)}, None, [("w1", weights(4, 3, 3, 3)), ("w2", weights(2, 4, 3, 3))])
+    m = onnx_model(
+        chain, inputs={"x": (1, 3, 6, 20)}, initializers={"w1": weights(4, 3, 3, 3), "w2": weights(2, 4, 3, 3)}
+    )
     both = graph_after(m, "vectorize-pixels{layers=Conv_0:true;Conv_1:true}")
     assert [n.attrs.vector_axis for n in both.nodes if n.op == "Conv"] == ["pixels", "pixels"]
     with pytest.raises(NncgError, match="layer Conv_1 is not a direct Conv .* reading a planar tensor"):
@@ -114,7 +116,9 @@ def leaky_pool(x_shape, c_out, **attrs):
         helper.make_node("MaxPool", ["r"], ["y"], kernel_shape=[2, 2], strides=[2, 2]),
     ]
     k = attrs.get("kernel_shape", [3, 3])
-    return model(nodes, {"x": x_shape}, None, [("w", weights(c_out, x_shape[1], *k)), ("b", weights(c_out))])
+    return onnx_model(
+        nodes, inputs={"x": x_shape}, initializers={"w": weights(c_out, x_shape[1], *k), "b": weights(c_out)}
+    )
 
 
 def two_convs(x_shape, mid, c_out):
@@ -123,8 +127,8 @@ def two_convs(x_shape, mid, c_out):
         helper.make_node("Relu", ["a"], ["r"]),
         helper.make_node("Conv", ["r", "w2", "b2"], ["y"], pads=[0, 1, 0, 1], kernel_shape=[1, 3]),
     ]
-    inits = [("w1", weights(mid, x_shape[1], 3, 3)), ("w2", weights(c_out, mid, 1, 3)), ("b2", weights(c_out))]
-    return model(nodes, {"x": x_shape}, None, inits)
+    inits = {"w1": weights(mid, x_shape[1], 3, 3), "w2": weights(c_out, mid, 1, 3), "b2": weights(c_out)}
+    return onnx_model(nodes, inputs={"x": x_shape}, initializers=inits)
 
 
 def residual(x_shape):
@@ -133,7 +137,7 @@ def residual(x_shape):
         helper.make_node("Add", ["c", "x"], ["y"]),
     ]
     c = x_shape[1]
-    return model(nodes, {"x": x_shape}, None, [("w", weights(c, c, 3, 3)), ("b", weights(c))])
+    return onnx_model(nodes, inputs={"x": x_shape}, initializers={"w": weights(c, c, 3, 3), "b": weights(c)})
 
 
 CASES = {

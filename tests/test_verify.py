@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
-from helpers import check_against_onnxruntime
-from onnx import TensorProto, helper
+from helpers import check_against_onnxruntime, onnx_model
+from onnx import helper
 
 from nncg.errors import NncgError
 from nncg.verify import (
@@ -82,20 +82,17 @@ def fake(
     return FakeCompiled(name, source, header, tuple(inputs), tuple(outputs), **kwargs)  # type: ignore[arg-type]
 
 
-def onnx_model(nodes: list[onnx.NodeProto], inputs: list[Tensor], outputs: list[Tensor]) -> onnx.ModelProto:
-    graph = helper.make_graph(
-        nodes,
-        "g",
-        [helper.make_tensor_value_info(t.name, TensorProto.FLOAT, t.shape) for t in inputs],
-        [helper.make_tensor_value_info(t.name, TensorProto.FLOAT, t.shape) for t in outputs],
+def checked_model(nodes: list[onnx.NodeProto], inputs: list[Tensor], outputs: list[Tensor]) -> onnx.ModelProto:
+    """The model of these nodes over these tensors, validated by the ONNX checker."""
+    model = onnx_model(
+        nodes, inputs={t.name: t.shape for t in inputs}, outputs={t.name: t.shape for t in outputs}, opset=17
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
     onnx.checker.check_model(model)
     return model
 
 
 X, Y = Tensor("x", (1, 3, 4, 4)), Tensor("y", (1, 3, 4, 4))
-RELU_MODEL = onnx_model([helper.make_node("Relu", ["x"], ["y"])], [X], [Y])
+RELU_MODEL = checked_model([helper.make_node("Relu", ["x"], ["y"])], [X], [Y])
 RELU_BODY = "    int i;\n    for (i = 0; i < RELU_NET_X_SIZE; ++i) y[i] = x[i] > 0.0f ? x[i] : 0.0f;\n"
 
 X1, X2, Y1, Y2 = (
@@ -104,7 +101,7 @@ X1, X2, Y1, Y2 = (
     Tensor("y1", (2, 5)),
     Tensor("y2", (2, 5)),
 )
-ADD_MUL_MODEL = onnx_model(
+ADD_MUL_MODEL = checked_model(
     [helper.make_node("Add", ["x1", "x2"], ["y1"]), helper.make_node("Mul", ["x1", "x2"], ["y2"])],
     [X1, X2],
     [Y1, Y2],

@@ -3,9 +3,9 @@ padding case against onnxruntime on every x86 target (ASan/UBSan on some)."""
 
 import numpy as np
 import pytest
-from helpers import check_against_onnxruntime, target
+from helpers import check_against_onnxruntime, onnx_model, target, weights
 from onnx import helper
-from test_ops import conv_model, model, weights
+from test_ops import conv_model
 from test_x86_targets import TARGETS
 
 import nncg
@@ -85,7 +85,7 @@ def residual_block(x_shape, c_out, activation="Relu"):
         helper.make_node("Add", ["c", "x"], ["s"]),
         helper.make_node(activation, ["s"], ["y"]),
     ]
-    return model(nodes, {"x": x_shape}, None, [("w", weights(c_out, c_in, 3, 3)), ("b", weights(c_out))])
+    return onnx_model(nodes, inputs={"x": x_shape}, initializers={"w": weights(c_out, c_in, 3, 3), "b": weights(c_out)})
 
 
 def leaky_conv(x_shape, c_out, **attrs):
@@ -93,7 +93,7 @@ def leaky_conv(x_shape, c_out, **attrs):
         helper.make_node("Conv", ["x", "w"], ["c"], **attrs),
         helper.make_node("LeakyRelu", ["c"], ["y"], alpha=0.1),
     ]
-    return model(nodes, {"x": x_shape}, None, [("w", weights(c_out, x_shape[1], 3, 3))])
+    return onnx_model(nodes, inputs={"x": x_shape}, initializers={"w": weights(c_out, x_shape[1], 3, 3)})
 
 
 CASES = {
@@ -131,7 +131,9 @@ def test_halo_input_reads_the_border_instead_of_skipping_it():
         helper.make_node("Conv", ["x", "w1"], ["a"], pads=[1, 1, 1, 1]),
         helper.make_node("Conv", ["a", "w2"], ["y"], pads=[1, 1, 1, 1]),
     ]
-    m = model(nodes, {"x": (1, 4, 7, 9)}, None, [("w1", weights(8, 4, 3, 3)), ("w2", weights(12, 8, 3, 3))])
+    m = onnx_model(
+        nodes, inputs={"x": (1, 4, 7, 9)}, initializers={"w1": weights(8, 4, 3, 3), "w2": weights(12, 8, 3, 3)}
+    )
     pipeline = default_pipeline(nncg.get_target("ssse3")).replace(",lower,", ",lower{halos=true},")
     check_against_onnxruntime(m, nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True), sanitize=True)
 

@@ -5,9 +5,9 @@ import re
 from pathlib import Path
 
 import pytest
-from helpers import check_against_onnxruntime
+from helpers import check_against_onnxruntime, onnx_model, weights
 from onnx import helper
-from test_ops import conv_model, model, weights
+from test_ops import conv_model
 
 import nncg
 from nncg.backends import BACKENDS, get_backend
@@ -45,7 +45,9 @@ def activation_after_conv(op, channels=20, **attrs):
         helper.make_node("Conv", ["x", "w", "b"], ["c"], pads=[1, 1, 1, 1]),
         helper.make_node(op, ["c"], ["y"], **attrs),
     ]
-    return model(nodes, {"x": (1, 3, 6, 7)}, None, [("w", weights(channels, 3, 3, 3)), ("b", weights(channels))])
+    return onnx_model(
+        nodes, inputs={"x": (1, 3, 6, 7)}, initializers={"w": weights(channels, 3, 3, 3), "b": weights(channels)}
+    )
 
 
 # 20 output channels: full vectors plus a 4-lane block at 8 and 16 lanes.

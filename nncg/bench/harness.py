@@ -11,71 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..c_harness import harness_source
 from ..errors import NncgError
-from ..verify import weights_loader
-
-# Commands on stdin, one per line: "run N" times N calls and answers the nanoseconds; "profile"
-# answers the seconds accumulated per layer (profile builds); "outputs" writes the outputs; "quit".
-HARNESS = r"""#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <string.h>
-#include <time.h>
-#include "{name}.h"
-{profile_decls}
-{buffers}
-
-static void read_floats(const char *path, float *data, size_t count)
-{{
-    FILE *f = fopen(path, "rb");
-    if (f == NULL || fread(data, sizeof(float), count, f) != count) {{
-        fprintf(stderr, "bench: cannot read %lu floats from %s\n", (unsigned long)count, path);
-        exit(1);
-    }}
-    fclose(f);
-}}
-
-static void write_floats(const char *path, const float *data, size_t count)
-{{
-    FILE *f = fopen(path, "wb");
-    if (f == NULL || fwrite(data, sizeof(float), count, f) != count) {{
-        fprintf(stderr, "bench: cannot write %s\n", path);
-        exit(1);
-    }}
-    fclose(f);
-}}
-
-int main(int argc, char **argv)
-{{
-    char line[64];
-    if (argc != {argc}) {{
-        fprintf(stderr, "bench: expected {argc_minus_one} file names\n");
-        return 2;
-    }}
-{read_inputs}
-    while (fgets(line, sizeof line, stdin) != NULL) {{
-        long n, i;
-        if (sscanf(line, "run %ld", &n) == 1) {{
-            struct timespec a, b;
-            clock_gettime(CLOCK_MONOTONIC, &a);
-            for (i = 0; i < n; ++i) {{
-                {call}
-            }}
-            clock_gettime(CLOCK_MONOTONIC, &b);
-            printf("%.0f\n", (b.tv_sec - a.tv_sec) * 1e9 + (b.tv_nsec - a.tv_nsec));
-        }} else if (strncmp(line, "profile", 7) == 0) {{
-{print_profile}
-        }} else if (strncmp(line, "outputs", 7) == 0) {{
-{write_outputs}
-            printf("ok\n");
-        }} else {{
-            break;
-        }}
-        fflush(stdout);
-    }}
-    return 0;
-}}
-"""
+from ..tools import run_tool
 
 
 @dataclass(frozen=True)
@@ -86,50 +24,6 @@ class ObjectSizes:
     rodata: int
     data: int
     bss: int
-
-
-def harness_source(compiled, profile: bool) -> str:
-    params = [*compiled.inputs, *compiled.outputs]
-    name = compiled.name
-    buffers = "\n".join(f"static float {p.c_name}[{int(np.prod(p.shape))}];" for p in params)
-    n_in = len(compiled.inputs)
-    read_inputs = "\n".join(
-        f"    read_floats(argv[{i + 1}], {p.c_name}, sizeof {p.c_name} / sizeof(float));"
-        for i, p in enumerate(compiled.inputs)
-    )
-    write_outputs = "\n".join(
-        f"            write_floats(argv[{n_in + i + 1}], {p.c_name}, sizeof {p.c_name} / sizeof(float));"
-        for i, p in enumerate(compiled.outputs)
-    )
-    profile_decls, print_profile = "", '            printf("none\\n");'
-    if profile:
-        profile_decls = (
-            f"extern const int {name}_profile_count;\n"
-            f"extern const char *const {name}_profile_layers[];\n"
-            f"extern double {name}_profile_seconds[];"
-        )
-        print_profile = (
-            f"            for (i = 0; i < {name}_profile_count; ++i) {{\n"
-            f'                printf("%s %.9f\\n", {name}_profile_layers[i], {name}_profile_seconds[i]);\n'
-            f"                {name}_profile_seconds[i] = 0;\n"
-            "            }\n"
-            '            printf("end\\n");'
-        )
-    loader, weights_arg = weights_loader(compiled)
-    if loader:
-        buffers += "\nstatic const void *nncg_weights;\n" + loader
-        read_inputs = "    nncg_weights = nncg_load_weights();\n" + read_inputs
-    return HARNESS.format(
-        name=name,
-        profile_decls=profile_decls,
-        buffers=buffers,
-        argc=len(params) + 1,
-        argc_minus_one=len(params),
-        read_inputs=read_inputs,
-        call=f"{name}({', '.join([*(p.c_name for p in params), *weights_arg])});",
-        print_profile=print_profile,
-        write_outputs=write_outputs,
-    )
 
 
 class CompiledHarness:
@@ -149,13 +43,16 @@ class CompiledHarness:
         self.compiled = compiled
         self.workdir = workdir
         compiled.write(workdir)
-        (workdir / "bench_main.c").write_text(harness_source(compiled, profile))
+        # Commands on stdin, one per line: "run N", "profile", "outputs", "quit" (see c_harness).
+        (workdir / "bench_main.c").write_text(harness_source(compiled, commands=True, profile=profile))
         flags = ["-O3", *compiled.cflags]
         start = time.perf_counter()
-        _run([cc, *flags, "-c", f"{compiled.name}.c", "-o", f"{compiled.name}.o"], workdir)
+        model_c = f"{compiled.name}.c"
+        run_tool([cc, *flags, "-c", model_c, "-o", f"{compiled.name}.o"], f"compiling {model_c}", cwd=workdir)
         self.compile_seconds = time.perf_counter() - start
-        _run([cc, "-O2", "-c", "bench_main.c", "-o", "bench_main.o"], workdir)
-        _run([cc, "bench_main.o", f"{compiled.name}.o", "-o", "bench", "-lm"], workdir)
+        run_tool([cc, "-O2", "-c", "bench_main.c", "-o", "bench_main.o"], "compiling bench_main.c", cwd=workdir)
+        link = [cc, "bench_main.o", f"{compiled.name}.o", "-o", "bench", "-lm"]
+        run_tool(link, "linking the benchmark harness", cwd=workdir)
         self.sizes = object_sizes(workdir / f"{compiled.name}.o")
         in_files = [f"in{i}.bin" for i in range(len(inputs))]
         for path, array in zip(in_files, inputs):
@@ -215,20 +112,10 @@ class CompiledHarness:
 
 def object_sizes(path: Path) -> ObjectSizes:
     """Section sizes from binutils' `size -A`; .text.* and .rodata.* sections count with their kind."""
-    listing = _run(["size", "-A", str(path)], path.parent)
+    listing = run_tool(["size", "-A", path], "reading section sizes", cwd=path.parent).stdout
     totals = {"text": 0, "rodata": 0, "data": 0, "bss": 0}
     for line in listing.splitlines():
         match = re.match(r"\.(text|rodata|data|bss)(\.\S*)?\s+(\d+)", line)
         if match:
             totals[match.group(1)] += int(match.group(3))
     return ObjectSizes(**totals)
-
-
-def _run(command: list[str], cwd: Path) -> str:
-    try:
-        result = subprocess.run(command, cwd=cwd, capture_output=True, text=True)
-    except FileNotFoundError:
-        raise NncgError(f"'{command[0]}' is not installed; the benchmark needs it") from None
-    if result.returncode != 0:
-        raise NncgError(f"{' '.join(command)} failed:\n{result.stderr[-3000:]}")
-    return result.stdout

@@ -6,13 +6,13 @@ from __future__ import annotations
 import math
 import platform
 import re
-import subprocess
 import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import NncgError
+from ..tools import run_tool
 from ..verify import find_c_compiler
 
 COMPILE_TIMEOUT_S = 120
@@ -232,26 +232,13 @@ def _build_and_run(
     with tempfile.TemporaryDirectory(prefix="nncg_peak_") as tmp:
         src, exe = Path(tmp) / "peak.c", Path(tmp) / "peak"
         src.write_text(source)
-        _run([compiler, *cflags, "-o", str(exe), str(src)], COMPILE_TIMEOUT_S, f"compiling the {what}")
-        out = _run([str(exe), repr(min_seconds), str(repeats)], RUN_TIMEOUT_S, f"running the {what}")
+        run_tool([compiler, *cflags, "-o", exe, src], f"compiling the {what}", timeout=COMPILE_TIMEOUT_S)
+        out = run_tool([exe, repr(min_seconds), str(repeats)], f"running the {what}", timeout=RUN_TIMEOUT_S).stdout
     match = re.search(r"rate=(\S+)", out)
     rate = float(match.group(1)) if match else math.nan
     if not (math.isfinite(rate) and rate > 0):
         raise NncgError(f"the {what} printed no positive rate: {out.strip()!r}")
     return rate
-
-
-def _run(cmd: list[str], timeout: float, what: str) -> str:
-    """Run `cmd`; its stdout, or NncgError with the command and the head of its stderr."""
-    try:
-        proc = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired as exc:
-        raise NncgError(f"{what} timed out after {timeout}s: {' '.join(cmd)}") from exc
-    if proc.returncode != 0:
-        status = f"signal {-proc.returncode}" if proc.returncode < 0 else f"status {proc.returncode}"
-        detail = "\n".join((proc.stderr + proc.stdout).strip().splitlines()[:20])
-        raise NncgError(f"{what} failed ({status}): {' '.join(cmd)}\n{detail}")
-    return proc.stdout
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -11,8 +11,8 @@ import onnx
 from onnx import helper
 
 from nncg.errors import NncgError
-from nncg.frontend.names import unique
 from nncg.ir.graph import Node, Shape
+from nncg.ir.names import fresh_name
 from nncg.safe_text import shown
 
 WEIGHT_HINT = "runtime weights are not supported yet: export the model with constant weights"
@@ -92,7 +92,7 @@ class Context:
         return bool(value) and value in self.used
 
     def add_constant(self, base: str, array: np.ndarray) -> str:
-        name = unique(base, self.taken)
+        name = fresh_name(base, self.taken)
         self.taken.add(name)
         self.constants[name] = array
         return name

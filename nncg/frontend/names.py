@@ -7,25 +7,18 @@ from __future__ import annotations
 
 import onnx
 
+from nncg.ir.names import fresh_name
+
 
 def node_names(graph: onnx.GraphProto) -> list[str]:
     """One unique name per node: its ONNX name, or `<OpType>_<index>` when it has none."""
     taken: set[str] = set()
     names = []
     for index, node in enumerate(graph.node):
-        name = unique(node.name or f"{node.op_type}_{index}", taken)
+        name = fresh_name(node.name or f"{node.op_type}_{index}", taken)
         taken.add(name)
         names.append(name)
     return names
-
-
-def unique(base: str, taken: set[str]) -> str:
-    """`base`, or `base_1`, `base_2`, ... whichever is not taken yet."""
-    name, k = base, 0
-    while name in taken:
-        k += 1
-        name = f"{base}_{k}"
-    return name
 
 
 def value_names(graph: onnx.GraphProto) -> set[str]:

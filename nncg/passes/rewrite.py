@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 
+from ..ir import names
 from ..ir.graph import Graph, Node
 
 
@@ -28,10 +29,8 @@ def rename_input(node: Node, old: str, new: str) -> Node:
 
 
 def fresh_name(graph: Graph, base: str, taken: dict) -> str:
-    name, i = base, 1
-    while name in graph.constants or name in graph.shapes or name in taken:
-        name, i = f"{base}_{i}", i + 1
-    return name
+    """A name for a new constant: `base` or `base_<k>`, neither a value of the graph nor in `taken`."""
+    return names.fresh_name(base, graph.constants, graph.shapes, taken)
 
 
 def fuse_adds(graph: Graph, try_fuse: Callable[[Graph, Node, str, str], Graph | None]) -> Graph:

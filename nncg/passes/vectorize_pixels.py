@@ -21,6 +21,7 @@ from dataclasses import replace
 from ..errors import NncgError
 from ..ir.graph import ConvAttrs, Graph, Node, PadAttrs
 from ..ir.kinds import ConvAlgorithm, VectorAxis
+from ..ir.names import fresh_name
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
@@ -62,21 +63,14 @@ def explicit_padding(graph: Graph, node: Node, shapes: dict) -> tuple[Node, Node
     """A Pad node writing the conv's input inside its zero padding, and the conv reading that."""
     attrs: ConvAttrs = node.attrs
     x = node.inputs[0]
-    padded = _unused_name(graph, f"{x}_padded_for_{node.name}")
+    taken = (graph.shapes, graph.constants, {n.name for n in graph.nodes})
+    padded = fresh_name(f"{x}_padded_for_{node.name}", *taken)
     begin, end = (0, 0, *attrs.pads_begin), (0, 0, *attrs.pads_end)
     shapes[padded] = tuple(d + b + e for d, b, e in zip(graph.shape(x), begin, end))
-    pad = Node("Pad", _unused_name(graph, f"{node.name}_pad"), (x,), (padded,), PadAttrs(begin, end))
+    pad = Node("Pad", fresh_name(f"{node.name}_pad", *taken), (x,), (padded,), PadAttrs(begin, end))
     zero = (0,) * len(attrs.kernel)
     conv = replace(node, inputs=(padded, *node.inputs[1:]), attrs=replace(attrs, pads_begin=zero, pads_end=zero))
     return pad, conv
-
-
-def _unused_name(graph: Graph, name: str) -> str:
-    taken = {*graph.shapes, *graph.constants, *(n.name for n in graph.nodes)}
-    candidate, i = name, 1
-    while candidate in taken:
-        candidate, i = f"{name}_{i}", i + 1
-    return candidate
 
 
 def pixel_axis_applies(graph: Graph, node: Node, planar: set[str]) -> bool:

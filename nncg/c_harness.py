@@ -1,0 +1,310 @@
+"""C test programs around a compiled model — for verification, benchmark timing and bare-metal runs:
+one generator, parameterised by how inputs arrive (files named on the command line, or compiled in),
+how outputs leave (files, or printed as hex words) and whether commands on stdin drive the calls."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .errors import NncgError
+
+INDENT = "    "
+
+
+@dataclass(frozen=True)
+class PrintedOutputs:
+    """Outputs printed as the 8 hex digits of each float's bits, one per line, through the C function
+    `put` (takes a string; semihosting on bare metal) declared in `include`; then the C statements
+    `after` run (a stack report, say)."""
+
+    put: str
+    include: str
+    after: tuple[str, ...] = ()
+
+
+def harness_source(
+    compiled: Any,
+    *,
+    inputs: Sequence[np.ndarray] | None = None,
+    outputs: PrintedOutputs | None = None,
+    commands: bool = False,
+    profile: bool = False,
+) -> str:
+    """A C89 program calling `compiled` (a CompiledModel, or anything with its name, inputs, outputs).
+
+    Inputs are read from the files named first on the command line (raw little-endian float32),
+    or, given as arrays, compiled in. Outputs are written to the files named next (same format), or
+    printed as `outputs` says. Outputs start as all-ones bytes (a NaN), so an element the model
+    never writes shows up. The model runs once, or with `commands` (POSIX) as lines on stdin say:
+    "run N" times N calls and answers nanoseconds, "profile" answers seconds per layer (a profile
+    build, with `profile`), "outputs" writes the outputs and answers "ok", anything else quits."""
+    if commands and outputs is not None:
+        raise NncgError("a harness driven by commands writes its outputs to files")
+    parts = _Parts(compiled, inputs, outputs, commands, profile)
+    sections = [
+        "\n".join([parts.title(), *parts.includes(), f'#include "{compiled.name}.h"']),
+        "\n".join(parts.declarations()),
+        *(helper.rstrip("\n") for helper in parts.helpers()),
+        "\n".join(parts.main()),
+    ]
+    return "\n\n".join(sections) + "\n"
+
+
+class _Parts:
+    """The pieces of one harness; each helper function is emitted only when used (-Werror)."""
+
+    def __init__(self, compiled: Any, inputs: Sequence[np.ndarray] | None, outputs: PrintedOutputs | None,
+                 commands: bool, profile: bool) -> None:  # fmt: skip
+        self.name = compiled.name
+        self.in_sizes = [_element_count(spec.shape) for spec in compiled.inputs]
+        self.out_sizes = [_element_count(spec.shape) for spec in compiled.outputs]
+        self.baked = None if inputs is None else list(inputs)
+        self.printed = outputs
+        self.commands = commands
+        self.profile = profile
+        self.weights_file = getattr(compiled, "weights", None) is not None
+        # The command line's file names, as the usage message shows them.
+        self.files = [f"IN{i}" for i in range(len(self.in_sizes)) if self.baked is None]
+        self.files += [f"OUT{i}" for i in range(len(self.out_sizes)) if outputs is None]
+        if self.baked is not None and [a.size for a in self.baked] != self.in_sizes:
+            raise NncgError(f"{self.name} takes inputs of {self.in_sizes} floats, got {[a.size for a in self.baked]}")
+
+    # --- top of the file
+
+    def title(self) -> str:
+        how_in = "reads its inputs from files" if self.baked is None else "has its inputs compiled in"
+        how_often = "as commands on stdin say" if self.commands else "once"
+        how_out = "writes its outputs to files" if self.printed is None else "prints its outputs as hex words"
+        return f"/* Test program by nncg.c_harness: {how_in}, calls {self.name} {how_often}, {how_out}. */"
+
+    def includes(self) -> list[str]:
+        lines = ["#define _POSIX_C_SOURCE 199309L"] if self.commands else []  # clock_gettime
+        if self.files or self.commands or self.weights_file:
+            lines.append("#include <stdio.h>")
+        if self.weights_file:
+            lines.append("#include <stdlib.h>")
+        lines.append("#include <string.h>")
+        if self.commands:
+            lines.append("#include <time.h>")
+        if self.printed is not None:
+            lines += ["#include <stdint.h>", f'#include "{self.printed.include}"']
+        return lines
+
+    def declarations(self) -> list[str]:
+        if self.baked is None:
+            lines = [f"static float nncg_in{i}[{max(n, 1)}];" for i, n in enumerate(self.in_sizes)]
+        else:
+            lines = [f"static const float nncg_in{i}[{max(a.size, 1)}] = {{\n{_c_floats(a)}\n}};"
+                     for i, a in enumerate(self.baked)]  # fmt: skip
+        lines += [f"static float nncg_out{i}[{max(n, 1)}];" for i, n in enumerate(self.out_sizes)]
+        if self.weights_file:
+            lines.append("static const void *nncg_weights;")
+        if self.profile:
+            lines += [
+                f"extern const int {self.name}_profile_count;",
+                f"extern const char *const {self.name}_profile_layers[];",
+                f"extern double {self.name}_profile_seconds[];",
+            ]
+        return lines
+
+    def helpers(self) -> list[str]:
+        pieces = [WEIGHTS_LOADER.format(name=self.name, macro=self.name.upper())] if self.weights_file else []
+        if self.files:
+            pieces.append(SWAP_IF_BIG_ENDIAN)
+        if self.baked is None and self.in_sizes:
+            pieces.append(READ_FLOATS)
+        if self.printed is None and self.out_sizes:
+            pieces.append(WRITE_FLOATS)
+        if self.printed is not None:
+            pieces.append(PRINT_FLOATS.format(put=self.printed.put))
+        return pieces
+
+    # --- main
+
+    def main(self) -> list[str]:
+        signature = "int main(int argc, char *argv[])" if self.files else "int main(void)"
+        body = ["char line[64];"] if self.commands else []
+        body += self.check_arguments()
+        body += ["nncg_weights = nncg_load_weights();"] if self.weights_file else []
+        body += self.read_inputs()
+        body += [f"memset(nncg_out{i}, 0xff, sizeof nncg_out{i});" for i in range(len(self.out_sizes))]
+        body += self.command_loop() if self.commands else [self.call(), *self.deliver_outputs(), *self.after()]
+        return [signature, "{", *_indented(body + ["return 0;"]), "}"]
+
+    def check_arguments(self) -> list[str]:
+        if not self.files:
+            return []
+        return [
+            f"if (argc != {1 + len(self.files)}) {{",
+            f'    fprintf(stderr, "usage: %s {" ".join(self.files)}\\n", argv[0]);',
+            "    return 2;",
+            "}",
+        ]
+
+    def read_inputs(self) -> list[str]:
+        if self.baked is not None:
+            return []
+        return [f"if (!nncg_read(argv[{1 + i}], nncg_in{i}, {n}UL)) return 1;" for i, n in enumerate(self.in_sizes)]
+
+    def deliver_outputs(self) -> list[str]:
+        if self.printed is not None:
+            return [f"nncg_print_floats(nncg_out{i}, {n}UL);" for i, n in enumerate(self.out_sizes)]
+        first = 1 + len(self.files) - len(self.out_sizes)
+        return [
+            f"if (!nncg_write(argv[{first + i}], nncg_out{i}, {n}UL)) return 1;" for i, n in enumerate(self.out_sizes)
+        ]
+
+    def after(self) -> list[str]:
+        return list(self.printed.after) if self.printed is not None else []
+
+    def call(self) -> str:
+        args = [f"nncg_in{i}" for i in range(len(self.in_sizes))] + [f"nncg_out{i}" for i in range(len(self.out_sizes))]
+        return f"{self.name}({', '.join(args + (['nncg_weights'] if self.weights_file else []))});"
+
+    def command_loop(self) -> list[str]:
+        run = [
+            "struct timespec a, b;",
+            "clock_gettime(CLOCK_MONOTONIC, &a);",
+            "for (i = 0; i < n; ++i) {",
+            f"    {self.call()}",
+            "}",
+            "clock_gettime(CLOCK_MONOTONIC, &b);",
+            'printf("%.0f\\n", (b.tv_sec - a.tv_sec) * 1e9 + (b.tv_nsec - a.tv_nsec));',
+        ]
+        branches = [
+            'if (sscanf(line, "run %ld", &n) == 1) {', *_indented(run),
+            '} else if (strncmp(line, "profile", 7) == 0) {', *_indented(self.profile_report()),
+            '} else if (strncmp(line, "outputs", 7) == 0) {', *_indented([*self.deliver_outputs(), 'printf("ok\\n");']),
+            "} else {", "    break;", "}",
+        ]  # fmt: skip
+        loop = ["long n, i;", *branches, "fflush(stdout);"]
+        return ["while (fgets(line, sizeof line, stdin) != NULL) {", *_indented(loop), "}"]
+
+    def profile_report(self) -> list[str]:
+        if not self.profile:
+            return ['printf("none\\n");']
+        name = self.name
+        return [
+            f"for (i = 0; i < {name}_profile_count; ++i) {{",
+            f'    printf("%s %.9f\\n", {name}_profile_layers[i], {name}_profile_seconds[i]);',
+            f"    {name}_profile_seconds[i] = 0;",
+            "}",
+            'printf("end\\n");',
+        ]
+
+
+def _indented(lines: list[str]) -> list[str]:
+    return [INDENT + line for line in lines]
+
+
+def _element_count(shape: Sequence[int]) -> int:
+    return math.prod(int(d) for d in shape)
+
+
+def _c_floats(values: np.ndarray) -> str:
+    """Float constants, 8 a line; 9 significant digits give back the same float32 exactly."""
+    floats = np.asarray(values, dtype=np.float32).ravel()
+    if not np.isfinite(floats).all():
+        raise NncgError("compiled-in inputs must be finite")
+    items = [f"{float(v):.8e}f" for v in floats]
+    return ",\n".join(", ".join(items[i : i + 8]) for i in range(0, len(items), 8))
+
+
+# Loads NAME.weights (a model compiled with weights in a file) and checks its CRC-32.
+WEIGHTS_LOADER = """\
+static const void *nncg_load_weights(void)
+{{
+    FILE *f = fopen("{name}.weights", "rb");
+    void *data = malloc({macro}_WEIGHTS_BYTES);
+    if (f == NULL || data == NULL || fread(data, 1, {macro}_WEIGHTS_BYTES, f) != {macro}_WEIGHTS_BYTES) {{
+        fprintf(stderr, "harness: cannot read {name}.weights\\n");
+        exit(1);
+    }}
+    fclose(f);
+    if (!{name}_weights_ok(data)) {{
+        fprintf(stderr, "harness: {name}.weights fails its CRC-32 check\\n");
+        exit(1);
+    }}
+    return data;
+}}
+"""
+
+SWAP_IF_BIG_ENDIAN = """\
+/* Converts between little-endian file data and native floats (a no-op on little-endian hosts). */
+static void nncg_swap_if_big_endian(float *data, unsigned long count)
+{
+    unsigned int one = 1;
+    unsigned char *p = (unsigned char *)data;
+    unsigned char t;
+    unsigned long i;
+    if (*(unsigned char *)&one == 1) return;
+    for (i = 0; i < count; ++i, p += 4) {
+        t = p[0]; p[0] = p[3]; p[3] = t;
+        t = p[1]; p[1] = p[2]; p[2] = t;
+    }
+}
+"""
+
+READ_FLOATS = """\
+static int nncg_read(const char *path, float *data, unsigned long count)
+{
+    FILE *f = fopen(path, "rb");
+    int ok;
+    if (f == NULL) {
+        fprintf(stderr, "harness: cannot open %s\\n", path);
+        return 0;
+    }
+    ok = fread(data, sizeof(float), count, f) == count && fgetc(f) == EOF;
+    fclose(f);
+    if (!ok) fprintf(stderr, "harness: %s does not hold exactly %lu floats\\n", path, count);
+    nncg_swap_if_big_endian(data, count);
+    return ok;
+}
+"""
+
+# Swaps the outputs in place on a big-endian machine, so it swaps them back after writing.
+WRITE_FLOATS = """\
+static int nncg_write(const char *path, float *data, unsigned long count)
+{
+    FILE *f = fopen(path, "wb");
+    int ok;
+    if (f == NULL) {
+        fprintf(stderr, "harness: cannot create %s\\n", path);
+        return 0;
+    }
+    nncg_swap_if_big_endian(data, count);
+    ok = fwrite(data, sizeof(float), count, f) == count;
+    nncg_swap_if_big_endian(data, count);
+    ok = fclose(f) == 0 && ok;
+    if (!ok) fprintf(stderr, "harness: cannot write %s\\n", path);
+    return ok;
+}
+"""
+
+PRINT_FLOATS = """\
+static void nncg_print_hex(uint32_t value)
+{{
+    static const char digits[] = "0123456789abcdef";
+    char line[10];
+    int i;
+    for (i = 0; i < 8; ++i) line[i] = digits[(value >> (28 - 4 * i)) & 0xf];
+    line[8] = '\\n';
+    line[9] = 0;
+    {put}(line);
+}}
+
+static void nncg_print_floats(const float *data, unsigned long count)
+{{
+    unsigned long i;
+    uint32_t bits;
+    for (i = 0; i < count; ++i) {{
+        memcpy(&bits, &data[i], sizeof bits);
+        nncg_print_hex(bits);
+    }}
+}}
+"""
