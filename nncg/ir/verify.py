@@ -1,4 +1,5 @@
-"""Well-formedness checks of both IRs, run by the pass manager after every pass (on by default; `verify=False` skips them)."""
+"""Well-formedness checks of both IRs, run by the pass manager after every pass (on by default;
+`verify=False` skips them)."""
 
 from __future__ import annotations
 
