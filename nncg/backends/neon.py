@@ -61,9 +61,22 @@ Q_REGISTER = VectorWidth(
         "/": "nncg_vdivq_f32({a}, {b})",
         "fma": "nncg_vfmaq_f32({c}, {a}, {b})",
         **{cmp: f"vbslq_f32({name}({{lhs}}, {{rhs}}), {{then}}, {{otherwise}})" for cmp, name in COMPARE.items()},
-        "lane_wise": "nncg_v{fn}q_f32",
+        "math": "nncg_v{fn}q_f32",
     },
     helpers={"fma": FMA_MACRO, "/": DIV_HELPER},
+    bits={
+        "type": "int32x4_t",
+        "splat": "vdupq_n_s32({value})",
+        "from_float": "vreinterpretq_s32_f32({a})",
+        "to_float": "vreinterpretq_f32_s32({a})",
+        "convert": "vcvtq_f32_s32({a})",
+        "+": "vaddq_s32({a}, {b})",
+        "-": "vsubq_s32({a}, {b})",
+        "&": "vandq_s32({a}, {b})",
+        "|": "vorrq_s32({a}, {b})",
+        "<<": "vshlq_n_s32({a}, {n})",
+        ">>": "vshrq_n_s32({a}, {n})",
+    },
 )
 
 

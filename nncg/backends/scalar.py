@@ -146,7 +146,15 @@ class ScalarPrinter:
         return f"({lhs} {e.cmp} {rhs} ? {then} : {other})"
 
     def _expr_Call(self, e: Call) -> str:
+        if e.fn == "sigmoid":  # no sigmoid in math.h
+            return self.expr(sigmoid_by_exp(e.arg))
         return f"(float){e.fn}({self.expr(e.arg)})"  # C89 has only the double versions
+
+
+def sigmoid_by_exp(x: Expr) -> Expr:
+    """1 / (1 + exp(0 - x)): for very negative x, exp overflows to inf and the quotient is the exact 0."""
+    one = Const.splat(1.0, x.lanes)
+    return Binary("/", one, Binary("+", one, Call("exp", Binary("-", Const.splat(0.0, x.lanes), x))))
 
 
 def _bound(bound: Bound) -> str:

@@ -10,6 +10,7 @@ from ..ir.loops import Affine, Binary, Broadcast, Call, Const, Expr, Fma, Load, 
 from .c_text import INDENT, c_affine, c_float
 from .scalar import ScalarPrinter
 from .simd_needs import Needs, collect_needs
+from .vector_math import has_vector_math, vector_math_helper, with_callees
 from .vector_width import VectorWidth
 
 
@@ -90,14 +91,14 @@ class SimdPrinter(ScalarPrinter):
         return width.spell(e.cmp, lhs=lhs, rhs=rhs, then=then, otherwise=other)
 
     def _vector_Call(self, e: Call, width: VectorWidth) -> str:
-        return f"{width.spell('lane_wise', fn=e.fn)}({self.expr(e.arg)})"
+        return f"{width.spell('math', fn=e.fn)}({self.expr(e.arg)})"
 
     # ------------------------------------------------------------------ helpers, before the kernels
 
     def preamble(self) -> list[str]:
         """The helper definitions templates call (in order of first use), then the tables of
-        constant vectors (widest first), then the lane-wise math functions (widest first, by name);
-        a blank line before each."""
+        constant vectors (widest first), then the math functions (widest first; each after those it
+        calls, then by name); a blank line before each."""
         blocks: list[tuple[str, ...]] = []
         for lanes, op in self.needs.definitions:
             definition = self.widths[lanes].helpers[op]
@@ -105,8 +106,13 @@ class SimdPrinter(ScalarPrinter):
                 blocks.append(definition)
         for lanes, rows in sorted(self.needs.rows.items(), reverse=True):
             blocks.append(self.constant_table(lanes, tuple(rows)))
-        for lanes, fn in sorted(self.needs.lane_wise, key=lambda need: (-need[0], need[1])):
-            blocks.append(self.lane_wise_helper(fn, lanes))
+        for lanes in sorted({lanes for lanes, _ in self.needs.math}, reverse=True):
+            width = self.widths[lanes]
+            called = {fn for n, fn in self.needs.math if n == lanes}
+            if has_vector_math(width):
+                blocks += [vector_math_helper(fn, width) for fn in with_callees(called)]
+            else:
+                blocks += [self.lane_wise_helper(fn, lanes) for fn in sorted(called)]
         return [line for block in blocks for line in ("", *block)]
 
     def constant_table(self, lanes: int, rows: tuple[tuple[float, ...], ...]) -> tuple[str, ...]:
@@ -122,16 +128,17 @@ class SimdPrinter(ScalarPrinter):
         )
 
     def lane_wise_helper(self, fn: str, lanes: int) -> tuple[str, ...]:
-        """NAME(x): math.h's double-precision fn of each lane of x, for an ISA without a vector fn."""
+        """NAME(x): math.h's double-precision fn of each lane of x, for a width without the integer
+        operations of the vector math functions (vector_math.py)."""
         width = self.widths[lanes]
         head = (
             f"/* {fn} of each lane: no vector {fn} in the instruction set */",
-            f"static {width.type} {width.spell('lane_wise', fn=fn)}({width.type} x)",
+            f"static {width.type} {width.spell('math', fn=fn)}({width.type} x)",
             "{",
             f"{INDENT}float v[{lanes}];",
             f"{INDENT}{width.spell('store', address='v', value='x')};",
         )
-        calls = [f"(float){fn}(v[{i}])" for i in range(lanes)]
+        calls = [ScalarPrinter.expr(self, Call(fn, Load("v", Affine((), i)))) for i in range(lanes)]
         if "vector" in width.ops:
             return (*head, f"{INDENT}return {width.spell('vector', values=', '.join(calls))};", "}")
         each = [f"{INDENT}v[{i}] = {call};" for i, call in enumerate(calls)]

@@ -1,5 +1,5 @@
-"""Backend: what a program's vector code calls besides intrinsics — helper definitions, lane-wise
-math functions, tables of constant vectors — collected by one walk over the IR before printing."""
+"""Backend: what a program's vector code calls besides intrinsics — helper definitions, vector math
+functions, tables of constant vectors — collected by one walk over the IR before printing."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from ..ir.loops import (
     walk_exprs,
     walk_stmts,
 )
+from .vector_math import has_vector_math, operations_used, with_callees
 from .vector_width import VectorWidth
 
 
@@ -28,11 +29,11 @@ from .vector_width import VectorWidth
 class Needs:
     """definitions: (lanes, operation) whose template calls a helper the width defines, in order of
     first use (kernels in order, statements in order, an expression before its operands).
-    lane_wise: (lanes, fn) of the math functions called on vectors.
+    math: (lanes, fn) of the math functions called on vectors (not those they call).
     rows: per width, the row of each constant vector in its table, in order of first use."""
 
     definitions: tuple[tuple[int, str], ...] = ()
-    lane_wise: frozenset[tuple[int, str]] = frozenset()
+    math: frozenset[tuple[int, str]] = frozenset()
     rows: Mapping[int, Mapping[tuple[float, ...], int]] = field(default_factory=dict)
 
 
@@ -40,17 +41,20 @@ def collect_needs(program: Program, widths: Mapping[int, VectorWidth]) -> Needs:
     """The needs of every vector node of `program` whose width is in `widths` (others are the
     printer's to refuse)."""
     definitions: dict[tuple[int, str], None] = {}  # an ordered set
-    lane_wise: set[tuple[int, str]] = set()
+    math: set[tuple[int, str]] = set()
     rows: dict[int, dict[tuple[float, ...], int]] = {}
     for lanes, node in _vector_nodes(program, widths):
         width = widths[lanes]
         definitions |= {(lanes, op): None for op in operations(node, width) if op in width.helpers}
         if isinstance(node, Call):
-            lane_wise.add((lanes, node.fn))
+            math.add((lanes, node.fn))
+            if has_vector_math(width):  # the helper's own operations may need definitions too
+                used = [op for fn in with_callees({node.fn}) for op in operations_used(fn, width)]
+                definitions |= {(lanes, op): None for op in used if op in width.helpers}
         elif isinstance(node, Const) and _in_table(node, width):
             table = rows.setdefault(lanes, {})
             table.setdefault(node.values, len(table))  # == on floats: 0.0 and -0.0 share a row
-    return Needs(tuple(definitions), frozenset(lane_wise), rows)
+    return Needs(tuple(definitions), frozenset(math), rows)
 
 
 def operations(node: Expr | Store, width: VectorWidth) -> tuple[str, ...]:
@@ -69,7 +73,7 @@ def operations(node: Expr | Store, width: VectorWidth) -> tuple[str, ...]:
         return ("fma",) if "fma" in width.ops else ("*", "+")
     if isinstance(node, Select):
         return (node.cmp,)
-    return ()  # a local; a call goes to a lane-wise helper
+    return ()  # a local; a call goes to a math helper
 
 
 def _in_table(const: Const, width: VectorWidth) -> bool:

@@ -15,13 +15,25 @@ OPERATIONS = {
     "splat": ("value",),  # a constant splat, or a broadcast scalar
     **{op: ("a", "b") for op in BINARY_OPS},
     **{cmp: ("lhs", "rhs", "then", "otherwise") for cmp in COMPARISONS},  # (lhs cmp rhs) ? then : otherwise
-    "lane_wise": ("fn",),  # the NAME of the helper that applies math.h's fn to each lane: NAME(x)
+    "math": ("fn",),  # the NAME of the helper computing the math function fn of each lane: NAME(x)
     # Optional:
     "fma": ("a", "b", "c"),  # a * b + c, one rounding; required when the target has FMA
     "vector": ("values",),  # a constant vector lane by lane; without it constants are table rows
     "table": (),  # the name of the static table of constant vectors (when there is no `vector`)
 }
 OPTIONAL = ("fma", "vector", "table")
+
+# The integer and bit operations on vectors of int32 lanes the vector math functions are written in
+# (vector_math.py). A width without them computes a math function with math.h, lane by lane.
+BIT_OPERATIONS = {
+    "type": (),  # the C type of a vector of int32 lanes (`__m256i`, `int32x4_t`)
+    "splat": ("value",),  # an int32 constant in every lane
+    "from_float": ("a",),  # the bits of a float vector, unchanged
+    "to_float": ("a",),  # the float vector of these bits
+    "convert": ("a",),  # the float value of each int32 lane
+    **{op: ("a", "b") for op in ("+", "-", "&", "|")},
+    **{op: ("a", "n") for op in ("<<", ">>")},  # shift by the constant n; >> is arithmetic
+}
 
 
 @dataclass(frozen=True)
@@ -31,11 +43,13 @@ class VectorWidth:
     type: the C vector type (`__m256`, `float32x4_t`).
     ops: operation -> C template (see OPERATIONS), e.g. `_mm256_add_ps({a}, {b})`.
     helpers: operation -> the lines defining what its template calls beyond the ISA's intrinsics
-    (NEON's division on ARMv7), printed once before the kernels when the program uses it."""
+    (NEON's division on ARMv7), printed once before the kernels when the program uses it.
+    bits: operation -> C template of BIT_OPERATIONS (all or none)."""
 
     type: str
     ops: Mapping[str, str]
     helpers: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    bits: Mapping[str, str] = field(default_factory=dict)
 
     def spell(self, op: str, **fields: str) -> str:
         return self.ops[op].format(**fields)
@@ -46,4 +60,7 @@ class VectorWidth:
         required += [] if "vector" in self.ops else ["table"]
         missing = [op for op in required if op not in self.ops]
         unknown = [op for op in (*self.ops, *self.helpers) if op not in OPERATIONS]
+        if self.bits:
+            missing += [f"bits {op}" for op in BIT_OPERATIONS if op not in self.bits]
+            unknown += [f"bits {op}" for op in self.bits if op not in BIT_OPERATIONS]
         return [f"no template for {op}" for op in missing] + [f"unknown operation {op}" for op in unknown]

@@ -13,7 +13,8 @@ PREDICATES = {">": "_CMP_GT_OQ", ">=": "_CMP_GE_OQ", "<": "_CMP_LT_OQ", "<=": "_
 def x86_width(prefix: str, vector_type: str, select: str, fma: bool) -> VectorWidth:
     """One width: `prefix` of its intrinsics (`_mm256_add_ps`), its type (`__m256`), how it selects
     ("bitwise": and/andnot/or on a comparison, SSE; "blendv": blendv_ps, AVX; "mask": a __mmask,
-    AVX-512) and whether it has fmadd_ps. Its lane-wise helpers are nncg_exp_ps, nncg256_exp_ps, ..."""
+    AVX-512) and whether it has fmadd_ps. Its math helpers are nncg_exp_ps, nncg256_exp_ps, ...;
+    their integer operations (vector_math.py) are SSE2's, AVX2's and AVX-512F's epi32 intrinsics."""
     p = prefix
     ops = {
         "load": f"{p}_loadu_ps({{address}})",
@@ -22,11 +23,25 @@ def x86_width(prefix: str, vector_type: str, select: str, fma: bool) -> VectorWi
         "vector": f"{p}_setr_ps({{values}})",
         **{op: f"{p}_{name}_ps({{a}}, {{b}})" for op, name in ARITH.items()},
         **{cmp: _select(p, select, cmp) for cmp in COMPARE},
-        "lane_wise": f"nncg{p.removeprefix('_mm')}_{{fn}}_ps",
+        "math": f"nncg{p.removeprefix('_mm')}_{{fn}}_ps",
     }
     if fma:
         ops["fma"] = f"{p}_fmadd_ps({{a}}, {{b}}, {{c}})"
-    return VectorWidth(vector_type, ops)
+    si = f"si{vector_type.removeprefix('__m')}"  # si128, si256, si512
+    bits = {
+        "type": f"{vector_type}i",
+        "splat": f"{p}_set1_epi32({{value}})",
+        "from_float": f"{p}_castps_{si}({{a}})",
+        "to_float": f"{p}_cast{si}_ps({{a}})",
+        "convert": f"{p}_cvtepi32_ps({{a}})",
+        "+": f"{p}_add_epi32({{a}}, {{b}})",
+        "-": f"{p}_sub_epi32({{a}}, {{b}})",
+        "&": f"{p}_and_{si}({{a}}, {{b}})",
+        "|": f"{p}_or_{si}({{a}}, {{b}})",
+        "<<": f"{p}_slli_epi32({{a}}, {{n}})",
+        ">>": f"{p}_srai_epi32({{a}}, {{n}})",
+    }
+    return VectorWidth(vector_type, ops, bits=bits)
 
 
 def _select(p: str, style: str, cmp: str) -> str:

@@ -45,11 +45,14 @@ class Comparison(TextEnum):
 
 
 class MathFunction(TextEnum):
-    """The math.h functions (C89, double) kernels call."""
+    """The math functions kernels call: math.h's (C89, double) in scalar code, where sigmoid is
+    1 / (1 + exp(-x)) and erf is C99's; polynomial approximations on vectors (backends/vector_math.py)."""
 
     EXP = "exp"
     LOG = "log"
     TANH = "tanh"
+    SIGMOID = "sigmoid"
+    ERF = "erf"
 
 
 class BufferRole(TextEnum):

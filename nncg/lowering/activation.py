@@ -1,5 +1,6 @@
 """Activations applied where a value is stored: a max for ReLU, a max or conditional move for leaky,
-max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, tanh and ELU through math.h calls."""
+max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, tanh and ELU through math function calls
+(math.h in scalar code, polynomials on vectors)."""
 
 from __future__ import annotations
 
@@ -41,9 +42,8 @@ def _leaky_relu(value: Expr, act: Activation) -> Expr:
 
 
 def _sigmoid(value: Expr, _act: Activation) -> Expr:
-    # 1 / (1 + exp(-x)): for very negative x, exp overflows to inf and the quotient is the exact 0.
-    e = Call("exp", Binary("-", _splat(0.0, value), value))
-    return Binary("/", _splat(1.0, value), Binary("+", _splat(1.0, value), e))
+    # Scalar code prints 1 / (1 + exp(0 - x)); vectors call one function (exp, add and divide).
+    return Call("sigmoid", value)
 
 
 def _tanh(value: Expr, _act: Activation) -> Expr:

@@ -1,0 +1,264 @@
+"""Backend: exp, log, tanh, sigmoid and erf of a float vector as polynomial approximations, without
+a math.h call per lane. Each algorithm is written once, here, over a width's templates (the float
+operations of vector_width.OPERATIONS plus the integer and bit operations of BIT_OPERATIONS), so
+every ISA prints the same algorithm with the same constants; an ISA only fills its table (x86.py,
+neon.py). Where a template is fused (`fma`) the ISA rounds once, elsewhere twice: the results differ
+in the last bit between ISAs, all within the bounds below.
+
+Accuracy: the bounds, in ULPs (the float32 spacing at the exact result, 2^-149 for denormals), hold
+on SSE (no FMA), AVX2, AVX-512 and NEON (AArch64; ARMv7 with and without VFPv4's FMA), checked by
+tests/test_vector_math.py over every 4096th float32 bit pattern plus the edges against float64
+numpy/scipy; the largest errors measured, there and over every 64th bit pattern (avx2, ssse3):
+
+    function  bound  measured    function  bound  measured
+    exp       1.5    1.00        sigmoid   2.5    2.28
+    log       1      0.81        erf       1.5    1.29 (SSE), 1.11 (NEON), 1.03 (AVX)
+    tanh      1.5    1.28
+
+Specials are exact: NaN in, NaN out; exp(+Inf) = +Inf (and every x > 88.7228 overflows to +Inf),
+exp(-Inf) = 0; log(+-0) = -Inf, log(x < 0) = NaN, log(+Inf) = +Inf; tanh, erf and sigmoid saturate
+to +-1 (0 and 1); tanh(-0) = erf(-0) = -0.
+
+Denormals are computed, not flushed, where the FPU does not flush them (x86 without DAZ/FTZ,
+AArch64): exp of x in [-103.97, -87.34] is a (gradually underflowing) denormal, the product of two
+normal scale factors, rounded once; log of a denormal is exact to the bound (the input is scaled by
+2^23 first). ARMv7's NEON unit always flushes: there denormal inputs read as +-0 and denormal
+results are 0."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+from ..ir.kinds import MathFunction
+from .c_text import INDENT, c_float
+from .vector_width import VectorWidth
+
+# --------------------------------------------------------------------------- the constants, shared
+
+# exp: x = n ln2 + r, |r| <= ln2/2 (Cody-Waite: LN2_HI has 9 significant bits, so n * LN2_HI is
+# exact), exp(r) = 1 + r + r^2 P(r) (Cephes expf), exp(x) = exp(r) 2^n.
+EXP_LOW, EXP_HIGH = -104.0, 89.0  # exp(-104) rounds to 0, exp(89) to +Inf: the clamp changes nothing
+LOG2E = 1.44269504088896341
+LN2_HI, LN2_LO = 0.693359375, -2.12194440e-4
+ROUNDER = 12582912.0  # 1.5 * 2^23: adding it rounds to an integer, which its low bits hold
+EXP_P = (1.9875691500e-4, 1.3981999507e-3, 8.3334519073e-3, 4.1665795894e-2, 1.6666665459e-1, 5.0000001201e-1)
+
+# log: x = m 2^e, sqrt(1/2) <= m < sqrt(2), f = m - 1, log(x) = e ln2 + f - f^2/2 + f^3 P(f) (Cephes logf).
+SQRT_HALF = 0.707106781186547524
+FLT_MIN = 1.17549435e-38  # the smallest normal float
+FLT_MAX = 3.40282347e38
+LOG_P = (
+    7.0376836292e-2,
+    -1.1514610310e-1,
+    1.1676998740e-1,
+    -1.2420140846e-1,
+    1.4249322787e-1,
+    -1.6668057665e-1,
+    2.0000714765e-1,
+    -2.4999993993e-1,
+    3.3333331174e-1,
+)
+
+# tanh: |x| < 0.625: x + x^3 P(x^2) (Cephes tanhf); beyond: 1 - 2 / (exp(2|x|) + 1), the sign of x.
+TANH_SMALL = 0.625
+TANH_P = (-5.70498872745e-3, 2.06390887954e-2, -5.37397155531e-2, 1.33314422036e-1, -3.33332819422e-1)
+
+# erf: |x| < 1: x + x P(x^2) (P(0) = 2/sqrt(pi) - 1, so 2/sqrt(pi) is never rounded); 1 <= |x| <= 4:
+# 1 - exp(-x^2) R(1/|x|), R a fit of erfc(a) exp(a^2) in 1/a. Both fits: least squares in relative
+# error at Chebyshev nodes, each float32 coefficient rounded before the next is fitted. erf(4) rounds to 1.
+ERF_HIGH = 4.0
+ERF_P = (7.842288e-05, -0.0008006793, 0.0051879627, -0.026853643, 0.112835824, -0.37612626, 0.12837917)
+ERF_R = (
+    0.029679121,
+    -0.17401093,
+    0.42460886,
+    -0.51841944,
+    0.22257608,
+    0.23907734,
+    -0.37895855,
+    0.021223841,
+    0.5616815,
+    0.00012575778,
+)
+
+# The bounds stated above, in ULPs, asserted by tests/test_vector_math.py on every vector target.
+ULP_BOUNDS = {"exp": 1.5, "log": 1.0, "tanh": 1.5, "sigmoid": 2.5, "erf": 1.5}
+
+# Float bit patterns, as the int32 an integer splat takes.
+SIGN = "(-2147483647 - 1)"  # 0x80000000
+MAGNITUDE = "2147483647"  # 0x7fffffff
+MANTISSA = "8388607"  # 0x007fffff
+HALF_EXPONENT = "1056964608"  # 0x3f000000: the bits of 0.5
+QUIET_NAN = "2143289344"  # 0x7fc00000
+
+
+# --------------------------------------------------------------------------- the algorithms, once
+
+
+class _Body:
+    """The statements of one helper, spelled from a width's templates; each method returns C text."""
+
+    def __init__(self, width: VectorWidth) -> None:
+        self.w = width
+        self.lines: list[str] = []
+        self.used: dict[str, None] = {}  # the operations of width.ops spelled, in order
+
+    def spell(self, op: str, **fields: str) -> str:
+        self.used[op] = None
+        return self.w.spell(op, **fields)
+
+    def let(self, name: str, value: str, integer: bool = False) -> str:
+        kind = self.w.bits["type"] if integer else self.w.type
+        self.lines.append(f"{INDENT}const {kind} {name} = {value};")
+        return name
+
+    # float
+    def c(self, value: float) -> str:
+        return self.spell("splat", value=c_float(value))
+
+    def op(self, op: str, a: str, b: str) -> str:
+        return self.spell(op, a=a, b=b)
+
+    def fma(self, a: str, b: str, c: str) -> str:
+        if "fma" in self.w.ops:
+            return self.spell("fma", a=a, b=b, c=c)
+        return self.op("+", self.op("*", a, b), c)
+
+    def select(self, cmp: str, lhs: str, rhs: str, then: str, otherwise: str) -> str:
+        return self.spell(cmp, lhs=lhs, rhs=rhs, then=then, otherwise=otherwise)
+
+    def horner(self, x: str, coefficients: Sequence[float]) -> str:
+        acc = self.c(coefficients[0])
+        for k in coefficients[1:]:
+            acc = self.fma(acc, x, self.c(k))
+        return acc
+
+    def call(self, fn: str, x: str) -> str:
+        return f"{self.w.spell('math', fn=fn)}({x})"
+
+    # integer and bits
+    def i(self, op: str, **fields: str) -> str:
+        return self.w.bits[op].format(**fields)
+
+    def ibits(self, value: str) -> str:
+        return self.i("splat", value=value)
+
+    def masked(self, x: str, bits: str, op: str = "&") -> str:
+        """The float x with its bits and-ed (or or-ed) with the int32 constant `bits`."""
+        return self.i("to_float", a=self.i(op, a=self.i("from_float", a=x), b=self.ibits(bits)))
+
+
+def _exp(b: _Body) -> str:
+    x = b.let("xc", b.op("max", b.c(EXP_LOW), b.op("min", b.c(EXP_HIGH), "x")))  # a NaN stays
+    t = b.let("t", b.fma(x, b.c(LOG2E), b.c(ROUNDER)))
+    n = b.let("n", b.op("-", t, b.c(ROUNDER)))
+    r = b.let("r", b.fma(n, b.c(-LN2_LO), b.fma(n, b.c(-LN2_HI), x)))
+    p = b.let("p", b.op("+", b.fma(b.horner(r, EXP_P), b.op("*", r, r), r), b.c(1.0)))
+    # 2^n as two normal factors 2^(n/2) 2^(n - n/2), n in [-150, 128]: the second product rounds
+    # once, to a denormal or to +Inf where exp does.
+    k = b.let("k", b.i("-", a=b.i("from_float", a=t), b=b.i("from_float", a=b.c(ROUNDER))), integer=True)
+    half = b.let("k1", b.i(">>", a=k, n="1"), integer=True)
+    bias = b.ibits("127")
+
+    def scale(e: str) -> str:
+        return b.i("to_float", a=b.i("<<", a=b.i("+", a=e, b=bias), n="23"))
+
+    return b.op("*", b.op("*", p, scale(half)), scale(b.i("-", a=k, b=half)))
+
+
+def _log(b: _Body) -> str:
+    scaled = b.select("<", "x", b.c(FLT_MIN), b.op("*", "x", b.c(8388608.0)), "x")  # a denormal: times 2^23
+    i = b.let("i", b.i("from_float", a=scaled), integer=True)
+    m = b.let("m", b.i("to_float", a=b.i("|", a=b.i("&", a=i, b=b.ibits(MANTISSA)), b=b.ibits(HALF_EXPONENT))))
+    low = b.let("low", b.select("<", m, b.c(SQRT_HALF), b.c(1.0), b.c(0.0)))  # m in [1/2, sqrt(1/2)): 2m
+    exponent = b.i("convert", a=b.i(">>", a=i, n="23"))
+    bias = b.select("<", "x", b.c(FLT_MIN), b.c(149.0), b.c(126.0))
+    e = b.let("e", b.op("-", b.op("-", exponent, bias), low))
+    f = b.let("f", b.fma(m, low, b.op("-", m, b.c(1.0))))  # 2m - 1 or m - 1, exact
+    z = b.let("z", b.op("*", f, f))
+    y = b.let("y", b.fma(z, b.c(-0.5), b.fma(e, b.c(LN2_LO), b.op("*", b.op("*", f, z), b.horner(f, LOG_P)))))
+    r = b.let("r", b.fma(e, b.c(LN2_HI), b.op("+", f, y)))
+    nan = b.i("to_float", a=b.ibits(QUIET_NAN))
+    finite = b.select("<=", "x", b.c(FLT_MAX), r, "x")  # +Inf and NaN are their own log
+    return b.select("<", "x", b.c(0.0), nan, b.select("<=", "x", b.c(0.0), b.c(float("-inf")), finite))
+
+
+def _tanh(b: _Body) -> str:
+    a = b.let("a", b.masked("x", MAGNITUDE))
+    z = b.let("z", b.op("*", a, a))
+    small = b.let("small", b.fma(b.op("*", a, z), b.horner(z, TANH_P), a))
+    e = b.call("exp", b.op("+", a, a))
+    large = b.let("large", b.op("-", b.c(1.0), b.op("/", b.c(2.0), b.op("+", e, b.c(1.0)))))
+    return _with_sign_of_x(b, b.select("<", a, b.c(TANH_SMALL), small, large))
+
+
+def _sigmoid(b: _Body) -> str:
+    # exp(-|x|) / (1 + exp(-|x|)) below 0, 1 / (1 + exp(-|x|)) above: exp never overflows, and the
+    # tiny results of very negative x (down to the denormals) are as accurate as exp's.
+    e = b.let("e", b.call("exp", b.masked("x", SIGN, "|")))
+    return b.op("/", b.select("<", "x", b.c(0.0), e, b.c(1.0)), b.op("+", b.c(1.0), e))
+
+
+def _erf(b: _Body) -> str:
+    a = b.let("a", b.op("min", b.c(ERF_HIGH), b.masked("x", MAGNITUDE)))  # a NaN stays
+    z = b.let("z", b.op("*", a, a))
+    # Times 16, then 1/16 (both exact): a P(x^2) stays normal for a tiny normal x where a unit that
+    # flushes denormals (ARMv7 NEON) multiplies and adds in two steps.
+    a16 = b.op("*", a, b.c(16.0))
+    small = b.let("small", b.op("*", b.fma(a16, b.horner(z, ERF_P), a16), b.c(0.0625)))
+    u = b.let("u", b.op("/", b.c(1.0), a))
+    tail = b.op("*", b.call("exp", b.op("-", b.c(0.0), z)), b.horner(u, ERF_R))
+    large = b.let("large", b.op("-", b.c(1.0), tail))
+    return _with_sign_of_x(b, b.select("<", a, b.c(1.0), small, large))
+
+
+def _with_sign_of_x(b: _Body, magnitude: str) -> str:
+    sign = b.i("&", a=b.i("from_float", a="x"), b=b.ibits(SIGN))
+    return b.i("to_float", a=b.i("|", a=b.i("from_float", a=magnitude), b=sign))
+
+
+ALGORITHMS: dict[str, tuple[Callable[[_Body], str], str]] = {
+    "exp": (_exp, "x = n ln2 + r, exp(r) by a degree-7 polynomial, times 2^n"),
+    "log": (_log, "x = m 2^e, log(m) by a degree-11 polynomial in m - 1, plus e ln2"),
+    "tanh": (_tanh, "an odd polynomial below |x| = 0.625, 1 - 2 / (exp(2|x|) + 1) above"),
+    "sigmoid": (_sigmoid, "1 / (1 + exp(-x)), as exp(x) / (1 + exp(x)) below 0"),
+    "erf": (_erf, "x + x P(x^2) below |x| = 1, 1 - exp(-x^2) R(1/|x|) above"),
+}
+assert set(ALGORITHMS) == set(MathFunction)
+# The functions a helper calls, printed before it.
+CALLS = {"tanh": ("exp",), "sigmoid": ("exp",), "erf": ("exp",)}
+
+
+def has_vector_math(width: VectorWidth) -> bool:
+    """Whether the width's table has the integer and bit operations the algorithms need."""
+    return bool(width.bits)
+
+
+def _body(fn: str, width: VectorWidth) -> tuple[_Body, str]:
+    body = _Body(width)
+    return body, ALGORITHMS[fn][0](body)
+
+
+def operations_used(fn: str, width: VectorWidth) -> tuple[str, ...]:
+    """The operations of width.ops the helper of fn spells, in order of first use."""
+    return tuple(_body(fn, width)[0].used)
+
+
+def vector_math_helper(fn: str, width: VectorWidth) -> tuple[str, ...]:
+    """The static function NAME(x) computing fn on each lane of a vector of `width`."""
+    body, result = _body(fn, width)
+    how = ALGORITHMS[fn][1]
+    return (
+        f"/* {fn} of each lane: {how}; max error {ULP_BOUNDS[fn]:g} ULP (nncg/backends/vector_math.py) */",
+        f"static {width.type} {width.spell('math', fn=fn)}({width.type} x)",
+        "{",
+        *body.lines,
+        f"{INDENT}return {result};",
+        "}",
+    )
+
+
+def with_callees(functions: set[str]) -> list[str]:
+    """The functions and those they call, each after its callees, then by name."""
+    needed = set(functions) | {callee for fn in functions for callee in CALLS.get(fn, ())}
+    return sorted(needed, key=lambda fn: (fn in CALLS, fn))
