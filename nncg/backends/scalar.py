@@ -71,9 +71,17 @@ class ScalarPrinter:
         return [head, *self.stmts(loop.body, depth + 1), pad + "}"]
 
     def _stmt_Let(self, let: Let, depth: int) -> list[str]:
+        """One block for a chain of Lets each of whose body is just the next Let: their scopes end
+        together, so the declarations share a block (26 accumulators are not 26 nested blocks)."""
         pad = INDENT * depth
-        decl = f"{pad}{INDENT}{self.type_of(let.init.lanes)} {let.name} = {self.expr(let.init)};"
-        return [pad + "{", decl, *self.stmts(let.body, depth + 1), pad + "}"]
+        chain = [let]
+        while len(chain[-1].body) == 1 and isinstance(chain[-1].body[0], Let):
+            inner = chain[-1].body[0]
+            if any(inner.name == outer.name for outer in chain):
+                break  # a shadowing declaration needs its own block
+            chain.append(inner)
+        decls = [f"{pad}{INDENT}{self.type_of(v.init.lanes)} {v.name} = {self.expr(v.init)};" for v in chain]
+        return [pad + "{", *decls, *self.stmts(chain[-1].body, depth + 1), pad + "}"]
 
     def _stmt_If(self, stmt: If, depth: int) -> list[str]:
         pad = INDENT * depth
