@@ -2,8 +2,9 @@
 
     python3 -m benchmarks.suite [--cpu 0] [--tune] [--targets ansi-c ssse3] [--models ball robot]
 
-writes benchmarks/RESULTS.md (the table, the machine's CPU, the date) and benchmarks/results.png (speed-up
-over onnxruntime and % of peak per model and target). Models NNCG cannot compile yet are listed, not hidden.
+writes benchmarks/RESULTS.md (the table, the machine's CPU, the date; sections other suites added, such as
+benchmarks/real_suite.py's, are kept) and benchmarks/results.png (speed-up over onnxruntime and % of peak per
+model and target, of every table in RESULTS.md). Models NNCG cannot compile yet are listed, not hidden.
 """
 
 from __future__ import annotations
@@ -42,9 +43,12 @@ class Row:
 
 
 def run_suite(
-    models, targets, *, cpu=None, batches=15, min_batch_seconds=0.02, peaks=None, progress=print, tuned=False
-) -> list[Row]:
-    """With `tuned`, each model is first tuned per layer for each target (nncg.tune, cached)."""
+    models, targets, *, cpu=None, batches=15, min_batch_seconds=0.02, peaks=None, progress=print, tuned=False,
+    path_of=None,
+) -> list[Row]:  # fmt: skip
+    """With `tuned`, each model is first tuned per layer for each target (nncg.tune, cached); `path_of` maps a
+    model name to its file (default: model_path). A model that fails is a row with the reason, not an abort."""
+    path_of = path_of or model_path
     peaks = peaks if peaks is not None else measure_peaks()
     rows = []
     for model in models:
@@ -52,15 +56,22 @@ def run_suite(
             progress(f"{model} / {target} ...")
             level = "auto, tuned" if tuned else "auto"  # the defaults
             try:
-                pipeline = tune(model_path(model), target, cpu=cpu, progress=lambda _: None) if tuned else None
+                path = path_of(model)
+                pipeline = tune(path, target, cpu=cpu, progress=lambda _: None) if tuned else None
                 result = benchmark(
-                    model_path(model), target, "auto", cpu=cpu, batches=batches, min_batch_seconds=min_batch_seconds,
+                    path, target, "auto", cpu=cpu, batches=batches, min_batch_seconds=min_batch_seconds,
                     peaks=peaks, pipeline=pipeline,
                 )  # fmt: skip
                 rows.append(Row(model, target, result, unroll=level))
             except NncgError as exc:
                 rows.append(Row(model, target, None, "not supported yet: " + short_problem(str(exc)), unroll=level))
+            except Exception as exc:  # noqa: BLE001 - a C compiler or export failure on one model: report, go on
+                rows.append(Row(model, target, None, f"failed: {type(exc).__name__}: {first_line(exc)}", unroll=level))
     return rows
+
+
+def first_line(exc: Exception) -> str:
+    return (str(exc).strip().splitlines() or [""])[0][:200]
 
 
 def short_problem(message: str) -> str:
@@ -81,14 +92,17 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def peaks_text(peaks: dict) -> str:
+    return ", ".join(f"{isa} {g:.1f} GFLOP/s" if g else f"{isa} n/a" for isa, g in peaks.items())
+
+
 def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -> str:
-    peak_text = ", ".join(f"{isa} {g:.1f} GFLOP/s" if g else f"{isa} n/a" for isa, g in peaks.items())
     lines = [
         "# Benchmark results",
         "",
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'})",
         f"- Date: {date}",
-        f"- Measured peak (this core, `python3 -m nncg.bench.peak`): {peak_text}",
+        f"- Measured peak (this core, `python3 -m nncg.bench.peak`): {peaks_text(peaks)}",
         "- NNCG: the generated C at `gcc -O3` plus the target's flags, at the unroll level shown (tuned: per-layer",
         "  algorithm, block shapes and unroll budgets from `--tune`, timed on this core); onnxruntime:",
         "  batch 1, one intra-op thread, all graph optimisations; `ORT µs` with IOBinding, `ORT run µs` through",
@@ -100,6 +114,12 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
         "  the memory plan; activations B: all activation buffers without reuse); gen s / cc s: C generation and",
         "  compile time.",
         "",
+    ]
+    return "\n".join(lines) + "\n" + results_table(rows)
+
+
+def results_table(rows: list[Row]) -> str:
+    lines = [
         "| model | target | unroll | NNCG µs | ORT µs | ORT run µs | speed-up | MACs | GFLOP/s | % peak | max abs err "
         "| max rel err | text B | rodata B | bss B | arena B | activations B | gen s | cc s |",
         "|" + "---|" * 19,
@@ -122,26 +142,81 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
     return "\n".join(lines) + "\n"
 
 
+@dataclass(frozen=True)
+class Bar:
+    label: str
+    speedup: float
+    percent_of_peak: float
+
+
 def write_chart(rows: list[Row], path: Path) -> None:
+    draw_chart([Bar(f"{r.model}\n{r.target}", r.result.speedup, r.result.percent_of_peak or 0.0)
+                for r in rows if r.result is not None], path)  # fmt: skip
+
+
+def table_bars(markdown: str) -> list[Bar]:
+    """The measured rows of every results table in `markdown` (RESULTS.md), so the chart shows all sections."""
+    bars, columns = [], None
+    for line in markdown.splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if not line.startswith("|"):
+            columns = None
+        elif cells[:2] == ["model", "target"]:
+            columns = {name: i for i, name in enumerate(cells)}
+        elif columns and cells[columns["speed-up"]].endswith("x"):
+            pct = cells[columns["% peak"]].split(" ")[0]
+            bars.append(Bar(
+                f"{cells[columns['model']]}\n{cells[columns['target']]}", float(cells[columns["speed-up"]][:-1]),
+                0.0 if pct == "n/a" else float(pct),
+            ))  # fmt: skip
+    return bars
+
+
+def draw_chart(bars: list[Bar], path: Path) -> None:
     """Two bar panels: speed-up over onnxruntime, and % of peak, per model and target."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    measured = [row for row in rows if row.result is not None]
-    labels = [f"{row.model}\n{row.target}" for row in measured]
+    labels = [bar.label for bar in bars]
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(max(6, 0.8 * len(labels) + 2), 7), sharex=True)
-    top.bar(labels, [row.result.speedup for row in measured], color="tab:blue")
+    top.bar(labels, [bar.speedup for bar in bars], color="tab:blue")
     top.axhline(1.0, color="black", linewidth=0.8)
     top.set_ylabel("speed-up vs onnxruntime")
-    bottom.bar(labels, [row.result.percent_of_peak or 0.0 for row in measured], color="tab:orange")
+    bottom.bar(labels, [bar.percent_of_peak for bar in bars], color="tab:orange")
     bottom.set_ylabel("% of ISA peak")
-    bottom.tick_params(axis="x", labelsize=8)
+    bottom.tick_params(axis="x", labelsize=8, labelrotation=90)
     fig.suptitle("NNCG, batch 1, one core")
     fig.tight_layout()
     fig.savefig(path, dpi=100, metadata={"Software": None})
     plt.close(fig)
+
+
+SECTION = re.compile(r"<!-- (?P<name>[\w-]+):begin -->\n.*?<!-- (?P=name):end -->\n", re.DOTALL)
+
+
+def marked_sections(document: str) -> str:
+    """The sections other suites wrote into RESULTS.md (between begin/end markers), to keep on a rewrite."""
+    return "".join("\n" + m.group(0) for m in SECTION.finditer(document))
+
+
+def merge_section(document: str, name: str, section: str) -> str:
+    """`document` with its section `name` replaced by `section`, or with `section` appended."""
+    block = f"<!-- {name}:begin -->\n{section.rstrip()}\n<!-- {name}:end -->\n"
+    for m in SECTION.finditer(document):
+        if m.group("name") == name:
+            return document[: m.start()] + block + document[m.end() :]
+    return document.rstrip("\n") + "\n\n" + block
+
+
+def write_results(out_dir: Path, document: str) -> Path:
+    """RESULTS.md and results.png (every table's measured rows) in `out_dir`."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results = out_dir / "RESULTS.md"
+    results.write_text(document)
+    draw_chart(table_bars(document), out_dir / "results.png")
+    return results
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -156,10 +231,9 @@ def main(argv: list[str] | None = None) -> int:
     peaks = measure_peaks()
     rows = run_suite(args.models, args.targets, cpu=args.cpu, peaks=peaks, tuned=args.tune)
     today = datetime.date.today().isoformat()
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    (args.out_dir / "RESULTS.md").write_text(results_markdown(rows, peaks, args.cpu, today))
-    write_chart(rows, args.out_dir / "results.png")
-    print((args.out_dir / "RESULTS.md").read_text())
+    previous = args.out_dir / "RESULTS.md"
+    kept = marked_sections(previous.read_text()) if previous.exists() else ""  # e.g. benchmarks/real_suite.py's
+    print(write_results(args.out_dir, results_markdown(rows, peaks, args.cpu, today) + kept).read_text())
     return 0
 
 

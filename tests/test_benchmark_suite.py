@@ -1,6 +1,7 @@
 """The benchmark suite's report and chart are produced and well formed on a tiny run (no timing claims)."""
 
-from benchmarks.suite import results_markdown, run_suite, write_chart
+from benchmarks.real_suite import select_cases
+from benchmarks.suite import merge_section, results_markdown, run_suite, table_bars, write_chart
 
 PEAKS = {"sse": 10.0, "avx2-fma": None, "avx512-fma": None}
 
@@ -42,3 +43,14 @@ def test_tuned_suite_row_uses_the_tuned_pipeline(tmp_path, monkeypatch):
     assert rows[0].unroll == "auto, tuned" and rows[0].result is not None
     assert rows[0].result.max_rel_err < 1e-4
     assert (tmp_path / "nncg" / "tune.json").exists()
+
+
+def test_suite_cases_and_results_sections():
+    assert select_cases(["resnet18"], None) == {"resnet18_96": ("resnet18", 96), "resnet18_224": ("resnet18", 224)}
+    assert select_cases(["squeezenet1_1"], 64) == {"squeezenet1_1_64": ("squeezenet1_1", 64)}
+    table = "| model | target | speed-up | % peak |\n|---|---|---|---|\n| a_96 | avx2 | 1.50x | 40.0 (avx2-fma) |\n"
+    document = merge_section("# Benchmark results\n", "real-models", "## old\n")
+    document = merge_section(document, "real-models", table)  # replaces, does not append
+    assert document.count("real-models:begin") == 1 and "## old" not in document
+    (bar,) = table_bars(document)
+    assert (bar.label, bar.speedup, bar.percent_of_peak) == ("a_96\navx2", 1.5, 40.0)

@@ -1,0 +1,104 @@
+"""Real-size benchmark models: torchvision architectures (benchmarks/torch_models.py) exported to ONNX,
+and a Keras-style NHWC model with tf2onnx's transposes (benchmarks/nhwc_model.py).
+
+    python3 -m benchmarks.real_models [--models resnet18 ...] [--size 96]
+
+writes benchmarks/models/real/<name>_<size>.onnx (the default cases without --size) and checks each in
+onnxruntime. The exports are deterministic (fixed seed, TorchScript exporter, fixed opset and input shape), so
+the files are not committed: they are tens of MB, and the suite exports the ones it needs when missing. Torch
+comes with the `bench` extra (pip install -e .[bench]).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import warnings
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+
+from .nhwc_model import NAME as NHWC
+from .nhwc_model import keras_mobilenet_nhwc
+
+OPSET = 17
+SEED = 0
+ROOT = Path(__file__).resolve().parent.parent
+REAL_DIR = ROOT / "benchmarks" / "models" / "real"
+ARCHITECTURES = [
+    "mobilenet_v2", "mobilenet_v3_small", "resnet18", "efficientnet_b0", "squeezenet1_1", "shufflenet_v2_x0_5",
+    "mnasnet0_5", "regnet_x_400mf",
+]  # fmt: skip
+MODELS = [*ARCHITECTURES, NHWC]
+# Every model at 96x96 (the embedded-vision size) plus two at ImageNet's 224x224.
+DEFAULT_CASES = [(name, 96) for name in MODELS] + [("resnet18", 224), ("mobilenet_v2", 224)]
+
+
+def case_name(name: str, size: int) -> str:
+    return f"{name}_{size}"
+
+
+def real_path(name: str, size: int) -> Path:
+    return REAL_DIR / f"{case_name(name, size)}.onnx"
+
+
+def export_bytes(model, size: int, **options) -> bytes:
+    """`model` (a torch.nn.Module, or an architecture name built with `options`) as ONNX for a
+    1x3xSIZExSIZE input, through the legacy TorchScript exporter (stable, byte-identical output)."""
+    import torch
+
+    from .torch_models import build
+
+    if isinstance(model, str):
+        model = build(model, SEED, **options)
+    buffer = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # dynamo=False is deprecated in favour of torch.export
+        torch.onnx.export(
+            model, (torch.zeros(1, 3, size, size),), buffer, dynamo=False, opset_version=OPSET,
+            input_names=["input"], output_names=["logits"], do_constant_folding=True,
+        )  # fmt: skip
+    return buffer.getvalue()
+
+
+def run_in_onnxruntime(model: bytes | Path) -> np.ndarray:
+    """The model's output on a fixed-seed input; raises when onnxruntime cannot load or run it."""
+    source = str(model) if isinstance(model, Path) else model
+    session = ort.InferenceSession(source, providers=["CPUExecutionProvider"])
+    (inp,) = session.get_inputs()
+    x = np.random.default_rng(0).standard_normal(inp.shape).astype(np.float32)
+    return session.run(None, {inp.name: x})[0]
+
+
+def ensure(name: str, size: int) -> Path:
+    """The exported model's path, exporting (and checking in onnxruntime) when the file is missing."""
+    path = real_path(name, size)
+    if not path.exists():
+        data = keras_mobilenet_nhwc(size).SerializeToString() if name == NHWC else export_bytes(name, size)
+        onnx.checker.check_model(onnx.load_from_string(data))
+        run_in_onnxruntime(data)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--models", nargs="+", choices=MODELS, help="default: the suite's cases")
+    parser.add_argument("--size", type=int, help="input height and width (default: the suite's sizes)")
+    args = parser.parse_args(argv)
+    cases = [(m, s) for m, s in DEFAULT_CASES if not args.models or m in args.models]
+    if args.size:
+        cases = [(m, args.size) for m in (args.models or MODELS)]
+    for name, size in cases:
+        real_path(name, size).unlink(missing_ok=True)  # always re-export: the script is the source of truth
+        path = ensure(name, size)
+        shape = list(run_in_onnxruntime(path).shape)
+        print(f"{path.relative_to(ROOT)}: {path.stat().st_size:,} bytes, runs in onnxruntime, output {shape}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

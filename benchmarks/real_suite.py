@@ -1,0 +1,92 @@
+"""The real-size benchmark suite: torchvision architectures and a Keras NHWC model, NNCG against onnxruntime.
+
+    python3 -m benchmarks.real_suite [--models resnet18 ...] [--targets avx512] [--cpu 0] [--batches 15]
+                                     [--size 96] [--profile]
+
+Models (benchmarks/real_models.py) are exported when missing (needs torch: pip install -e .[bench]), compiled
+with NNCG's untuned defaults (unroll auto; weights in NAME.weights above 4 MiB) and timed as benchmarks/suite.py
+times its models: one onnxruntime thread, interleaved, medians, % of the measured peak. The table replaces the
+"real-models" section of benchmarks/RESULTS.md (the small-model table stays) and the chart is redrawn from all
+tables. Models NNCG cannot compile are listed with the reason. --profile prints each model's per-layer times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+from pathlib import Path
+
+from nncg.backends import BACKENDS
+from nncg.bench.benchmark import format_profile, profile
+from nncg.bench.peak import TARGET_ISA, measure_peaks
+
+from .real_models import DEFAULT_CASES, MODELS, case_name, ensure
+from .suite import ROOT, Row, cpu_model, first_line, merge_section, peaks_text, results_table, run_suite, write_results
+
+SECTION = "real-models"
+
+
+def select_cases(models: list[str] | None, size: int | None) -> dict[str, tuple[str, int]]:
+    """{case name: (model, size)}: the default cases, those of `models`, or `models` at `size`."""
+    if size:
+        cases = [(m, size) for m in (models or MODELS)]
+    else:
+        cases = [(m, s) for m, s in DEFAULT_CASES if not models or m in models]
+    return {case_name(m, s): (m, s) for m, s in cases}
+
+
+def section_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str, batches: int) -> str:
+    lines = [
+        "## Real-size models",
+        "",
+        f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'}); date: {date}",
+        f"- Measured peak: {peaks_text(peaks)}",
+        "- torchvision's mobilenet_v2, mobilenet_v3_small, resnet18, efficientnet_b0, squeezenet1_1,",
+        "  shufflenet_v2_x0_5, mnasnet0_5 and regnet_x_400mf rebuilt in torch.nn (benchmarks/torch_models.py; same",
+        "  layers and parameter counts), random weights (seed 0), exported by torch.onnx's TorchScript exporter",
+        "  (opset 17, batch 1, NAME_SIZE = input SIZExSIZE); keras_mobilenet_nhwc: Keras' MobileNetV2 (alpha 0.35,",
+        "  10 classes) in NHWC with tf2onnx's Transposes around every conv (benchmarks/nhwc_model.py).",
+        "- NNCG untuned defaults (unroll auto; weights auto: NAME.weights above 4 MiB). Columns as in the table",
+        f"  above; medians of {batches} batches of >= 20 ms each, NNCG and onnxruntime (one thread) interleaved.",
+        "",
+    ]
+    return "\n".join(lines) + "\n" + results_table(rows)
+
+
+def print_profiles(cases: dict, targets: list[str], cpu: int | None) -> None:
+    """The per-layer profile of each case and target (nncg-onnx --profile), or why there is none."""
+    for name, (model, size) in cases.items():
+        for target in targets:
+            print(f"\n## profile: {name} / {target}")
+            try:
+                print(format_profile(profile(ensure(model, size), target, cpu=cpu)))
+            except Exception as exc:  # noqa: BLE001 - report it and go on with the next model
+                print(f"failed: {type(exc).__name__}: {first_line(exc)}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--models", nargs="+", choices=MODELS, help="default: every model (at 96, two at 224 too)")
+    parser.add_argument("--targets", nargs="+", default=sorted(t for t in BACKENDS if t in TARGET_ISA))
+    parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
+    parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
+    parser.add_argument("--size", type=int, help="input height and width of every model (default: 96 and 224)")
+    parser.add_argument("--profile", action="store_true", help="also print each model's per-layer profile")
+    parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
+    args = parser.parse_args(argv)
+    cases = select_cases(args.models, args.size)
+    peaks = measure_peaks()
+    rows = run_suite(list(cases), args.targets, cpu=args.cpu, batches=args.batches, peaks=peaks,
+                     path_of=lambda name: ensure(*cases[name]))  # fmt: skip
+    section = section_markdown(rows, peaks, args.cpu, datetime.date.today().isoformat(), args.batches)
+    previous = args.out_dir / "RESULTS.md"
+    document = previous.read_text() if previous.exists() else "# Benchmark results\n"
+    write_results(args.out_dir, merge_section(document, SECTION, section))
+    print(section)
+    if args.profile:
+        print_profiles(cases, args.targets, args.cpu)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
