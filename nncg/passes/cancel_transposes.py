@@ -6,8 +6,9 @@ can then fuse into the Conv).
 Rules, applied until none fires:
 - two Transposes in a row compose into one; one with the identity permutation disappears;
 - a Transpose that only moves size-1 dims, read by a Reshape, is skipped by it (same row-major order);
-- a node whose runtime inputs all come from Transposes with the same permutation p, each read by that node
-  alone, runs before the transpose instead: y = op(T_p(a), T_p(b), c) becomes op(a, b, c') -> T_p. This holds
+- a node whose runtime inputs all come from Transposes with the same permutation p runs before the
+  transpose instead (a Transpose also read by a node that cannot take it, such as a Conv or a Reshape, stays
+  where it is): y = op(T_p(a), T_p(b), c) becomes op(a, b, c') -> T_p. This holds
   for the pointwise activations, Add, Sub, Mul, Div, Max, Min, Sum and PRelu (a constant operand c is
   broadcast to the output's rank and permuted by p's inverse), Concat (axis remapped), Pad and Slice (per-dim
   attributes permuted), Softmax and LogSoftmax (axis remapped) and ReduceMean (axes remapped; without
@@ -106,7 +107,7 @@ def _push_one(graph: Graph, node: Node) -> Graph | None:
     perm = transposes[0].attrs.perm
     if any(t.attrs.perm != perm for t in transposes):
         return None
-    if any(graph.is_graph_output(name) or any(c is not node for c in graph.consumers(name)) for name in data):
+    if any(graph.is_graph_output(name) or not _all_movable(graph, name, node, perm) for name in data):
         return None
     rewritten = _rewrite(graph, node, perm)
     if rewritten is None:
@@ -133,6 +134,16 @@ def _push_one(graph: Graph, node: Node) -> Graph | None:
         nodes += [replace(new_node, outputs=(inner,)), transpose] if n is node else [n]
     shaped = replace(graph, shapes={**graph.shapes, inner: tuple(out_shape[k] for k in inverse)})
     return shaped.with_nodes(nodes, constants)
+
+
+def _all_movable(graph: Graph, value: str, node: Node, perm) -> bool:
+    """Every other reader of the transposed value is a Transpose or can take the Transpose too: pushing into
+    node keeps the Transpose for them, and it disappears once they have taken it (a Conv reader would keep
+    it for good, and pushing would only add a Transpose)."""
+    return all(
+        reader is node or reader.op == "Transpose" or _rewrite(graph, reader, perm) is not None
+        for reader in graph.consumers(value)
+    )
 
 
 def _rewrite(graph: Graph, node: Node, perm) -> tuple[Node, dict, tuple[int, ...] | None] | None:
