@@ -121,9 +121,10 @@ def test_transpose_moves_past_activations_and_per_channel_constants():
 
 def test_residual_add_of_two_transposed_tensors():
     """x -> T -> Conv -> T = h (read by the next conv's T and the Add); Add(h, T(conv(h))): both Adds'
-    operands carry the same permutation, so the Add runs in NCHW and the Transposes cancel."""
+    operands carry the same permutation, so the Add runs in NCHW and the Transposes cancel. The Relu
+    writing the graph output keeps its Transpose in front (behind it, the Transpose would be a copy)."""
     w = {"w": rand(4, 4, 1, 1)}
-    shapes = {"x": NHWC, "i": NCHW, "a": NCHW, "h": NHWC, "j": NCHW, "b": NCHW, "k": NHWC, "y": NHWC}
+    shapes = {"x": NHWC, "i": NCHW, "a": NCHW, "h": NHWC, "j": NCHW, "b": NCHW, "k": NHWC, "s": NHWC, "y": NHWC}
     before = graph(
         [
             transpose("x", "i", TO_NCHW),
@@ -132,7 +133,8 @@ def test_residual_add_of_two_transposed_tensors():
             transpose("h", "j", TO_NCHW),
             conv("j", "b", "c2"),
             transpose("b", "k", TO_NHWC),
-            Node("Add", "add", ("h", "k"), ("y",)),
+            Node("Add", "add", ("h", "k"), ("s",)),
+            relu("s", "y"),
         ],
         w,
         shapes,
@@ -142,11 +144,12 @@ def test_residual_add_of_two_transposed_tensors():
             transpose("x", "i", TO_NCHW),  # the graph input's layout stays
             conv("i", "a", "c1"),
             conv("a", "b", "c2"),
-            Node("Add", "add", ("a", "b"), ("y_t0312",)),
-            transpose("y_t0312", "y", TO_NHWC, "add_transpose"),  # so does the graph output's
+            Node("Add", "add", ("a", "b"), ("s_t0312",)),
+            transpose("s_t0312", "s", TO_NHWC, "add_transpose"),  # so does the graph output's
+            relu("s", "y"),
         ],
         w,
-        {"x": NHWC, "i": NCHW, "a": NCHW, "b": NCHW, "y": NHWC, "y_t0312": NCHW},
+        {"x": NHWC, "i": NCHW, "a": NCHW, "b": NCHW, "s": NHWC, "y": NHWC, "s_t0312": NCHW},
     )
     check(before, expected)
 
@@ -155,7 +158,7 @@ def test_concat_and_pad_attributes_follow_the_permutation():
     w = {"w": rand(4, 4, 1, 1)}
     cat_nhwc, cat_nchw = (1, 3, 5, 8), (1, 8, 3, 5)
     pad_nhwc, pad_nchw = (1, 4, 7, 8), (1, 8, 4, 7)
-    shapes = {"x": NCHW, "a": NCHW, "b": NCHW, "ha": NHWC, "hb": NHWC, "c": cat_nhwc, "y": pad_nhwc}
+    shapes = {"x": NCHW, "a": NCHW, "b": NCHW, "ha": NHWC, "hb": NHWC, "c": cat_nhwc, "p": pad_nhwc, "y": pad_nchw}
     pads = PadAttrs((0, 1, 0, 0), (0, 0, 2, 0))  # NHWC: H by (1, 0), W by (0, 2)
     before = graph(
         [
@@ -164,7 +167,8 @@ def test_concat_and_pad_attributes_follow_the_permutation():
             transpose("a", "ha", TO_NHWC),
             transpose("b", "hb", TO_NHWC),
             Node("Concat", "cat", ("ha", "hb"), ("c",), ConcatAttrs(3)),
-            Node("Pad", "pad", ("c",), ("y",), pads),
+            Node("Pad", "pad", ("c",), ("p",), pads),
+            transpose("p", "y", TO_NCHW),
         ],
         w,
         shapes,
@@ -174,11 +178,11 @@ def test_concat_and_pad_attributes_follow_the_permutation():
             conv("x", "a", "c1"),
             conv("x", "b", "c2"),
             Node("Concat", "cat", ("a", "b"), ("c_t0312",), ConcatAttrs(1)),
-            Node("Pad", "pad", ("c_t0312",), ("y_t0312",), PadAttrs((0, 0, 1, 0), (0, 0, 0, 2))),
-            transpose("y_t0312", "y", TO_NHWC, "pad_transpose"),
+            # the Transposes around the graph output cancel: the Pad writes it
+            Node("Pad", "pad", ("c_t0312",), ("y",), PadAttrs((0, 0, 1, 0), (0, 0, 0, 2))),
         ],
         w,
-        {"x": NCHW, "a": NCHW, "b": NCHW, "c_t0312": cat_nchw, "y_t0312": pad_nchw, "y": pad_nhwc},
+        {"x": NCHW, "a": NCHW, "b": NCHW, "c_t0312": cat_nchw, "y": pad_nchw},
     )
     check(before, expected)
 
@@ -206,12 +210,13 @@ def test_global_pool_over_nhwc_needs_no_transpose():
 
 def test_slice_attributes_follow_the_permutation():
     w = {"w": rand(4, 4, 1, 1)}
-    shapes = {"x": NCHW, "a": NCHW, "h": NHWC, "y": (1, 2, 5, 2)}
+    shapes = {"x": NCHW, "a": NCHW, "h": NHWC, "s": (1, 2, 5, 2), "y": (1, 2, 5, 2)}
     before = graph(
         [
             conv("x", "a"),
             transpose("a", "h", TO_NHWC),
-            Node("Slice", "s", ("h",), ("y",), SliceAttrs((0, 1, 0, 3), (1, 1, 1, -2))),
+            Node("Slice", "s", ("h",), ("s",), SliceAttrs((0, 1, 0, 3), (1, 1, 1, -2))),
+            relu("s", "y"),
         ],
         w,
         shapes,
@@ -219,11 +224,12 @@ def test_slice_attributes_follow_the_permutation():
     expected = graph(
         [
             conv("x", "a"),
-            Node("Slice", "s", ("a",), ("y_t0312",), SliceAttrs((0, 3, 1, 0), (1, -2, 1, 1))),
-            transpose("y_t0312", "y", TO_NHWC, "s_transpose"),
+            Node("Slice", "s", ("a",), ("s_t0312",), SliceAttrs((0, 3, 1, 0), (1, -2, 1, 1))),
+            transpose("s_t0312", "s", TO_NHWC, "s_transpose"),
+            relu("s", "y"),
         ],
         w,
-        {"x": NCHW, "a": NCHW, "y_t0312": (1, 2, 2, 5), "y": (1, 2, 5, 2)},
+        {"x": NCHW, "a": NCHW, "s_t0312": (1, 2, 2, 5), "s": (1, 2, 5, 2), "y": (1, 2, 5, 2)},
     )
     check(before, expected)
 
@@ -323,10 +329,12 @@ def test_tf2onnx_style_model_matches_onnxruntime(target):
     model = tf2onnx_model()
     graph = PassManager("drop-identity,cancel-transposes").run(nncg.import_onnx(model))
     transposes = [n for n in graph.nodes if n.op == "Transpose"]
-    # left: after the graph input, and after the Concat, which writes graph output z (read by the Sigmoid
-    # and the Flatten, whose NHWC order the Dense weights expect); the 4 others are gone
-    assert [t.inputs for t in transposes] == [("x",), (graph.producer("z").inputs[0],)]
-    assert graph.producer(transposes[1].inputs[0]).op == "Concat"
+    # left: after the graph input, and the two in front of the Concat, which writes graph output z (and the
+    # Flatten reads z in NHWC order, as the Dense weights expect); the 3 others are gone
+    concat = graph.producer("z")
+    assert concat.op == "Concat" and concat.attrs.axis == 3
+    assert [t.inputs[0] for t in transposes] == ["x", "res_t0312", "r3_t0312"]
+    assert [t.outputs[0] for t in transposes[1:]] == list(concat.inputs)
     compile_and_check(model, target)
 
 

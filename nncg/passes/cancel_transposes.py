@@ -4,7 +4,8 @@ and cancel, so the NCHW ops between them become adjacent to their producers agai
 can then fuse into the Conv).
 
 Rules, applied until none fires:
-- two Transposes in a row compose into one; one with the identity permutation disappears;
+- two Transposes in a row compose into one; one with the identity permutation disappears (one writing a
+  graph output makes its input's producer write the output);
 - a Transpose that only moves size-1 dims, read by a Reshape, is skipped by it (same row-major order);
 - a node whose runtime inputs all come from Transposes with the same permutation p runs before the
   transpose instead (a Transpose also read by a node that cannot take it, such as a Conv or a Reshape, stays
@@ -13,7 +14,9 @@ Rules, applied until none fires:
   broadcast to the output's rank and permuted by p's inverse), Concat (axis remapped), Pad and Slice (per-dim
   attributes permuted), Softmax and LogSoftmax (axis remapped) and ReduceMean (axes remapped; without
   keepdims the Transpose of what is left, if any).
-A Transpose that reads a graph input, or writes a graph output, stays: the C API's layout does not change.
+A Transpose that reads a graph input, or writes a graph output, stays: the C API's layout does not change. A
+node writing a graph output keeps the Transpose in front of it (lowered, that Transpose is a free relabelling;
+after the node, it would be a copy kernel).
 """
 
 from __future__ import annotations
@@ -57,6 +60,8 @@ def _compose(graph: Graph) -> Graph | None:
         out = node.outputs[0]
         if _is_identity(perm) and not graph.is_graph_output(out):
             return _bypass(graph, node)
+        if _is_identity(perm) and _writes_privately(graph, node.inputs[0], node):
+            return _retarget(graph, node)
         inner = graph.producer(node.inputs[0])
         if inner is not None and inner.op == "Transpose":  # out dim k = inner's input dim inner_perm[perm[k]]
             composed = tuple(inner.attrs.perm[k] for k in perm)
@@ -73,6 +78,23 @@ def _bypass(graph: Graph, node: Node) -> Graph:
     """Readers of node's output read its input; node disappears."""
     src, dst = node.inputs[0], node.outputs[0]
     return graph.with_nodes(rename_input(n, dst, src) for n in graph.nodes if n is not node)
+
+
+def _writes_privately(graph: Graph, value: str, reader: Node) -> bool:
+    """value is computed by a node and read by `reader` alone."""
+    return (
+        graph.producer(value) is not None
+        and not graph.is_graph_output(value)
+        and all(n is reader for n in graph.consumers(value))
+    )
+
+
+def _retarget(graph: Graph, node: Node) -> Graph:
+    """An identity Transpose writing a graph output: its input's producer writes the output instead."""
+    src, dst = node.inputs[0], node.outputs[0]
+    producer = graph.producer(src)
+    renamed = replace(producer, outputs=tuple(dst if o == src else o for o in producer.outputs))
+    return graph.with_nodes(renamed if n is producer else n for n in graph.nodes if n is not node)
 
 
 def _moves_only_ones(graph: Graph, node: Node) -> bool:
@@ -113,6 +135,8 @@ def _push_one(graph: Graph, node: Node) -> Graph | None:
     if rewritten is None:
         return None
     new_node, constants, out_perm = rewritten
+    if out_perm is not None and graph.is_graph_output(node.outputs[0]):
+        return None  # the Transpose would be a copy kernel at the output, where node writes it in place
     source = {t.outputs[0]: t.inputs[0] for t in transposes}
     new_node = replace(new_node, inputs=tuple(source.get(name, name) for name in new_node.inputs))
     out = node.outputs[0]
