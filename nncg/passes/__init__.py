@@ -9,6 +9,7 @@ from __future__ import annotations
 from ..errors import NncgError
 from ..ir.target import Target
 from ..lowering import lower
+from .cancel_transposes import cancel_transposes
 from .drop_identity import drop_identity
 from .fold_batchnorm import fold_batchnorm
 from .fuse_activation import fuse_activation
@@ -44,6 +45,7 @@ def parse_unroll_level(text: str) -> int | None:
 
 
 register("drop-identity", "graph", drop_identity)
+register("cancel-transposes", "graph", cancel_transposes)
 register("fold-batchnorm", "graph", fold_batchnorm)
 register("fuse-bias", "graph", fuse_bias)
 register("fuse-residual", "graph", fuse_residual)
@@ -77,7 +79,7 @@ register(
 register("inline-constants", "loop", inline_constants)
 register("plan-memory", "loop", plan_memory, finishing=True, align=parse_align, reuse=parse_bool, weights=parse_weights)
 
-GRAPH_PIPELINE = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation"
+GRAPH_PIPELINE = "drop-identity,cancel-transposes,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation"
 
 
 def default_pipeline(
