@@ -23,8 +23,8 @@ Shape = tuple[int, ...]
 class Activation:
     """A pointwise activation that a producer applies at its store: relu, leaky_relu with slope
     alpha, clip to [low, high] (ReLU6 is clip(0, 6)), sigmoid, tanh, hard_sigmoid
-    max(0, min(1, alpha*x + beta)), hard_swish x * hard_sigmoid(x) with alpha 1/6 and beta 0.5, and
-    elu with scale alpha."""
+    max(0, min(1, alpha*x + beta)), hard_swish x * hard_sigmoid(x) (ONNX's has alpha 1/6 and beta 0.5),
+    elu with scale alpha, and silu x * sigmoid(x) (SiLU, Swish)."""
 
     kind: ActivationKind
     alpha: float = 0.0
@@ -38,8 +38,8 @@ class Activation:
     def __str__(self) -> str:
         if self.kind == "clip":
             return f"clip({self.low:g}, {self.high:g})"
-        if self.kind == "hard_sigmoid":
-            return f"hard_sigmoid(alpha={self.alpha:g}, beta={self.beta:g})"
+        if self.kind == "hard_sigmoid" or (self.kind == "hard_swish" and (self.alpha, self.beta) != (1 / 6, 0.5)):
+            return f"{self.kind}(alpha={self.alpha:g}, beta={self.beta:g})"
         if self.kind in ("leaky_relu", "elu"):
             return f"{self.kind}(alpha={self.alpha:g})"
         return str(self.kind)

@@ -79,6 +79,7 @@ class ActivationKind(TextEnum):
     HARD_SIGMOID = "hard_sigmoid"
     HARD_SWISH = "hard_swish"
     ELU = "elu"
+    SILU = "silu"
 
 
 class ConvAlgorithm(TextEnum):

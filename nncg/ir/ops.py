@@ -95,6 +95,7 @@ IR_OPS: dict[str, IrOp] = {
     "HardSigmoid": IrOp(Activation, no_macs),
     "HardSwish": IrOp(Activation, no_macs),
     "Elu": IrOp(Activation, no_macs),
+    "Silu": IrOp(Activation, no_macs),
     "PRelu": IrOp(None, no_macs),
     "Max": IrOp(None, no_macs),
     "Min": IrOp(None, no_macs),

@@ -62,6 +62,7 @@ LOWERINGS = {
     "HardSigmoid": lower_activation,
     "HardSwish": lower_activation,
     "Elu": lower_activation,
+    "Silu": lower_activation,
     "PRelu": lower_prelu,
     "Max": lower_binary,
     "Min": lower_binary,

@@ -1,5 +1,5 @@
 """Activations applied where a value is stored: a max for ReLU, a max or conditional move for leaky,
-max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, tanh and ELU through math function calls
+max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, SiLU, tanh and ELU through math function calls
 (math.h in scalar code, polynomials on vectors)."""
 
 from __future__ import annotations
@@ -65,6 +65,10 @@ def _elu(value: Expr, act: Activation) -> Expr:
     return Select(">", value, _splat(0.0, value), value, negative)
 
 
+def _silu(value: Expr, _act: Activation) -> Expr:
+    return Binary("*", value, Call("sigmoid", value))
+
+
 ACTIVATIONS = {
     "relu": _relu,
     "clip": _clip,
@@ -74,4 +78,5 @@ ACTIVATIONS = {
     "hard_sigmoid": _hard_sigmoid,
     "hard_swish": _hard_swish,
     "elu": _elu,
+    "silu": _silu,
 }
