@@ -5,7 +5,7 @@ The contract lets the blob run as fast as embedded arrays: the pointer is NAME_W
 aligned (every array in the blob starts at a multiple of it, as the embedded arrays are aligned), read
 only, and overlaps no input, output or arena. The .c promises the compiler the alignment
 (NNCG_ASSUME_ALIGNED) and passes each array to its layer as a restrict pointer at a constant offset.
-Misalignment is what cost the speed: a blob from malloc (16-byte aligned) made a third of the AVX2
+Misalignment is what cost the speed: a blob from malloc (16-byte aligned) made half the AVX2
 loads and every AVX-512 load of weights split across cache lines."""
 
 from __future__ import annotations
