@@ -215,19 +215,22 @@ def _c_floats(values: np.ndarray) -> str:
     return ",\n".join(", ".join(items[i : i + 8]) for i in range(0, len(items), 8))
 
 
-# Loads NAME.weights (a model compiled with weights in a file) and checks its CRC-32.
+# Loads NAME.weights (a model compiled with weights in a file) at a NAME_WEIGHTS_ALIGN-byte aligned
+# address (malloc's is not enough; C89 has no aligned_alloc, so it over-allocates and rounds up) and
+# checks it with NAME_weights_ok.
 WEIGHTS_LOADER = """\
 static const void *nncg_load_weights(void)
 {{
     FILE *f = fopen("{name}.weights", "rb");
-    void *data = malloc({macro}_WEIGHTS_BYTES);
+    unsigned char *raw = (unsigned char *)malloc({macro}_WEIGHTS_BYTES + {macro}_WEIGHTS_ALIGN);
+    unsigned char *data = raw == NULL ? NULL : raw + ({macro}_WEIGHTS_ALIGN - (size_t)raw % {macro}_WEIGHTS_ALIGN);
     if (f == NULL || data == NULL || fread(data, 1, {macro}_WEIGHTS_BYTES, f) != {macro}_WEIGHTS_BYTES) {{
         fprintf(stderr, "harness: cannot read {name}.weights\\n");
         exit(1);
     }}
     fclose(f);
     if (!{name}_weights_ok(data)) {{
-        fprintf(stderr, "harness: {name}.weights fails its CRC-32 check\\n");
+        fprintf(stderr, "harness: {name}.weights is misaligned or fails its CRC-32 check\\n");
         exit(1);
     }}
     return data;

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_vectorize_pixels import accumulate
+from test_x86_targets import TARGETS as X86_TARGETS
 
 import nncg
 from nncg.frontend import load_model
@@ -196,7 +197,7 @@ def gemm_model(k, n):
     return m
 
 
-@pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", *X86_TARGETS])
 def test_weights_in_a_binary_file_match_onnxruntime(target):
     import zlib
 
@@ -208,6 +209,82 @@ def test_weights_in_a_binary_file_match_onnxruntime(target):
     assert f"#define {macro}_WEIGHTS_BYTES {len(compiled.weights)}\n" in compiled.header
     assert f"#define {macro}_WEIGHTS_CRC32 0x{zlib.crc32(compiled.weights):08x}UL" in compiled.header
     check_against_onnxruntime(load_model(EXAMPLES / "robot.onnx"), compiled, sanitize=True, opt="-O1")
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", *X86_TARGETS])
+def test_conv_network_with_weights_in_a_file_matches_onnxruntime(target):
+    """Default unrolling and register blocking read the blob's arrays at constant offsets from the
+    aligned pointer (issue 15: a blob must run as fast as embedded weights, and as correctly)."""
+    from helpers import check_against_onnxruntime
+
+    compiled = nncg.compile(MODELS / "resnet8.onnx", target=target, weights="bin")
+    assert compiled.weights is not None
+    check_against_onnxruntime(load_model(MODELS / "resnet8.onnx"), compiled, opt="-O2")
+
+
+def test_weights_header_states_the_contract_the_code_relies_on():
+    """The blob's alignment, read-only use and no aliasing are stated in the header; the .c promises
+    the alignment to the compiler (guarded, so C89 compilers take it) and checks it in NAME_weights_ok."""
+    compiled = nncg.compile(EXAMPLES / "robot.onnx", target="ansi-c", unroll=None, weights="bin")
+    macro, name = compiled.name.upper(), compiled.name
+    header = " ".join(compiled.header.split())
+    assert f"#define {macro}_WEIGHTS_ALIGN 64" in compiled.header
+    assert f"`weights` is {macro}_WEIGHTS_ALIGN-byte aligned. malloc's alignment is not enough" in header
+    assert "it is read only: the model never writes it, and nothing may write it while the model runs" in header
+    assert "it overlaps none of the inputs, outputs and arena" in header
+    assert f"{name}_weights_ok(weights) returns 1 when `weights` is aligned" in header
+    assert "__builtin_assume_aligned((p), (n))" in compiled.source
+    assert f"(const float *)NNCG_ASSUME_ALIGNED(weights, {macro}_WEIGHTS_ALIGN);" in compiled.source
+    assert f"% {macro}_WEIGHTS_ALIGN != 0" in compiled.source
+    embedded = nncg.compile(EXAMPLES / "robot.onnx", target="ansi-c", unroll=None, weights="embed")
+    assert "WEIGHTS_ALIGN" not in embedded.header and "NNCG_ASSUME_ALIGNED" not in embedded.source
+
+
+WEIGHTS_OK_MAIN = """\
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include "{name}.h"
+
+int main(void)
+{{
+    unsigned char *raw = (unsigned char *)malloc({macro}_WEIGHTS_BYTES + 2 * {macro}_WEIGHTS_ALIGN);
+    unsigned char *aligned, *file;
+    FILE *f = fopen("{name}.weights", "rb");
+    size_t got;
+    if (raw == NULL || f == NULL) return 2;
+    file = (unsigned char *)malloc({macro}_WEIGHTS_BYTES);
+    if (file == NULL) return 2;
+    got = fread(file, 1, {macro}_WEIGHTS_BYTES, f);
+    fclose(f);
+    if (got != {macro}_WEIGHTS_BYTES) return 2;
+    aligned = raw + ({macro}_WEIGHTS_ALIGN - (size_t)raw % {macro}_WEIGHTS_ALIGN);
+    memcpy(aligned, file, {macro}_WEIGHTS_BYTES);
+    printf("aligned %d\\n", {name}_weights_ok(aligned));
+    memcpy(aligned + 4, file, {macro}_WEIGHTS_BYTES);
+    printf("misaligned %d\\n", {name}_weights_ok(aligned + 4));
+    memcpy(aligned, file, {macro}_WEIGHTS_BYTES);
+    aligned[7] ^= 1;
+    printf("corrupt %d\\n", {name}_weights_ok(aligned));
+    printf("null %d\\n", {name}_weights_ok(NULL));
+    free(file);
+    free(raw);
+    return 0;
+}}
+"""
+
+
+def test_weights_ok_refuses_a_misaligned_or_corrupt_blob(tmp_path):
+    """A blob at a float-aligned but not NAME_WEIGHTS_ALIGN-aligned address fails the check, as the
+    header documents: the code assumes the alignment. Built as strict C89 (the guard on the builtin)."""
+    compiled = nncg.compile(EXAMPLES / "robot.onnx", target="ansi-c", unroll=None, weights="bin")
+    compiled.write(tmp_path)
+    (tmp_path / "main.c").write_text(WEIGHTS_OK_MAIN.format(name=compiled.name, macro=compiled.name.upper()))
+    cc = find_c_compiler()
+    flags = [*compiled.strict_cflags, "-O2"]
+    run_tool([cc, *flags, f"{compiled.name}.c", "main.c", "-o", "main", "-lm"], "compiling", cwd=tmp_path)
+    out = run_tool([str(tmp_path / "main")], "running", cwd=tmp_path).stdout
+    assert out.split("\n")[:4] == ["aligned 1", "misaligned 0", "corrupt 0", "null 0"]
 
 
 def test_large_weights_go_to_a_file_by_default():

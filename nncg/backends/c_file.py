@@ -13,7 +13,7 @@ from ..ir.rename import rename_variables
 from .c_header import run_signature, signature
 from .c_text import INDENT, c_float
 from .scalar import ScalarPrinter
-from .weights import external_weights, weights_check
+from .weights import assume_aligned_macro, external_weights, weights_check, weights_pointers
 
 # Alignment of weight arrays and the static arena, and restrict for the layer functions' pointers:
 # GNU spellings where the compiler has them, nothing (still correct C89) elsewhere.
@@ -42,9 +42,10 @@ def source(printer: ScalarPrinter, program: Program, first_line: str, header_nam
         lines.append("#define _POSIX_C_SOURCE 199309L")
     lines.append(f'#include "{header_name}"')
     lines += [f"#include {inc}" for inc in printer.includes]
+    lines += ["#include <stddef.h>"] if external_weights(program) else []  # size_t, for the alignment check
     lines += printer.preamble()
     lines += ["#include <time.h>"] if profile else []
-    lines += ["", *PORTABILITY_MACROS, ""]
+    lines += ["", *PORTABILITY_MACROS, *(assume_aligned_macro() if external_weights(program) else ()), ""]
     lines += _constants(program)
     calls, passed = [], set()
     for kernel in program.kernels:
@@ -114,13 +115,10 @@ def _kernel_function(printer: ScalarPrinter, prefix: str, kernel: Kernel, params
 
 
 def _run_function(program: Program, calls: list[str], passed: set[str], profile: bool) -> list[str]:
-    """NAME_run: points each internal buffer into the caller's arena, then runs the layers.
-    `passed` names the buffers some layer takes; an input no layer reads is cast to void."""
-    decls = [
-        f"const float *const {b.name} = (const float *)weights + {b.offset};"
-        for b in program.role(BufferRole.CONSTANT)
-        if external_weights(program)
-    ]
+    """NAME_run: points each weight array into the blob (constant offsets from a pointer promised
+    NAME_WEIGHTS_ALIGN-byte aligned) and each internal buffer into the caller's arena, then runs the
+    layers. `passed` names the buffers some layer takes; an input no layer reads is cast to void."""
+    decls = weights_pointers(program) if external_weights(program) else []
     decls += [
         f"float *const {b.name} = (float *)arena + {b.offset}; /* {'x'.join(map(str, b.shape))} {b.layout} */"
         for b in _planned(program)

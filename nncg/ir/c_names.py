@@ -46,7 +46,7 @@ GENERATED_PREFIX = "nncg_"  # NNCG_ALIGNED, NNCG_RESTRICT, nncg_now, the test ha
 # a layer's function NAME_<layer> must not be one of them.
 API_SUFFIXES = frozenset(
     """run arena weights_ok profile_count profile_layers profile_seconds
-    h arena_bytes arena_align weights_bytes weights_crc32""".split()
+    h arena_bytes arena_align weights_bytes weights_align weights_crc32""".split()
 )
 
 
