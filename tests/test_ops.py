@@ -70,6 +70,8 @@ POOL_CASES = {
     "dilations": ((1, 4, 7, 7), dict(kernel_shape=[2, 2], dilations=[2, 2])),
     "odd_floor": ((1, 5, 9, 4), dict(kernel_shape=[2, 2], strides=[2, 2])),
     "pool1d": ((1, 4, 9), dict(kernel_shape=[3], strides=[2], pads=[1, 1])),
+    # both rows the dilated window reads are padding: onnxruntime gives -FLT_MAX (fuzz-found)
+    "window_in_padding": ((2, 4, 1, 5), dict(kernel_shape=[2, 3], dilations=[2, 2], pads=[1, 0, 1, 1], strides=[2, 2])),
 }
 
 
@@ -97,6 +99,8 @@ AVERAGE_POOL_CASES = {
         dict(kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1], ceil_mode=1, count_include_pad=1),
     ),
     "pool1d": ((1, 4, 9), dict(kernel_shape=[3], strides=[2], pads=[1, 1])),
+    # both rows the dilated window reads are padding: onnxruntime gives 0
+    "window_in_padding": ((2, 4, 1, 5), dict(kernel_shape=[2, 3], dilations=[2, 2], pads=[1, 0, 1, 1], strides=[2, 2])),
 }
 
 

@@ -1,9 +1,12 @@
-"""Pool lowerings on the window skeleton: MaxPool keeps a running max (padding never wins: it is
--inf); AveragePool sums and multiplies by 1/count, the count per output position precomputed here
+"""Pool lowerings on the window skeleton: MaxPool keeps a running max (padding is skipped; a
+window wholly in the padding gives -FLT_MAX as in onnxruntime, so such layers start from -FLT_MAX
+instead of -inf); AveragePool sums and multiplies by 1/count, the count per output position precomputed here
 from the ONNX rules (padding counted or not, ceil_mode windows clipped) into a table that unrolling
 turns into literals."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -14,13 +17,20 @@ from .window import spatial_names, window_nest
 
 
 def lower_maxpool(ctx: LoweringContext, node: Node) -> None:
-    _lower_pool(ctx, node, "m", Const.splat(float("-inf")), "max", None)
+    attrs: PoolAttrs = node.attrs
+    x_shape, out_shape = ctx.graph.shape(node.inputs[0]), ctx.graph.shape(node.outputs[0])
+    empty = window_counts(replace(attrs, count_include_pad=False), x_shape[2:], out_shape[2:]).min() == 0
+    start = float(np.finfo(np.float32).min) if empty else float("-inf")
+    _lower_pool(ctx, node, "m", Const.splat(start), "max", None)
 
 
 def lower_averagepool(ctx: LoweringContext, node: Node) -> None:
     attrs: PoolAttrs = node.attrs
     x_shape, out_shape = ctx.graph.shape(node.inputs[0]), ctx.graph.shape(node.outputs[0])
-    inverse = ctx.add_constant(f"inv_count_{node.name}", 1.0 / window_counts(attrs, x_shape[2:], out_shape[2:]))
+    counts = window_counts(attrs, x_shape[2:], out_shape[2:])
+    # a window wholly in the padding (count 0) averages to 0, as in onnxruntime
+    inverse = np.divide(1.0, counts, out=np.zeros_like(counts), where=counts > 0)
+    inverse = ctx.add_constant(f"inv_count_{node.name}", inverse)
     _lower_pool(ctx, node, "s", Const.splat(0.0), "+", inverse)
 
 
