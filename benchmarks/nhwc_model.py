@@ -13,9 +13,9 @@ import math
 
 import numpy as np
 import onnx
-from onnx import TensorProto, helper, numpy_helper
+from onnx import TensorProto, helper
 
-from .models import IR_VERSION, same_pads
+from .models import IR_VERSION, Builder, same_pads
 
 NAME = "keras_mobilenet_nhwc"
 OPSET = 13
@@ -27,25 +27,14 @@ def make_divisible(value: float, divisor: int = 8) -> int:
     return new_value + divisor if new_value < 0.9 * value else new_value
 
 
-class NhwcBuilder:
-    """Nodes and fixed-seed weights; tracks NHWC shapes; node outputs are named after the nodes."""
+class NhwcBuilder(Builder):
+    """The benchmark models' builder with the tf2onnx conventions: NHWC shapes, Transposes around
+    each conv, ReLU6 as Clip between shared constant bounds."""
 
     def __init__(self, size: int, seed: int):
-        self.rng = np.random.default_rng(seed)
-        self.nodes: list[onnx.NodeProto] = []
-        self.weights: list[onnx.TensorProto] = []
-        self.shapes = {"input_1": (1, size, size, 3)}
+        super().__init__(NAME, "input_1", (1, size, size, 3), seed)
         self.weight("relu6_min", np.float32(0.0))
         self.weight("relu6_max", np.float32(6.0))
-
-    def weight(self, name: str, array) -> str:
-        self.weights.append(numpy_helper.from_array(np.asarray(array, np.float32), name))
-        return name
-
-    def node(self, op: str, name: str, inputs: list[str], shape: tuple[int, ...], **attrs) -> str:
-        self.nodes.append(helper.make_node(op, inputs, [name], name=name, **attrs))
-        self.shapes[name] = shape
-        return name
 
     def conv(self, x: str, name: str, filters: int, kernel: int, stride: int = 1, depthwise: bool = False) -> str:
         """An NHWC conv as tf2onnx writes it: Transpose to NCHW, Conv with "same" pads, Transpose back."""
