@@ -28,9 +28,7 @@ from .bench.benchmark import calibrate, pinned
 from .bench.harness import CompiledHarness
 from .compiler import compile as compile_model
 from .frontend import import_onnx
-from .ir.graph import Graph
-from .ir.loops import Program
-from .ir.signature import graph_signature, kernel_signature, node_signature
+from .ir.signature import ir_signature, layer_signature
 from .ir.target import Target
 from .options import CompileOptions
 from .passes import REGISTRY, PassManager, format_pipeline, parse_pipeline
@@ -156,19 +154,6 @@ def ir_before(model, pipeline: str, pass_name: str, target: Target, input_shapes
     specs = parse_pipeline(pipeline)
     cut = next(i for i, spec in enumerate(specs) if spec.name == pass_name)
     return PassManager(specs[:cut], target, finish=False).run(import_onnx(model, input_shapes))
-
-
-def layer_signature(ir: Graph | Program, layer: str) -> str:
-    """The layer's signature in the IR (a node of a graph, a kernel of a program)."""
-    if isinstance(ir, Graph):
-        return node_signature(ir, next(n for n in ir.nodes if n.name == layer))
-    return kernel_signature(ir, next(k for k in ir.kernels if k.name == layer))
-
-
-def ir_signature(ir: Graph | Program) -> str:
-    if isinstance(ir, Graph):
-        return graph_signature(ir)
-    return hashlib.sha256("|".join(kernel_signature(ir, k) for k in ir.kernels).encode()).hexdigest()
 
 
 def with_layer_choices(pipeline: str, choices: dict[str, dict[str, object]]) -> str:

@@ -47,10 +47,10 @@ def collect_needs(program: Program, widths: Mapping[int, VectorWidth]) -> Needs:
         width = widths[lanes]
         definitions |= {(lanes, op): None for op in operations(node, width) if op in width.helpers}
         if isinstance(node, Call):
-            math.add((lanes, node.fn))
-            if has_vector_math(width):  # the helper's own operations may need definitions too
+            if (lanes, node.fn) not in math and has_vector_math(width):  # the helper's own operations
                 used = [op for fn in with_callees({node.fn}) for op in operations_used(fn, width)]
                 definitions |= {(lanes, op): None for op in used if op in width.helpers}
+            math.add((lanes, node.fn))
         elif isinstance(node, Const) and _in_table(node, width):
             table = rows.setdefault(lanes, {})
             table.setdefault(node.values, len(table))  # == on floats: 0.0 and -0.0 share a row

@@ -16,7 +16,7 @@ from ..backends import get_target
 from ..bench.peak import supported_isas
 from ..errors import NncgError
 from ..options import CompileOptions
-from ..passes.register_block import block_candidates, block_shape
+from ..passes.register_block import block_candidates, blockable
 from ..passes.unroll import CODE_BUDGET
 from ..tune import ir_before, tuning_candidates, with_layer_choices
 from .draw import Draw
@@ -143,7 +143,8 @@ def _layer_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[st
                 n: i < taken if d.chance(0.85) else d.chance(0.5) for i, n in enumerate(pixels)
             }
         registers = target.registers
-        layers = _blockable(model, replace(options, layers=choices).pipeline() or _base(options), target)
+        pipeline = replace(options, layers=choices).pipeline() or _base(options)
+        layers = blockable(ir_before(model, pipeline, "register-block", target))
         blocks = {n: list(_block_choice(d, shape, registers)) for n, shape in layers.items() if d.chance(0.7)}
         budgets = {n: d.pick(LAYER_BUDGETS) for n in layers if d.chance(0.5)}
     except NncgError:
@@ -162,13 +163,6 @@ def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
     if "vectorize-pixels" not in pipeline:
         return []
     return list(tuning_candidates(model, pipeline, "vectorize-pixels", get_target(options.target)))
-
-
-def _blockable(model: onnx.ModelProto, pipeline: str, target) -> dict[str, tuple[int, int]]:
-    """Layer -> (pixel extent, channel vectors) of every layer register-block would block."""
-    program = ir_before(model, pipeline, "register-block", target)
-    shapes = {k.name: block_shape(k.body) for k in program.kernels}
-    return {name: shape for name, shape in shapes.items() if shape is not None}
 
 
 def _block_choice(d: Draw, shape: tuple[int, int], registers: int) -> tuple[int, int]:

@@ -25,6 +25,20 @@ def node_signature(graph: Graph, node: Node) -> str:
     return _digest((node.op, _canonical(node.attrs, {}), values))
 
 
+def layer_signature(ir: Graph | Program, layer: str) -> str:
+    """The signature of the layer named `layer`: a node of a graph, a kernel of a program."""
+    if isinstance(ir, Graph):
+        return node_signature(ir, next(n for n in ir.nodes if n.name == layer))
+    return kernel_signature(ir, next(k for k in ir.kernels if k.name == layer))
+
+
+def ir_signature(ir: Graph | Program) -> str:
+    """The whole graph's signature, or every kernel's in order."""
+    if isinstance(ir, Graph):
+        return graph_signature(ir)
+    return hashlib.sha256("|".join(kernel_signature(ir, k) for k in ir.kernels).encode()).hexdigest()
+
+
 def graph_signature(graph: Graph) -> str:
     """Every node's signature in order, with how each reads the earlier ones' outputs."""
     producers = {v: i for i, n in enumerate(graph.nodes) for v in n.outputs}

@@ -65,8 +65,8 @@ def _elu(value: Expr, act: Activation) -> Expr:
     return Select(">", value, _splat(0.0, value), value, negative)
 
 
-def _silu(value: Expr, _act: Activation) -> Expr:
-    return Binary("*", value, Call("sigmoid", value))
+def _silu(value: Expr, act: Activation) -> Expr:
+    return Binary("*", value, _sigmoid(value, act))
 
 
 ACTIVATIONS = {

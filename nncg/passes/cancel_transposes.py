@@ -36,7 +36,7 @@ from ..ir.graph import (
     SoftmaxAttrs,
     TransposeAttrs,
 )
-from .rewrite import rename_input
+from .rewrite import fresh_name, rename_input
 
 POINTWISE = ("Add", "Sub", "Mul", "Div", "Max", "Min", "Sum", "PRelu")
 
@@ -134,7 +134,8 @@ def _push_one(graph: Graph, node: Node) -> Graph | None:
     rewritten = _rewrite(graph, node, perm)
     if rewritten is None:
         return None
-    new_node, constants, out_perm = rewritten
+    new_node, added, out_perm = rewritten
+    constants = {**graph.constants, **added}
     if out_perm is not None and graph.is_graph_output(node.outputs[0]):
         return None  # the Transpose would be a copy kernel at the output, where node writes it in place
     source = {t.outputs[0]: t.inputs[0] for t in transposes}
@@ -144,7 +145,7 @@ def _push_one(graph: Graph, node: Node) -> Graph | None:
     if out_perm is None:  # nothing left to transpose
         return _replace(graph, node, replace(new_node, outputs=(out,)), constants)
     inverse = _inverse(out_perm)
-    inner = names.fresh_name(f"{out}_{_perm_text(inverse)}", graph.constants, graph.shapes, constants)
+    inner = fresh_name(graph, f"{out}_{_perm_text(inverse)}", constants)
     node_names = {n.name for n in graph.nodes}
     transpose = Node(
         "Transpose",
@@ -172,49 +173,49 @@ def _all_movable(graph: Graph, value: str, node: Node, perm) -> bool:
 
 def _rewrite(graph: Graph, node: Node, perm) -> tuple[Node, dict, tuple[int, ...] | None] | None:
     """The node computing on the untransposed inputs (constant inputs still to rename), the constants it
-    needs and the permutation its output still needs (None: none); None if the node cannot move."""
+    adds and the permutation its output still needs (None: none); None if the node cannot move."""
     rank = len(perm)
     inverse = _inverse(perm)
-    constants = dict(graph.constants)
+    added: dict[str, np.ndarray] = {}
     attrs = node.attrs
     if isinstance(attrs, Activation):
-        return (node, constants, perm) if len(node.inputs) == 1 else None
+        return (node, added, perm) if len(node.inputs) == 1 else None
     if node.op in POINTWISE:
         if len(graph.shape(node.outputs[0])) != rank:
             return None
         inputs = []
         for name in node.inputs:
             if graph.is_constant(name):
-                value = constants[name]
+                value = graph.constants[name]
                 if value.ndim > rank:
                     return None
                 value = np.transpose(value.reshape((1,) * (rank - value.ndim) + value.shape), inverse)
-                name = names.fresh_name(f"{name}_{_perm_text(inverse)}", graph.constants, graph.shapes, constants)
-                constants[name] = np.ascontiguousarray(value)
+                name = fresh_name(graph, f"{name}_{_perm_text(inverse)}", added)
+                added[name] = np.ascontiguousarray(value)
             elif len(graph.shape(name)) != rank:
                 return None
             inputs.append(name)
-        return replace(node, inputs=tuple(inputs)), constants, perm
+        return replace(node, inputs=tuple(inputs)), added, perm
     if node.op == "Concat":
         if any(graph.is_constant(name) for name in node.inputs):
             return None
-        return replace(node, attrs=ConcatAttrs(perm[attrs.axis])), constants, perm
+        return replace(node, attrs=ConcatAttrs(perm[attrs.axis])), added, perm
     if node.op == "Pad":
         begin, end = (tuple(pads[k] for k in inverse) for pads in (attrs.pads_begin, attrs.pads_end))
-        return replace(node, attrs=replace(attrs, pads_begin=begin, pads_end=end)), constants, perm
+        return replace(node, attrs=replace(attrs, pads_begin=begin, pads_end=end)), added, perm
     if node.op == "Slice":
         starts, steps = (tuple(values[k] for k in inverse) for values in (attrs.starts, attrs.steps))
-        return replace(node, attrs=SliceAttrs(starts, steps)), constants, perm
+        return replace(node, attrs=SliceAttrs(starts, steps)), added, perm
     if node.op in ("Softmax", "LogSoftmax") and not attrs.coerce_2d:
-        return replace(node, attrs=SoftmaxAttrs(perm[attrs.axis])), constants, perm
+        return replace(node, attrs=SoftmaxAttrs(perm[attrs.axis])), added, perm
     if node.op == "ReduceMean":
         axes = tuple(sorted(perm[a] for a in attrs.axes))
         new_node = replace(node, attrs=ReduceAttrs(axes, attrs.keepdims))
         if attrs.keepdims:
-            return new_node, constants, perm
+            return new_node, added, perm
         left = [d for d in range(rank) if d not in axes]  # the input dims the output keeps, in order
         out_perm = tuple(left.index(perm[k]) for k in range(rank) if k not in attrs.axes)
-        return new_node, constants, None if _is_identity(out_perm) else out_perm
+        return new_node, added, None if _is_identity(out_perm) else out_perm
     return None
 
 

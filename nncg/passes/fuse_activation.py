@@ -16,8 +16,9 @@ from .rewrite import merge_into_producer, sole_consumer
 
 PRODUCERS = ("Conv", "Dense", "ScaleShift")
 
-# A gate g whose Mul(x, g(x)) is one activation: the gate's op -> the fused node's op.
-GATED = {"Sigmoid": "Silu", "HardSigmoid": "HardSwish"}
+# A gate g whose Mul(x, g(x)) is one activation: the gate's op -> the fused node's op and activation
+# kind (the gate's parameters carry over: HardSigmoid's alpha and beta).
+GATED = {"Sigmoid": ("Silu", "silu"), "HardSigmoid": ("HardSwish", "hard_swish")}
 
 
 def fuse_activation(graph: Graph) -> Graph:
@@ -43,12 +44,8 @@ def fuse_gated(graph: Graph) -> Graph:
 
 
 def _make_gated(graph: Graph, mul: Node, gate: Node, x: str) -> Graph:
-    act = gate.attrs
-    if gate.op == "Sigmoid":
-        fused_act = Activation("silu")
-    else:
-        fused_act = Activation("hard_swish", alpha=act.alpha, beta=act.beta)
-    fused = Node(GATED[gate.op], mul.name, (x,), mul.outputs, fused_act)
+    op, kind = GATED[gate.op]
+    fused = Node(op, mul.name, (x,), mul.outputs, replace(gate.attrs, kind=kind))
     # At the Mul's place: x exists before the gate, which is before the Mul.
     return graph.with_nodes([fused if n is mul else n for n in graph.nodes if n is not gate])
 

@@ -143,8 +143,13 @@ def jammable(loop: Loop) -> bool:
 
 def tuning_candidates(program: Program, target: Target) -> dict[str, tuple[tuple[int, int], ...]]:
     """For --tune: each blockable layer's block shapes worth timing."""
+    return {name: tuple(block_candidates(shape, target.registers)) for name, shape in blockable(program).items()}
+
+
+def blockable(program: Program) -> dict[str, tuple[int, int]]:
+    """Layer -> (pixel extent, channel vectors) of every kernel the pass would block."""
     shapes = {k.name: block_shape(k.body) for k in program.kernels}
-    return {name: tuple(block_candidates(shape, target.registers)) for name, shape in shapes.items() if shape}
+    return {name: shape for name, shape in shapes.items() if shape is not None}
 
 
 def block_candidates(shape: tuple[int, int], registers: int) -> list[tuple[int, int]]:
