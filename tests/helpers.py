@@ -24,6 +24,8 @@ Shape = Sequence[int | str] | None
 ValueSpec = Shape | onnx.ValueInfoProto
 
 RNG = np.random.default_rng(1234)
+# The CPU flags a target's code needs to run on this host (cross targets run under qemu elsewhere).
+CPU_FLAGS = {"avx2": {"avx2", "fma"}, "avx512": {"avx512f"}}
 ROOT = Path(__file__).resolve().parent.parent
 NNCG_CLI = (sys.executable, "-m", "nncg")  # run from ROOT: this checkout's nncg, not an installed one
 CLI_TIMEOUT_S = 600
@@ -70,6 +72,31 @@ def weights(*shape: int) -> np.ndarray:
     return (RNG.standard_normal(shape) / np.sqrt(np.prod(shape[1:]) or 1)).astype(np.float32)
 
 
+def host_flags() -> set[str]:
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return set()
+    return {flag for line in text.splitlines() if line.startswith("flags") for flag in line.split(":")[1].split()}
+
+
+HOST = host_flags()
+
+
+def missing_flags(target: str) -> set[str]:
+    """The CPU flags `target`'s code needs that this host lacks (empty: it runs here)."""
+    return CPU_FLAGS.get(target, set()) - HOST
+
+
+def skip_unless_host_runs(target: str) -> None:
+    """Skips the test when this host's CPU cannot run `target`'s code (avx512 on an AVX2-only core)."""
+    missing = missing_flags(target)
+    if missing:
+        import pytest
+
+        pytest.skip(f"the host CPU lacks {', '.join(sorted(missing))}")
+
+
 def check_against_onnxruntime(
     model_proto: onnx.ModelProto,
     compiled: Any,
@@ -79,7 +106,9 @@ def check_against_onnxruntime(
     seed: int = 0,
     opt: str = "-O2",
 ) -> VerifyReport:
-    """Compile and run `compiled`, compare with onnxruntime; fails with the report's table."""
+    """Compile and run `compiled`, compare with onnxruntime; fails with the report's table (skips where
+    the host cannot run the target's code)."""
+    skip_unless_host_runs(compiled.target)
     report = verify(model_proto, compiled, seed=seed, tolerance=tolerance, sanitize=sanitize, opt=opt)
     assert report.ok, report.format()
     return report

@@ -75,7 +75,7 @@ def test_convs_reading_a_halo_have_no_bounds_checks():
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2"])
 @pytest.mark.parametrize("case", CASES)
 def test_halo_models_match_onnxruntime(case, target):
-    from test_x86_targets import HOST
+    from helpers import HOST
 
     if target == "avx2" and not {"avx2", "fma"} <= HOST:
         pytest.skip("the host CPU lacks avx2, fma")

@@ -110,7 +110,7 @@ BLOCKS = [(16, None), (32, None), (16, "Conv_0:1x1"), (16, "Conv_0:7x5")]  # reg
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx512"])
 @pytest.mark.parametrize("case", CONVS)
 def test_blocked_conv_matches_onnxruntime(case, target, block):
-    from test_x86_targets import HOST
+    from helpers import HOST
 
     if target == "avx512" and "avx512f" not in HOST:
         pytest.skip("the host CPU lacks avx512f")

@@ -63,7 +63,7 @@ def test_every_tunable_pass_of_the_pipeline_is_a_round_in_pipeline_order(tmp_pat
     tunable = [
         s.name for s in parse_pipeline(nncg.default_pipeline(nncg.get_target("ssse3"))) if REGISTRY[s.name].tunable
     ]
-    assert tunable == ["winograd", "vectorize-pixels", "register-block", "unroll"]
+    assert tunable == ["winograd", "vectorize-pixels", "cache-block", "register-block", "unroll"]
     assert list(dict.fromkeys(rounds)) == tunable
 
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import HOST
 from scipy import special
-from test_x86_targets import HOST
 
 from nncg.backends import BACKENDS
 from nncg.backends.simd_needs import Needs

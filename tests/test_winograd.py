@@ -14,7 +14,7 @@ from nncg.frontend import import_onnx
 from nncg.ir.loops import If, Loop, walk_stmts
 from nncg.lowering.winograd import A_T, B_T, transformed_filters
 from nncg.passes import PassManager, default_pipeline
-from nncg.passes.winograd import padded_channels, parse_layers
+from nncg.passes.winograd import padded_channels, parse_layers, winograd_candidates
 
 GRAPH = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation"
 
@@ -34,9 +34,9 @@ def graph_after(m, winograd: str, facts=None):
 
 
 def test_cost_model_takes_3x3_convs_with_enough_input_channels():
-    wide = conv_model((1, 8, 6, 6), 12, (3, 3), pads=[1, 1, 1, 1])
-    narrow = conv_model((1, 3, 6, 6), 12, (3, 3), pads=[1, 1, 1, 1])
-    strided = conv_model((1, 8, 6, 6), 12, (3, 3), pads=[1, 1, 1, 1], strides=[2, 2])
+    wide = conv_model((1, 8, 8, 8), 12, (3, 3), pads=[1, 1, 1, 1])  # 4x4 output tiles
+    narrow = conv_model((1, 3, 8, 8), 12, (3, 3), pads=[1, 1, 1, 1])
+    strided = conv_model((1, 8, 8, 8), 12, (3, 3), pads=[1, 1, 1, 1], strides=[2, 2])
     (conv,) = graph_after(wide, "winograd", target(16, 8, 4)).nodes
     assert conv.attrs.algorithm == "winograd" and conv.attrs.gemm_channels == 16
     assert graph_after(narrow, "winograd").nodes[0].attrs.algorithm == "direct"
@@ -112,18 +112,26 @@ CASES = {
 }
 
 
+def with_winograd(m, target: str):
+    """m compiled by the default pipeline with Winograd forced on every layer it applies to (the cost
+    model leaves images this small to direct convolution)."""
+    layers = ";".join(f"{name}:true" for name in winograd_candidates(import_onnx(m)))
+    text = default_pipeline(nncg.get_target(target)).replace(",winograd", f",winograd{{layers={layers}}}")
+    return nncg.compile(m, target, verify_ir=True, pipeline=text)
+
+
 @pytest.mark.parametrize("case", CASES)
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3", *TARGETS])
 def test_matches_onnxruntime(case, target):
     m = CASES[case]
-    compiled = nncg.compile(m, target, verify_ir=True)
+    compiled = with_winograd(m, target)
     assert "u_Conv_0" in compiled.source  # the transformed filters: Winograd was taken
     check_against_onnxruntime(m, compiled)
 
 
 @pytest.mark.parametrize("case", ["pad1_odd", "asymmetric_pads", "batch_2", "residual_relu"])
 def test_sanitizers_find_nothing(case):
-    check_against_onnxruntime(CASES[case], nncg.compile(CASES[case], "ssse3"), sanitize=True)
+    check_against_onnxruntime(CASES[case], with_winograd(CASES[case], "ssse3"), sanitize=True)
 
 
 def test_halo_input_reads_the_border_instead_of_skipping_it():

@@ -5,7 +5,7 @@ import re
 from pathlib import Path
 
 import pytest
-from helpers import check_against_onnxruntime, onnx_model, weights
+from helpers import CPU_FLAGS, HOST, check_against_onnxruntime, onnx_model, weights
 from onnx import helper
 from test_ops import conv_model
 
@@ -15,18 +15,6 @@ from nncg.backends import BACKENDS, get_backend
 ROOT = Path(__file__).resolve().parent.parent
 NETWORKS = [ROOT / "examples" / f"{n}.onnx" for n in ("ball", "pedestrian", "robot")]
 NETWORKS += [ROOT / "benchmarks" / "models" / f"{n}.onnx" for n in ("resnet8", "dscnn", "mobilenet_v1_025")]
-CPU_FLAGS = {"avx2": {"avx2", "fma"}, "avx512": {"avx512f"}}
-
-
-def host_flags() -> set[str]:
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return set()
-    return {flag for line in text.splitlines() if line.startswith("flags") for flag in line.split(":")[1].split()}
-
-
-HOST = host_flags()
 TARGETS = [
     pytest.param(t, marks=pytest.mark.skipif(not flags <= HOST, reason=f"the host CPU lacks {', '.join(flags)}"))
     for t, flags in CPU_FLAGS.items()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from ..ir.target import Target
 from .simd import SimdPrinter
-from .x86 import x86_width
+from .x86 import X86_L1, X86_L2, x86_width
 
 AVX_128 = x86_width("_mm", "__m128", select="blendv", fma=True)
 AVX_256 = x86_width("_mm256", "__m256", select="blendv", fma=True)
@@ -18,7 +18,7 @@ AVX_512 = x86_width("_mm512", "__m512", select="mask", fma=True)
 
 
 class Avx2(SimdPrinter):
-    target = Target("avx2", vector_widths=(8, 4), registers=16, fma=True)
+    target = Target("avx2", vector_widths=(8, 4), registers=16, fma=True, l1_bytes=X86_L1, l2_bytes=X86_L2)
     widths = {8: AVX_256, 4: AVX_128}
     cflags = ("-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
@@ -26,7 +26,7 @@ class Avx2(SimdPrinter):
 
 
 class Avx512(SimdPrinter):
-    target = Target("avx512", vector_widths=(16, 8, 4), registers=32, fma=True)
+    target = Target("avx512", vector_widths=(16, 8, 4), registers=32, fma=True, l1_bytes=X86_L1, l2_bytes=X86_L2)
     widths = {16: AVX_512, 8: AVX_256, 4: AVX_128}
     cflags = ("-mavx512f", "-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")

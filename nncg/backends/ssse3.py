@@ -6,11 +6,11 @@ from __future__ import annotations
 
 from ..ir.target import Target
 from .simd import SimdPrinter
-from .x86 import x86_width
+from .x86 import X86_L1, X86_L2, x86_width
 
 
 class Ssse3(SimdPrinter):
-    target = Target("ssse3", vector_widths=(4,), registers=16, fma=False)
+    target = Target("ssse3", vector_widths=(4,), registers=16, fma=False, l1_bytes=X86_L1, l2_bytes=X86_L2)
     widths = {4: x86_width("_mm", "__m128", select="bitwise", fma=False)}
     cflags = ("-mssse3",)
     strict_cflags = ("-Wall", "-Wextra", "-Werror")

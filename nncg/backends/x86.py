@@ -8,6 +8,10 @@ from .vector_width import VectorWidth
 ARITH = {"+": "add", "-": "sub", "*": "mul", "/": "div", "max": "max", "min": "min"}
 COMPARE = {">": "cmpgt", ">=": "cmpge", "<": "cmplt", "<=": "cmple"}
 PREDICATES = {">": "_CMP_GT_OQ", ">=": "_CMP_GE_OQ", "<": "_CMP_LT_OQ", "<=": "_CMP_LE_OQ"}
+# Data caches per core every x86 target may meet: 32 KiB L1d (48 KiB from Ice Lake on) and 256 KiB
+# L2 (Skylake client; 512 KiB Zen 2, 1 MiB Skylake-SP): the cache-block pass sizes for the smallest.
+X86_L1 = 32 * 1024
+X86_L2 = 256 * 1024
 
 
 def x86_width(prefix: str, vector_type: str, select: str, fma: bool) -> VectorWidth:

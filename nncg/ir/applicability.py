@@ -3,7 +3,8 @@ carries it out and the tuner that times it, so each reads the same rule from one
 
 from __future__ import annotations
 
-from .graph import ConvAttrs, Graph, Node
+from .graph import ConvAttrs, DenseAttrs, Graph, Node
+from .kinds import ConvAlgorithm, VectorAxis
 
 
 def winograd_applies(graph: Graph, node: Node) -> bool:
@@ -17,4 +18,28 @@ def winograd_applies(graph: Graph, node: Node) -> bool:
         and attrs.dilations == (1, 1)
         and attrs.group == 1
         and graph.is_constant(node.inputs[1])
+    )
+
+
+def cache_block_applies(graph: Graph, node: Node) -> bool:
+    """A direct, ungrouped Conv vectorised over its output channels, with constant weights."""
+    attrs = node.attrs
+    return (
+        node.op == "Conv"
+        and isinstance(attrs, ConvAttrs)
+        and attrs.algorithm == ConvAlgorithm.DIRECT
+        and attrs.vector_axis == VectorAxis.CHANNELS
+        and attrs.group == 1
+        and graph.is_constant(node.inputs[1])
+    )
+
+
+def panel_packing_applies(graph: Graph, node: Node) -> bool:
+    """A Gemm/MatMul whose w is one constant [K, N] matrix (x's rows may be any)."""
+    attrs = node.attrs
+    return (
+        isinstance(attrs, DenseAttrs)
+        and not attrs.trans_x
+        and graph.is_constant(node.inputs[1])
+        and len(graph.shape(node.inputs[1])) == 2
     )

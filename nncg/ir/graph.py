@@ -64,6 +64,10 @@ class ConvAttrs:
     algorithm: ConvAlgorithm = ConvAlgorithm.DIRECT  # set by the winograd pass
     gemm_channels: int = 0  # Winograd: output channels padded to this many in its GEMMs (0: not padded)
     vector_axis: VectorAxis = VectorAxis.CHANNELS  # set by the vectorize-pixels pass, read by the lowering
+    # Set by the cache-block pass: weights packed in panels of `panel` output channels, the reduction
+    # done `ci_block` input channels at a time (0: not blocked / all input channels at once).
+    panel: int = 0
+    ci_block: int = 0
 
     def __post_init__(self) -> None:
         coerce(self, algorithm=ConvAlgorithm, vector_axis=VectorAxis)
@@ -128,6 +132,7 @@ class DenseAttrs:
     trans_w: bool = False
     alpha: float = 1.0
     beta: float = 1.0
+    panel: int = 0  # set by the cache-block pass: w packed in panels of this many columns (0: not packed)
 
 
 @dataclass(frozen=True)

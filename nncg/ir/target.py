@@ -13,12 +13,16 @@ class Target:
 
     vector_widths: the SIMD widths (float lanes) it prints, widest first; () for scalar C.
     registers: vector registers (float registers for scalar C) register blocking may fill.
-    fma: a multiply feeding an add can be one fused multiply-add (one rounding)."""
+    fma: a multiply feeding an add can be one fused multiply-add (one rounding).
+    l1_bytes, l2_bytes: the data caches of one core the cache-block pass sizes weight panels for, the
+    smallest of the CPUs the backend serves (0: no data cache, as on a Cortex-M; nothing is blocked)."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
     registers: int = 16
     fma: bool = False
+    l1_bytes: int = 0
+    l2_bytes: int = 0
 
     @property
     def lanes(self) -> int:

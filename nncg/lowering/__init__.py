@@ -13,6 +13,7 @@ from ..ir.loops import Program
 from .concat import lower_concat
 from .context import LoweringContext, row_major
 from .conv import lower_conv
+from .conv_blocked import lower_blocked_conv
 from .conv_transpose import lower_conv_transpose
 from .dense import lower_dense
 from .elementwise import lower_activation, lower_batchnorm, lower_binary, lower_prelu, lower_scale_shift
@@ -29,8 +30,14 @@ from .winograd import lower_winograd
 
 
 def lower_any_conv(ctx: LoweringContext, node: Node) -> None:
-    """Direct convolution, or Winograd where the winograd pass chose it."""
-    (lower_winograd if node.attrs.algorithm == ConvAlgorithm.WINOGRAD else lower_conv)(ctx, node)
+    """Direct convolution (cache-blocked where the cache-block pass chose it), or Winograd where the
+    winograd pass chose it."""
+    if node.attrs.algorithm == ConvAlgorithm.WINOGRAD:
+        lower_winograd(ctx, node)
+    elif node.attrs.panel:
+        lower_blocked_conv(ctx, node)
+    else:
+        lower_conv(ctx, node)
 
 
 LOWERINGS = {
@@ -73,10 +80,12 @@ LOWERINGS = {
 }
 
 
-def lower(graph: Graph, function_name: str | None = None, halos: bool = False) -> Program:
-    """`halos`: store tensors that only padded Convs read inside a zero border (see halo.py). Off by
-    default: it removes every border check, but on this machine gcc's code for the register-blocked
-    layers came out as often slower as faster (robot avx2 -2 %, pedestrian ssse3 +23 %)."""
+def lower(graph: Graph, function_name: str | None = None, halos: bool | str = "auto") -> Program:
+    """`halos`: store tensors that only padded Convs read inside a zero border (see halo.py). `auto`
+    (the default) does it only where the readers are cache-blocked Convs: it removes every border
+    check, which on a small image is every pixel (resnet18's layer4 at 96x96, avx2: 1860 -> 1400 us),
+    but for the other layers gcc's code came out as often slower as faster (robot avx2 -2 %,
+    pedestrian ssse3 +23 %). true: for every padded Conv; false: never."""
     name = program_name(function_name or graph.name)
     ctx = LoweringContext(graph, name, halos)
     for value in graph.inputs:

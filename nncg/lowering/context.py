@@ -104,7 +104,7 @@ class LoweringContext:
     of their own (nncg/ir/c_names.py); a node's kernel keeps the node's name, which --tune and the
     per-layer pass parameters use as the layer's identity."""
 
-    def __init__(self, graph: Graph, program: str, halos: bool = False):
+    def __init__(self, graph: Graph, program: str, halos: bool | str = "auto"):
         self.graph = graph
         self.program = program
         self.buffers: list[Buffer] = []
@@ -115,7 +115,7 @@ class LoweringContext:
         self._kernel_names = Namespace(layer_name)
         self._layers = {node.name: self._kernel_names.claim(node.name) for node in graph.nodes}
         self.pending_copies: list[tuple[str, TensorRef, TensorRef]] = []
-        self.halos = conv_halos(graph) if halos else {}
+        self.halos = conv_halos(graph, blocked_only=halos == "auto") if halos else {}
 
     def add_buffer(self, name: str, role: str, shape, order, onnx_name: str = "") -> TensorRef:
         shape = tuple(int(d) for d in shape)

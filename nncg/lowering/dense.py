@@ -1,8 +1,11 @@
 """Dense lowering (Gemm, MatMul): y[rows, n] = act(alpha * sum_k x[rows, k] * w[k, n] + beta * b),
-n innermost. A constant w is packed [K, N] so n is contiguous and vectorises; a runtime w (also
-transposed or batched) is read where it lives."""
+n innermost. A constant w is packed [K, N] so n is contiguous and vectorises, or, where the
+cache-block pass chose panels, [panel][K][column in panel] so each panel is one contiguous stream; a
+runtime w (also transposed or batched) is read where it lives."""
 
 from __future__ import annotations
+
+import numpy as np
 
 from ..ir.graph import DenseAttrs, Node
 from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
@@ -13,6 +16,8 @@ from .weights import permuted, weight_operand
 
 def lower_dense(ctx: LoweringContext, node: Node) -> None:
     attrs: DenseAttrs = node.attrs
+    if attrs.panel:
+        return _lower_packed(ctx, node)
     x = ctx.ref(node.inputs[0])
     w_rank = len(ctx.graph.shape(node.inputs[1]))
     swap = (*range(w_rank - 2), w_rank - 1, w_rank - 2)  # [..., N, K] read as [..., K, N]
@@ -38,6 +43,54 @@ def lower_dense(ctx: LoweringContext, node: Node) -> None:
         return (Let("acc", init, (*reduce, store)),)
 
     ctx.emit(node.name, "Dense", nest([*row_loops, ("n", n_extent)], body, parallel=True))
+
+
+def _lower_packed(ctx: LoweringContext, node: Node) -> None:
+    """w packed in panels of `attrs.panel` columns, [panel][k][column], so each panel's columns are
+    one contiguous stream (the cache-block pass chose it): for each panel, the rows x its columns."""
+    attrs: DenseAttrs = node.attrs
+    w = ctx.graph.constants[node.inputs[1]]
+    w = w.T if attrs.trans_w else w  # [K, N]
+    k_extent, n_extent = w.shape
+    x = ctx.ref(node.inputs[0])
+    bias = weight_operand(ctx, node.inputs[2], f"b_{node.name}") if len(node.inputs) > 2 else None
+    out_shape = ctx.graph.shape(node.outputs[0])
+    out = ctx.output(node.outputs[0], row_major(len(out_shape)))
+    row_loops = [(f"r{i}", d) for i, d in enumerate(out_shape[:-1])]
+    full, rest = divmod(n_extent, attrs.panel)
+
+    def panel_nest(packed: TensorRef, first_column: Affine, width: int) -> tuple[Stmt, ...]:
+        def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
+            rows, c = [env[v] for v, _ in row_loops], env["c"]
+            k = Affine.of("k") if k_extent > 1 else Affine()
+            panel = Affine.of("p") if packed.shape[0] > 1 else Affine()
+            x_load = Load(x.buffer, x.at([*_broadcast(x.shape[:-1], rows), k]))
+            product = Binary("*", x_load, Load(packed.buffer, packed.at([panel, k, c])))
+            update: tuple[Stmt, ...] = (Assign("acc", Binary("+", LocalRef("acc"), product)),)
+            reduce = (Loop("k", k_extent, update),) if k_extent > 1 else update
+            index = [*rows, first_column + c]
+            init, value = _scaled(attrs, _bias_term(attrs, bias, index))
+            store = Store(out.buffer, out.at(index), apply_activation(value, attrs.activation))
+            return (Let("acc", init, (*reduce, store)),)
+
+        return nest([*row_loops, ("c", width)], body, parallel=True)
+
+    body: list[Stmt] = []
+    if full:
+        packed = ctx.add_constant(f"w_{node.name}", _panels(w[:, : full * attrs.panel], full))
+        nests = panel_nest(packed, Affine.of("p") * attrs.panel if full > 1 else Affine(), attrs.panel)
+        # Serial: blocking panels together would jam columns the register block already holds.
+        body += [Loop("p", full, nests)] if full > 1 else list(nests)
+    if rest:
+        packed = ctx.add_constant(f"w_{node.name}_rest", _panels(w[:, full * attrs.panel :], 1))
+        body += panel_nest(packed, Affine.of(full * attrs.panel), rest)
+    ctx.emit(node.name, "Dense", tuple(body))
+
+
+def _panels(w: np.ndarray, panels: int) -> np.ndarray:
+    """[K, N] -> [panel][k][column in panel]."""
+    k_extent, n_extent = w.shape
+    return w.reshape(k_extent, panels, n_extent // panels).transpose(1, 0, 2)
 
 
 def _broadcast(dims: tuple[int, ...], index: list[Affine]) -> list[Affine]:

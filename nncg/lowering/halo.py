@@ -21,8 +21,11 @@ HALO_PRODUCERS = ("Conv", "MaxPool", "AveragePool")
 Halo = tuple[tuple[int, int], ...]
 
 
-def conv_halos(graph: Graph) -> dict[str, Halo]:
-    """Value -> its halo ((before, after) per logical dim) for every value worth one."""
+def conv_halos(graph: Graph, blocked_only: bool = False) -> dict[str, Halo]:
+    """Value -> its halo ((before, after) per logical dim) for every value worth one; with
+    `blocked_only`, only for values whose padded readers are all cache-blocked Convs (where a border
+    check costs most: on a small image every pixel is at the border, and the register block would be
+    a single pixel)."""
     outputs = {v.name for v in graph.outputs}
     halos = {}
     for node in graph.nodes:
@@ -33,6 +36,8 @@ def conv_halos(graph: Graph) -> dict[str, Halo]:
             if value in outputs or not consumers or any(c.op != "Conv" for c in consumers):
                 continue
             readers = [c for c in consumers if c.inputs[0] == value]
+            if blocked_only and not all(c.attrs.panel for c in readers if any(c.attrs.pads_begin + c.attrs.pads_end)):
+                continue
             spatial = range(len(graph.shape(value)) - 2)
             before = [max((c.attrs.pads_begin[d] for c in readers), default=0) for d in spatial]
             after = [max((c.attrs.pads_end[d] for c in readers), default=0) for d in spatial]

@@ -9,6 +9,10 @@ from __future__ import annotations
 from ..errors import NncgError
 from ..ir.target import Target
 from ..lowering import lower
+from .cache_block import cache_block
+from .cache_block import format_choice as format_cache_block
+from .cache_block import parse_layers as parse_cache_block_layers
+from .cache_block import tuning_candidates as cache_block_choices
 from .cancel_transposes import cancel_transposes
 from .drop_identity import drop_identity
 from .fold_batchnorm import fold_batchnorm
@@ -29,6 +33,11 @@ from .vectorize_pixels import vectorize_pixels
 from .winograd import parse_layers as parse_winograd_layers
 from .winograd import tuning_candidates as winograd_choices
 from .winograd import winograd
+
+
+def parse_halos(text: str) -> bool | str:
+    """lower's halos: auto (for cache-blocked Convs' inputs), true or false."""
+    return "auto" if text == "auto" else parse_bool(text)
 
 
 def parse_unroll_level(text: str) -> int | None:
@@ -62,7 +71,11 @@ register(
     "vectorize-pixels", "graph", vectorize_pixels, target=True,
     tunable=Tunable(pixel_choices, format_bool, whole_model=True), layers=parse_pixel_layers,
 )  # fmt: skip
-register("lower", "lower", lower, halos=parse_bool)
+register(
+    "cache-block", "graph", cache_block, target=True,
+    tunable=Tunable(cache_block_choices, format_cache_block), layers=parse_cache_block_layers,
+)  # fmt: skip
+register("lower", "lower", lower, halos=parse_halos)
 register("vectorize", "loop", vectorize, target=True)
 register(
     "register-block",
@@ -98,7 +111,7 @@ def default_pipeline(
     if unroll_level == "auto" and not budget:
         cap = f",budget={nest}"
     vectors = bool(target.vector_widths)
-    graph = f"{GRAPH_PIPELINE},winograd" + (",vectorize-pixels" if vectors else "")
+    graph = f"{GRAPH_PIPELINE},winograd" + (",vectorize-pixels,cache-block" if vectors else "")
     loops = ",vectorize" if vectors else ""
     loops += f",register-block,unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
     return f"{graph},lower{loops}"

@@ -123,19 +123,30 @@ def _vectors(stmt: Stmt) -> int:
 
 
 def jammable(loop: Loop) -> bool:
-    """Iterations that may run interleaved: parallel, no buffer both read and written, and locals
-    assigned only where declared (so each jammed copy gets its own)."""
+    """Iterations that may run interleaved: parallel, a buffer they write read only at the element each
+    iteration writes (a partial sum read back), and locals assigned only where declared (so each
+    jammed copy gets its own)."""
     if not loop.parallel:
         return False
-    stored = {s.buffer for s in walk_stmts(loop.body) if isinstance(s, Store)}
+    written: dict[str, set] = {}
+    for stmt in walk_stmts(loop.body):
+        if isinstance(stmt, Store):
+            written.setdefault(stmt.buffer, set()).add(stmt.index)
+    own = {buffer: next(iter(index)) for buffer, index in written.items() if len(index) == 1}
     declared = {s.name for s in walk_stmts(loop.body) if isinstance(s, Let)}
     for stmt in walk_stmts(loop.body):
         if isinstance(stmt, Assign) and stmt.name not in declared:
             return False
         for top in stmt_exprs(stmt):
-            if any(isinstance(e, Load) and e.buffer in stored for e in walk_exprs(top)):
-                return False
+            for e in walk_exprs(top):
+                if isinstance(e, Load) and e.buffer in written and not _reads_own_element(e, own, loop.var):
+                    return False
     return True
+
+
+def _reads_own_element(load: Load, own: dict, var: str) -> bool:
+    """The load reads the one element of its buffer this iteration stores (a different one per iteration)."""
+    return own.get(load.buffer) == load.index and load.index.coeff(var) != 0
 
 
 # ---------------------------------------------------------------------------- cost model

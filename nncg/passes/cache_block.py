@@ -1,0 +1,156 @@
+"""Graph pass `cache-block{layers=NAME:PANELxBLOCK;NAME:off}`: packed, cache-blocked direct convolution.
+
+A register-blocked convolution computes P pixels x C channel vectors at a time, reading for each
+reduction step (tap, input channel) C weight vectors. Unblocked, the pixel loops are outside the
+channel loops, so every block of P pixels streams the whole weight tensor again: from L1 or L2 in
+an early layer, from memory in a late one (resnet18's layer4: 9.4 MB of weights, 9 output pixels,
+read 5 times at 11 GFLOP/s). Blocked, the layer is computed one *panel* of output channels at a time
+(as many as one register block holds), with its weights packed in exactly the order the kernel
+streams them ([panel][input-channel block][taps][input channels][panel channels]), and the
+reduction split into blocks of `ci_block` input channels whose weight slice fits half of L1: every
+block of pixels then reuses that slice from L1, and the weights come from memory once. The price:
+the output is read back between reduction blocks and the input is read once per panel.
+
+The cost model (`chosen_blocks`) blocks a layer whose weights exceed the target's L1; the panel is
+the register block's channel vectors (register_block.choose_blocks), the input-channel block the
+largest divisor of the input channels that fits. `layers` overrides it per layer (what `--tune`
+measured); lowering/conv_blocked.py does the rest."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+from ..errors import NncgError
+from ..ir.applicability import cache_block_applies, panel_packing_applies
+from ..ir.graph import Graph, Node
+from ..ir.target import Target
+from .per_layer import check_layer_names, parse_layer_map
+from .register_block import choose_blocks
+
+OFF = (0, 0)
+FLOAT_BYTES = 4
+
+
+def parse_choice(text: str) -> tuple[int, int]:
+    """`32x8` -> (32, 8): output channels per panel x input channels per reduction block; `32` ->
+    (32, 0): the whole reduction at once; `off` -> (0, 0)."""
+    if text == "off":
+        return OFF
+    panel, x, block = text.partition("x")
+    if not panel.isdigit() or int(panel) < 1 or (x and (not block.isdigit() or int(block) < 1)):
+        raise ValueError("a cache block is PANEL or PANELxBLOCK (output channels x input channels, at least 1) or off")
+    return int(panel), int(block) if x else 0
+
+
+def format_choice(choice: tuple[int, int]) -> str:
+    return "off" if choice == OFF else f"{choice[0]}x{choice[1]}" if choice[1] else str(choice[0])
+
+
+def parse_layers(text: str) -> dict[str, tuple[int, int]]:
+    """`conv1:32x8;conv2:off;fc:32` -> {"conv1": (32, 8), "conv2": (0, 0), "fc": (32, 0)}."""
+    return parse_layer_map(text, parse_choice, "conv1:32x8;conv2:off;fc:32")
+
+
+def cache_block(graph: Graph, target: Target, layers: dict[str, tuple[int, int]] | None = None) -> Graph:
+    layers = layers or {}
+    check_layer_names(graph, layers, "cache-block")
+    nodes = []
+    for node in graph.nodes:
+        choice = layers.get(node.name)
+        if choice is None:
+            choice = chosen_blocks(graph, node, target)
+        elif choice != OFF:
+            _check_choice(graph, node, choice)
+        if choice != OFF:
+            node = replace(node, attrs=_blocked(graph, node, choice))
+        nodes.append(node)
+    return graph.with_nodes(nodes)
+
+
+def _blocked(graph: Graph, node: Node, choice: tuple[int, int]):
+    if node.op == "Conv":
+        return replace(node.attrs, panel=choice[0], ci_block=choice[1] or graph.shape(node.inputs[1])[1])
+    return replace(node.attrs, panel=choice[0])
+
+
+def _check_choice(graph: Graph, node: Node, choice: tuple[int, int]) -> None:
+    panel, block = choice
+    if cache_block_applies(graph, node):
+        c_out, c_in = graph.shape(node.inputs[1])[:2]
+        if block > c_in or (block and c_in % block):
+            raise NncgError(f"cache-block: layer {node.name}: the input-channel block {block} does not divide {c_in}")
+    elif panel_packing_applies(graph, node):
+        c_out = _columns(graph, node)
+        if block:
+            raise NncgError(f"cache-block: layer {node.name} is a Gemm/MatMul: give its panel alone (PANEL)")
+    else:
+        raise NncgError(
+            f"cache-block: layer {node.name} is neither a direct, ungrouped Conv over output channels with "
+            "constant weights (the winograd and vectorize-pixels passes may have taken it) nor a Gemm/MatMul "
+            "with a constant 2-D w"
+        )
+    if panel > c_out:
+        raise NncgError(f"cache-block: layer {node.name}: a panel of {panel} is more than its {c_out} channels")
+
+
+def _columns(graph: Graph, node: Node) -> int:
+    """A Gemm/MatMul's output columns (N)."""
+    return graph.shape(node.outputs[0])[-1]
+
+
+def _shape(graph: Graph, node: Node) -> tuple[int, int, int, int]:
+    """(output channels, input channels, taps, output row length) of a Conv or Gemm/MatMul."""
+    if node.op == "Conv":
+        c_out, c_in, *kernel = graph.shape(node.inputs[1])
+        return c_out, c_in, math.prod(kernel), graph.shape(node.outputs[0])[-1]
+    out = graph.shape(node.outputs[0])
+    return out[-1], math.prod(graph.shape(node.inputs[1])) // out[-1], 1, out[-2] if len(out) > 1 else 1
+
+
+def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
+    """(panel, input-channel block) for a layer whose weights exceed L1, else OFF. A Gemm/MatMul
+    takes the whole reduction at once (block 0): its rows are few, there is little to reuse."""
+    conv = cache_block_applies(graph, node)
+    if not (conv or panel_packing_applies(graph, node)) or not target.l1_bytes or not target.vector_widths:
+        return OFF
+    c_out, c_in, taps, _ = _shape(graph, node)
+    if FLOAT_BYTES * c_out * c_in * taps <= target.l1_bytes:
+        return OFF
+    panel = panel_width(graph, node, target)
+    return panel, input_block(c_in, taps, panel, target) if conv else 0
+
+
+def panel_width(graph: Graph, node: Node, target: Target) -> int:
+    """The output channels one register block holds (all of them when they fit one)."""
+    c_out, _, _, row = _shape(graph, node)
+    channels = choose_blocks((row, -(-c_out // target.lanes)), target.registers)[1]
+    return min(c_out, channels * target.lanes)
+
+
+def input_block(c_in: int, taps: int, panel: int, target: Target) -> int:
+    """The most input channels (a divisor of c_in) whose panel slice fits half of L1."""
+    fits = max(1, target.l1_bytes // 2 // (FLOAT_BYTES * taps * panel))
+    return max(d for d in range(1, min(c_in, fits) + 1) if c_in % d == 0)
+
+
+def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[tuple[int, int], ...]]:
+    """For --tune: the cost model's choice, unblocked, and (Convs) the input block halved and doubled,
+    for each layer whose weights exceed half of L1 (smaller ones stay in L1 either way)."""
+    out = {}
+    if not target.l1_bytes or not target.vector_widths:
+        return out
+    for node in graph.nodes:
+        applies = cache_block_applies(graph, node) or panel_packing_applies(graph, node)
+        if not applies or 2 * FLOAT_BYTES * math.prod(_shape(graph, node)[:3]) <= target.l1_bytes:
+            continue
+        if cache_block_applies(graph, node):
+            c_out, c_in, taps, _ = _shape(graph, node)
+            panel = panel_width(graph, node, target)
+            block = input_block(c_in, taps, panel, target)
+            options = [chosen_blocks(graph, node, target), OFF, (panel, block)]
+            options += [(panel, b) for b in (block // 2, block * 2) if 1 <= b <= c_in and c_in % b == 0]
+        else:
+            options = [chosen_blocks(graph, node, target), OFF, (panel_width(graph, node, target), 0)]
+        out[node.name] = tuple(dict.fromkeys(options))
+    return out
