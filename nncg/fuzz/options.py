@@ -1,6 +1,6 @@
 """Random compile options for a fuzz case: target, unroll level, code budget, where the weights go,
-and pipelines with per-layer choices as `--tune` writes them (Winograd, pixel vectorisation, block
-shapes, unroll budgets), mostly legal for the layer, now and then not (the pass must refuse those)."""
+and pipelines with per-layer choices as `--tune` writes them (Winograd, pixel vectorisation, cache
+blocks, block shapes, unroll budgets), mostly legal for the layer, now and then not (the pass must refuse those)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import onnx
 from ..backends import get_target
 from ..bench.peak import supported_isas
 from ..errors import NncgError
+from ..ir.applicability import cache_block_applies, panel_packing_applies
 from ..options import CompileOptions
 from ..passes.register_block import block_candidates, blockable
 from ..passes.unroll import CODE_BUDGET
@@ -142,6 +143,9 @@ def _layer_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[st
             choices["vectorize-pixels"] = {
                 n: i < taken if d.chance(0.85) else d.chance(0.5) for i, n in enumerate(pixels)
             }
+        blocked = _cache_block_choices(d, model, replace(options, layers=choices))
+        if blocked:
+            choices["cache-block"] = blocked
         registers = target.registers
         pipeline = replace(options, layers=choices).pipeline() or _base(options)
         layers = blockable(ir_before(model, pipeline, "register-block", target))
@@ -163,6 +167,25 @@ def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
     if "vectorize-pixels" not in pipeline:
         return []
     return list(tuning_candidates(model, pipeline, "vectorize-pixels", get_target(options.target)))
+
+
+def _cache_block_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[str, tuple[int, int]]:
+    """Panels and input-channel blocks for some of the layers cache-block applies to: any legal shape,
+    not only what --tune times (fuzz models are small: the cost model would block none of them)."""
+    pipeline = options.pipeline() or _base(options)
+    if "cache-block" not in pipeline:
+        return {}
+    graph = ir_before(model, pipeline, "cache-block", get_target(options.target))
+    out = {}
+    for node in graph.nodes:
+        conv = cache_block_applies(graph, node)
+        if not (conv or panel_packing_applies(graph, node)) or not d.chance(0.5):
+            continue
+        columns = graph.shape(node.outputs[0])[1 if conv else -1]
+        c_in = graph.shape(node.inputs[1])[1]
+        block = d.pick([b for b in range(1, c_in + 1) if c_in % b == 0]) if conv else 0
+        out[node.name] = (d.int(1, columns), block)
+    return out
 
 
 def _block_choice(d: Draw, shape: tuple[int, int], registers: int) -> tuple[int, int]:

@@ -12,6 +12,7 @@ from ..ir.graph import Graph
 from ..ir.kinds import Layout
 from ..ir.loops import Affine, Buffer, Kernel, Loop, Stmt
 from .halo import conv_halos, zero_halo
+from .slabs import concat_slices
 
 
 def row_major(rank: int) -> tuple[int, ...]:
@@ -116,6 +117,7 @@ class LoweringContext:
         self._layers = {node.name: self._kernel_names.claim(node.name) for node in graph.nodes}
         self.pending_copies: list[tuple[str, TensorRef, TensorRef]] = []
         self.halos = conv_halos(graph, blocked_only=halos == "auto") if halos else {}
+        self.slabs = concat_slices(graph)  # Concat inputs their producers write in place
 
     def add_buffer(self, name: str, role: str, shape, order, onnx_name: str = "") -> TensorRef:
         shape = tuple(int(d) for d in shape)
@@ -151,6 +153,11 @@ class LoweringContext:
             temp = self.add_buffer("t_" + value, "internal", shape, order)
             self.pending_copies.append((value, temp, target))
             return temp
+        if value in self.slabs:
+            slab = self._slab(value, order)
+            if slab is not None:
+                self.refs[value] = slab
+                return slab
         if value in self.halos:
             halo = self.halos[value]
             stored = TensorRef("", shape, tuple(order), halo).stored_shape
@@ -160,6 +167,20 @@ class LoweringContext:
             ref = self.add_buffer("t_" + value, "internal", shape, order)
         self.refs[value] = ref
         return ref
+
+    def _slab(self, value: str, order: tuple[int, ...]) -> TensorRef | None:
+        """`value` as a view of its slab of the Concat output (allocated now, in the layout of the
+        first producer to ask), or None when that output is laid out in another order."""
+        whole, axis, offset = self.slabs[value]
+        out = self.refs.get(whole) or self.output(whole, order)
+        if out.order != tuple(order):
+            return None
+        size = self.graph.shape(value)[axis]
+        halo = list(out.halo or ((0, 0),) * len(out.shape))
+        before, after = halo[axis]
+        halo[axis] = (before + offset, after + out.shape[axis] - offset - size)
+        shape = tuple(size if d == axis else extent for d, extent in enumerate(out.shape))
+        return TensorRef(out.buffer, shape, out.order, tuple(halo))
 
     def emit(self, node_name: str, op: str, body: tuple[Stmt, ...]) -> None:
         """Adds a kernel of the node `node_name`: the first is named as the node, any further one (a

@@ -16,7 +16,7 @@ if TYPE_CHECKING:  # context.py imports this module
 
 # Producers whose lowerings address their output only through TensorRef.at (so a halo is invisible
 # to them); readers must all be Convs, which treat the halo as their zero padding.
-HALO_PRODUCERS = ("Conv", "MaxPool", "AveragePool")
+HALO_PRODUCERS = ("Conv", "MaxPool", "AveragePool", "Concat")
 
 Halo = tuple[tuple[int, int], ...]
 
