@@ -3,8 +3,8 @@
 Winograd (nncg/lowering/winograd.py) does 2.25x fewer multiplies than direct convolution but adds
 an input and an output transform (adds only) and two scratch buffers. The multiplies it saves grow
 with the input channels, the transforms' adds do not, so the cost model takes it for every 3x3,
-stride-1, ungrouped 2-D Conv with at least MIN_INPUT_CHANNELS input channels and MIN_TILES output
-tiles (see chosen_by_cost_model); `layers` overrides
+stride-1, ungrouped 2-D Conv with at least MIN_INPUT_CHANNELS input channels and either MIN_TILES
+output tiles or transformed weights that fit L2 (see chosen_by_cost_model); `layers` overrides
 the choice per layer (what `--tune` measured). Layers Winograd does not apply to stay direct.
 
 The GEMMs' output channels are internal, so they may be padded with zero filters: with the target's
@@ -46,7 +46,7 @@ def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None
             raise NncgError(
                 f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights"
             )
-        if chosen_by_cost_model(graph, node) if wanted is None else wanted:
+        if chosen_by_cost_model(graph, node, target) if wanted is None else wanted:
             c_out = graph.shape(node.inputs[1])[0]
             width = padded_channels(c_out, lanes)
             attrs = replace(node.attrs, algorithm=ConvAlgorithm.WINOGRAD, gemm_channels=width if width != c_out else 0)
@@ -55,14 +55,17 @@ def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None
     return graph.with_nodes(nodes)
 
 
-def chosen_by_cost_model(graph: Graph, node) -> bool:
-    """Enough input channels, and enough 2x2 output tiles to reuse each transformed weight over: its
-    16 GEMMs stream 16/9 the direct weights, each used once per tile (resnet18 at 96x96, avx2: 4
-    tiles (layer4) 3550 us against 1400 direct, cache-blocked; 9 tiles even; 36 tiles 460 against 640)."""
+def chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
+    """Enough input channels, and either enough 2x2 output tiles to reuse each transformed weight over
+    or transformed weights that stay in L2: its 16 GEMMs stream 16/9 the direct weights, each used
+    once per tile. resnet18 at 96x96, avx2: layer4 (4 tiles, 16.8 MB) 3550 us against 1400 direct,
+    cache-blocked; layer3 (9 tiles) even; pedestrian's conv3 (10 tiles, 131 KB) 24 -> 40 us direct."""
     if not winograd_applies(graph, node) or graph.shape(node.inputs[1])[1] < MIN_INPUT_CHANNELS:
         return False
     rows, columns = graph.shape(node.outputs[0])[2:]
-    return -(-rows // 2) * -(-columns // 2) >= MIN_TILES
+    c_out, c_in = graph.shape(node.inputs[1])[:2]
+    fits_l2 = not target.l2_bytes or 16 * c_out * c_in * 4 < target.l2_bytes  # with room for the tiles
+    return fits_l2 or -(-rows // 2) * -(-columns // 2) >= MIN_TILES
 
 
 def winograd_candidates(graph: Graph) -> list[str]:
