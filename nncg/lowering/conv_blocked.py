@@ -26,7 +26,7 @@ from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef,
 from .activation import apply_activation
 from .context import LoweringContext, TensorRef, channels_last, nest
 from .conv import conv_extras
-from .weights import weight_operand
+from .weights import by_panels, weight_operand
 from .window import spatial_names, window_nest
 
 
@@ -51,17 +51,15 @@ def lower_blocked_conv(ctx: LoweringContext, node: Node) -> None:
     if _pointwise(attrs):
         attrs, operands = _flattened(attrs, operands)
         weights = weights.reshape(*weights.shape[:2], *attrs.kernel)
-    full, rest = divmod(c_out, attrs.panel)
-    body: list[Stmt] = []
-    if full:
-        w = ctx.add_constant(f"w_{node.name}", _packed(weights[: full * attrs.panel], full, attrs.ci_block))
-        stages = _stages(attrs, operands, w, Affine.of("p") * attrs.panel if full > 1 else Affine(), attrs.panel)
-        # Serial: a panel's iterations share no data, but blocking them would jam panels, not pixels.
-        body += [Loop("p", full, stages)] if full > 1 else list(stages)
-    if rest:
-        w = ctx.add_constant(f"w_{node.name}_rest", _packed(weights[full * attrs.panel :], 1, attrs.ci_block))
-        body += _stages(attrs, operands, w, Affine.of(full * attrs.panel), rest)
-    ctx.emit(node.name, "Conv", tuple(body))
+
+    def pack(start: int, stop: int, panels: int) -> np.ndarray:
+        return _packed(weights[start:stop], panels, attrs.ci_block)
+
+    def nests(w: TensorRef, panel: Affine, first_channel: Affine, width: int) -> tuple[Stmt, ...]:
+        return _stages(attrs, operands, w, panel, first_channel, width)
+
+    body = by_panels(ctx, f"w_{node.name}", c_out, attrs.panel, pack, nests)
+    ctx.emit(node.name, "Conv", body)
 
 
 def _pointwise(attrs: ConvAttrs) -> bool:
@@ -101,10 +99,11 @@ def _packed(weights: np.ndarray, panels: int, block: int) -> np.ndarray:
     return split.transpose(0, 2, *range(4, 4 + rank), 3, 1)
 
 
-def _stages(attrs: ConvAttrs, ops: _Operands, w: TensorRef, first_channel: Affine, width: int) -> tuple[Stmt, ...]:
+def _stages(
+    attrs: ConvAttrs, ops: _Operands, w: TensorRef, panel: Affine, first_channel: Affine, width: int
+) -> tuple[Stmt, ...]:
     """One panel's nests: the first reduction block, the middle ones in a loop, the last."""
     blocks = w.shape[1]
-    panel = Affine.of("p") if w.shape[0] > 1 else Affine()
 
     def stage(block: Affine, first: bool, last: bool) -> tuple[Stmt, ...]:
         return _pixel_nest(attrs, ops, w, (panel, block), first_channel, width, (first, last))

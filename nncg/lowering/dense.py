@@ -11,7 +11,7 @@ from ..ir.graph import DenseAttrs, Node
 from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
 from .activation import apply_activation
 from .context import LoweringContext, TensorRef, nest, row_major
-from .weights import permuted, weight_operand
+from .weights import by_panels, permuted, weight_operand
 
 
 def lower_dense(ctx: LoweringContext, node: Node) -> None:
@@ -57,13 +57,11 @@ def _lower_packed(ctx: LoweringContext, node: Node) -> None:
     out_shape = ctx.graph.shape(node.outputs[0])
     out = ctx.output(node.outputs[0], row_major(len(out_shape)))
     row_loops = [(f"r{i}", d) for i, d in enumerate(out_shape[:-1])]
-    full, rest = divmod(n_extent, attrs.panel)
 
-    def panel_nest(packed: TensorRef, first_column: Affine, width: int) -> tuple[Stmt, ...]:
+    def panel_nest(packed: TensorRef, panel: Affine, first_column: Affine, width: int) -> tuple[Stmt, ...]:
         def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
             rows, c = [env[v] for v, _ in row_loops], env["c"]
             k = Affine.of("k") if k_extent > 1 else Affine()
-            panel = Affine.of("p") if packed.shape[0] > 1 else Affine()
             x_load = Load(x.buffer, x.at([*_broadcast(x.shape[:-1], rows), k]))
             product = Binary("*", x_load, Load(packed.buffer, packed.at([panel, k, c])))
             update: tuple[Stmt, ...] = (Assign("acc", Binary("+", LocalRef("acc"), product)),)
@@ -75,16 +73,10 @@ def _lower_packed(ctx: LoweringContext, node: Node) -> None:
 
         return nest([*row_loops, ("c", width)], body, parallel=True)
 
-    body: list[Stmt] = []
-    if full:
-        packed = ctx.add_constant(f"w_{node.name}", _panels(w[:, : full * attrs.panel], full))
-        nests = panel_nest(packed, Affine.of("p") * attrs.panel if full > 1 else Affine(), attrs.panel)
-        # Serial: blocking panels together would jam columns the register block already holds.
-        body += [Loop("p", full, nests)] if full > 1 else list(nests)
-    if rest:
-        packed = ctx.add_constant(f"w_{node.name}_rest", _panels(w[:, full * attrs.panel :], 1))
-        body += panel_nest(packed, Affine.of(full * attrs.panel), rest)
-    ctx.emit(node.name, "Dense", tuple(body))
+    def pack(start: int, stop: int, panels: int) -> np.ndarray:
+        return _panels(w[:, start:stop], panels)
+
+    ctx.emit(node.name, "Dense", by_panels(ctx, f"w_{node.name}", n_extent, attrs.panel, pack, panel_nest))
 
 
 def _panels(w: np.ndarray, panels: int) -> np.ndarray:

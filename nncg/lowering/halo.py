@@ -14,9 +14,12 @@ from ..ir.loops import Affine, Const, Loop, Stmt, Store
 if TYPE_CHECKING:  # context.py imports this module
     from .context import TensorRef
 
-# Producers whose lowerings address their output only through TensorRef.at (so a halo is invisible
-# to them); readers must all be Convs, which treat the halo as their zero padding.
-HALO_PRODUCERS = ("Conv", "MaxPool", "AveragePool", "Concat")
+# Producers whose lowerings address their output only through TensorRef.at, so a halo, or a slab
+# of a larger tensor (slabs.py), is invisible to them.
+VIEW_WRITERS = ("Conv", "MaxPool", "AveragePool")
+# A halo's readers must all be Convs, which treat it as their zero padding; a Concat's copies address
+# its output through TensorRef.at too.
+HALO_PRODUCERS = (*VIEW_WRITERS, "Concat")
 
 Halo = tuple[tuple[int, int], ...]
 

@@ -6,15 +6,12 @@ producer writes with its usual strides; squeezenet's fire modules concatenate tw
 from __future__ import annotations
 
 from ..ir.graph import Graph
-
-# Producers whose lowerings address their output only through TensorRef.at, so they write a slab of
-# a larger tensor as readily as a tensor of their own.
-SLAB_PRODUCERS = ("Conv", "MaxPool", "AveragePool")
+from .halo import VIEW_WRITERS
 
 
 def concat_slices(graph: Graph) -> dict[str, tuple[str, int, int]]:
     """Value -> (the Concat output, axis, offset) for each Concat input its producer may write in
-    place: produced by a SLAB_PRODUCERS node, once among the Concat's inputs, not a graph output,
+    place: produced by a VIEW_WRITERS node, once among the Concat's inputs, not a graph output,
     into an internal Concat output (other readers read the slab)."""
     producers = {value: node for node in graph.nodes for value in node.outputs}
     slices: dict[str, tuple[str, int, int]] = {}
@@ -26,7 +23,7 @@ def concat_slices(graph: Graph) -> dict[str, tuple[str, int, int]]:
             producer = producers.get(name)
             if (
                 producer is not None
-                and producer.op in SLAB_PRODUCERS
+                and producer.op in VIEW_WRITERS
                 and node.inputs.count(name) == 1
                 and name not in slices
                 and not graph.is_graph_output(name)

@@ -12,6 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..ir.loops import Affine, Loop, Stmt
 from .context import LoweringContext, TensorRef, row_major
 
 View = Callable[[TensorRef], TensorRef]
@@ -43,3 +44,29 @@ def weight_operand(ctx: LoweringContext, value: str, name: str, view: View = lam
     layout = view(TensorRef("", data.shape, row_major(data.ndim)))
     strides = tuple(s * data.itemsize for s in layout.strides)
     return ctx.add_constant(name, np.lib.stride_tricks.as_strided(data, layout.shape, strides))
+
+
+def by_panels(
+    ctx: LoweringContext,
+    name: str,
+    columns: int,
+    panel: int,
+    pack: Callable[[int, int, int], np.ndarray],
+    nests: Callable[[TensorRef, Affine, Affine, int], tuple[Stmt, ...]],
+) -> tuple[Stmt, ...]:
+    """A layer computed `panel` output columns at a time (the cache-block pass chose it): the full
+    panels in a loop `p` over one packed array `name`, then the rest from `name_rest`.
+    pack(start, stop, panels) packs columns [start, stop) as that many panels; nests(w, panel index,
+    first column, width) are one panel's nests."""
+    full, rest = divmod(columns, panel)
+    body: list[Stmt] = []
+    if full:
+        w = ctx.add_constant(name, pack(0, full * panel, full))
+        p = Affine.of("p") if full > 1 else Affine()
+        stmts = nests(w, p, p * panel, panel)
+        # Serial: the panels share no data, but register-block would jam panels, not pixels or rows.
+        body += [Loop("p", full, stmts)] if full > 1 else list(stmts)
+    if rest:
+        w = ctx.add_constant(f"{name}_rest", pack(full * panel, columns, 1))
+        body += nests(w, Affine(), Affine.of(full * panel), rest)
+    return tuple(body)
