@@ -39,6 +39,12 @@ NONDETERMINISTIC = {
     "Bernoulli",
 }
 
+# onnx's reference evaluator implements these ops only from the opset given; the earlier versions
+# are subsets of it (opset 19 added the float8 types, and 21 blocked scales, to (De)QuantizeLinear of 10
+# and 13), so a node of an earlier opset folds as that one. tf2onnx writes opset-13 DequantizeLinear
+# on the weights of models converted from TFLite, float models included.
+REFERENCE_OPSET = {"DequantizeLinear": 19, "QuantizeLinear": 19}
+
 NamedNode = tuple[onnx.NodeProto, str]
 
 
@@ -231,6 +237,7 @@ def _shape_value(node: onnx.NodeProto, shape: Shape) -> np.ndarray:
 
 def _evaluate(node: onnx.NodeProto, name: str, constants: dict, opset: int) -> list[np.ndarray] | None:
     """Run the node alone in onnx's reference evaluator on its constant inputs."""
+    opset = max(opset, REFERENCE_OPSET.get(node.op_type, opset))
     feeds = {i: constants[i] for i in dict.fromkeys(node.input) if i}
     outputs = [o for o in node.output if o]
     try:

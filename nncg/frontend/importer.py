@@ -38,9 +38,27 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     return graph
 
 
+# Operators of quantised models, named in the error: int8 compilation does not exist yet, and
+# dynamic quantisation (scales computed per inference) never will in generated C.
+QUANTIZED_OPS = {"QuantizeLinear", "DequantizeLinear", "QLinearConv", "QLinearMatMul", "ConvInteger", "MatMulInteger"}
+DYNAMIC_QUANTIZATION = "DynamicQuantizeLinear"
+
+
 def check_supported(nodes: list[NamedNode]) -> None:
     """One error listing every node left after folding that has no converter."""
     bad = [f"{_op_type(node)} (node {shown(name)})" for node, name in nodes if node.op_type not in CONVERTERS]
+    types = {node.op_type for node, _ in nodes}
+    if DYNAMIC_QUANTIZATION in types:
+        raise UnsupportedOpsError(
+            "the model is dynamically quantised (DynamicQuantizeLinear computes scales at run time), which "
+            "NNCG does not compile: compile the float model instead"
+        )
+    if types & QUANTIZED_OPS:
+        found = ", ".join(sorted(types & QUANTIZED_OPS))
+        raise UnsupportedOpsError(
+            f"the model computes in int8 ({found} on activations), which NNCG does not compile yet: compile "
+            "the float model instead (constant DequantizeLinear on weights alone is folded and supported)"
+        )
     if bad:
         raise UnsupportedOpsError(
             f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "
