@@ -1,5 +1,6 @@
 """Backend: the scalar C printer. Prints a kernel's statements and float expressions as C89, max/min
-and select as conditional moves; the SIMD printer (simd.py) extends it, c_file.py prints the file."""
+and select as conditional moves, and the helpers of the math functions C89 lacks (scalar_math.py)
+that the program calls; the SIMD printer (simd.py) extends it, c_file.py prints the file."""
 
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from ..ir.loops import (
 )
 from ..ir.target import Target
 from .c_text import INDENT, c_affine, c_float, unparen
+from .scalar_math import HELPERS, helper_definitions, helper_name, scalar_calls
 
 
 class ScalarPrinter:
@@ -40,14 +42,18 @@ class ScalarPrinter:
     strict_cflags: tuple[str, ...] = ("-std=c89", "-pedantic", "-Wall", "-Wextra", "-Werror")
     scalar_type = "float"
 
+    def __init__(self, math_calls: frozenset[str] = frozenset()) -> None:
+        self.math_calls = math_calls  # the math functions scalar code calls, for their helpers
+
     def for_program(self, program: Program) -> ScalarPrinter:
-        """The printer for one program: SIMD printers collect the helpers it needs here, before any
-        code is printed. Scalar code needs none."""
-        return self
+        """The printer for one program: the helpers it needs are collected here, before any code is
+        printed."""
+        return type(self)(scalar_calls(program))
 
     def preamble(self) -> list[str]:
-        """Definitions the printed code calls, printed after the includes (none for scalar C)."""
-        return []
+        """Definitions the printed code calls, printed after the includes: the helpers of the math
+        functions C89 lacks, when the program calls them."""
+        return helper_definitions(self.math_calls)
 
     def function_body(self, body: tuple[Stmt, ...]) -> list[str]:
         """The lines inside a kernel's function: its loop variables, then its statements."""
@@ -156,6 +162,8 @@ class ScalarPrinter:
     def _expr_Call(self, e: Call) -> str:
         if e.fn == "sigmoid":  # no sigmoid in math.h
             return self.expr(sigmoid_by_exp(e.arg))
+        if e.fn in HELPERS:  # not in C89's math.h either
+            return f"{helper_name(e.fn)}({self.expr(e.arg)})"
         return f"(float){e.fn}({self.expr(e.arg)})"  # C89 has only the double versions
 
 

@@ -9,6 +9,7 @@ from collections.abc import Mapping
 from ..ir.loops import Affine, Binary, Broadcast, Call, Const, Expr, Fma, Load, LocalRef, Program, Select
 from .c_text import INDENT, c_affine, c_float
 from .scalar import ScalarPrinter
+from .scalar_math import scalar_calls
 from .simd_needs import Needs, collect_needs
 from .vector_math import has_vector_math, vector_math_helper, with_callees
 from .vector_width import VectorWidth
@@ -25,11 +26,16 @@ class SimdPrinter(ScalarPrinter):
         if "target" in cls.__dict__ or "widths" in cls.__dict__:
             _check_table(cls)
 
-    def __init__(self, needs: Needs | None = None) -> None:
+    def __init__(self, needs: Needs | None = None, math_calls: frozenset[str] = frozenset()) -> None:
+        super().__init__(math_calls)
         self.needs = needs or Needs()
 
     def for_program(self, program: Program) -> SimdPrinter:
-        return type(self)(collect_needs(program, self.widths))
+        """Scalar code here is the scalar tails and the lane-wise helpers of widths without vector
+        math, which call the scalar function on each lane."""
+        needs = collect_needs(program, self.widths)
+        lane_wise = {fn for lanes, fn in needs.math if not has_vector_math(self.widths[lanes])}
+        return type(self)(needs, scalar_calls(program) | lane_wise)
 
     # ------------------------------------------------------------------ dispatch, once
 
@@ -96,9 +102,9 @@ class SimdPrinter(ScalarPrinter):
     # ------------------------------------------------------------------ helpers, before the kernels
 
     def preamble(self) -> list[str]:
-        """The helper definitions templates call (in order of first use), then the tables of
-        constant vectors (widest first), then the math functions (widest first; each after those it
-        calls, then by name); a blank line before each."""
+        """The scalar math helpers (scalar.py), then the helper definitions templates call (in order
+        of first use), then the tables of constant vectors (widest first), then the math functions
+        (widest first; each after those it calls, then by name); a blank line before each."""
         blocks: list[tuple[str, ...]] = []
         for lanes, op in self.needs.definitions:
             definition = self.widths[lanes].helpers[op]
@@ -113,7 +119,7 @@ class SimdPrinter(ScalarPrinter):
                 blocks += [vector_math_helper(fn, width) for fn in with_callees(called)]
             else:
                 blocks += [self.lane_wise_helper(fn, lanes) for fn in sorted(called)]
-        return [line for block in blocks for line in ("", *block)]
+        return super().preamble() + [line for block in blocks for line in ("", *block)]
 
     def constant_table(self, lanes: int, rows: tuple[tuple[float, ...], ...]) -> tuple[str, ...]:
         """The static table of the constant vectors of one width that are not splats, a row each:

@@ -98,6 +98,8 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "HardSigmoid": ConvertedOp(convert_activation, ("HardSigmoid",)),
     "HardSwish": ConvertedOp(convert_activation, ("HardSwish",)),
     "Elu": ConvertedOp(convert_activation, ("Elu",)),
+    "Erf": ConvertedOp(convert_activation, ("Erf",)),
+    "Gelu": ConvertedOp(convert_activation, ("Gelu",)),
     "PRelu": ConvertedOp(convert_prelu, ("PRelu",)),
     # One input is an Identity; a scalar constant bound is a Clip.
     "Max": ConvertedOp(convert_variadic, ("Max", "Clip", "Identity")),

@@ -1,5 +1,5 @@
 """ONNX front end (ONNX -> graph IR), step 3: the pointwise activations (Sigmoid, Tanh, HardSigmoid,
-HardSwish, Elu), PRelu, the variadic Max/Min/Sum, LogSoftmax, LRN and ReduceMean.
+HardSwish, Elu, Erf, Gelu), PRelu, the variadic Max/Min/Sum, LogSoftmax, LRN and ReduceMean.
 """
 
 from __future__ import annotations
@@ -12,6 +12,17 @@ import numpy as np
 from nncg.frontend.context import SHAPE_HINT, Context, OnnxOp
 from nncg.frontend.ops_nn import convert_global_pool, convert_softmax
 from nncg.ir.graph import Activation, LrnAttrs, Node, ReduceAttrs, Shape
+from nncg.ir.kinds import GeluApproximation
+from nncg.safe_text import shown
+
+
+def _gelu(op: OnnxOp) -> Activation:
+    """Gelu (opset 20): exact (approximate="none") or with the tanh approximation."""
+    approximate = op.attr("approximate", "none")
+    if approximate not in set(GeluApproximation):
+        raise op.error(f"has approximate {shown(approximate)}; NNCG supports none and tanh")
+    return Activation("gelu", approximate=approximate)
+
 
 # The Activation record of each pointwise op, ONNX defaults filled in.
 ACTIVATIONS: dict[str, Callable[[OnnxOp], Activation]] = {
@@ -22,6 +33,8 @@ ACTIVATIONS: dict[str, Callable[[OnnxOp], Activation]] = {
     ),
     "HardSwish": lambda op: Activation("hard_swish", alpha=1 / 6, beta=0.5),
     "Elu": lambda op: Activation("elu", alpha=float(op.attr("alpha", 1.0))),
+    "Erf": lambda op: Activation("erf"),
+    "Gelu": _gelu,
 }
 
 

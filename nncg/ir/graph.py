@@ -14,7 +14,7 @@ from typing import Union
 import numpy as np
 
 from .arrays import same_arrays
-from .kinds import ActivationKind, ConvAlgorithm, VectorAxis, coerce
+from .kinds import ActivationKind, ConvAlgorithm, GeluApproximation, VectorAxis, coerce
 
 Shape = tuple[int, ...]
 
@@ -24,16 +24,18 @@ class Activation:
     """A pointwise activation that a producer applies at its store: relu, leaky_relu with slope
     alpha, clip to [low, high] (ReLU6 is clip(0, 6)), sigmoid, tanh, hard_sigmoid
     max(0, min(1, alpha*x + beta)), hard_swish x * hard_sigmoid(x) (ONNX's has alpha 1/6 and beta 0.5),
-    elu with scale alpha, and silu x * sigmoid(x) (SiLU, Swish)."""
+    elu with scale alpha, silu x * sigmoid(x) (SiLU, Swish), erf, and gelu x * Phi(x), exact or with
+    the tanh approximation (`approximate`)."""
 
     kind: ActivationKind
     alpha: float = 0.0
     low: float = float("-inf")
     high: float = float("inf")
     beta: float = 0.0
+    approximate: GeluApproximation = GeluApproximation.NONE
 
     def __post_init__(self) -> None:
-        coerce(self, kind=ActivationKind)
+        coerce(self, kind=ActivationKind, approximate=GeluApproximation)
 
     def __str__(self) -> str:
         if self.kind == "clip":
@@ -42,6 +44,8 @@ class Activation:
             return f"{self.kind}(alpha={self.alpha:g}, beta={self.beta:g})"
         if self.kind in ("leaky_relu", "elu"):
             return f"{self.kind}(alpha={self.alpha:g})"
+        if self.kind == "gelu" and self.approximate != "none":
+            return f"gelu(approximate={self.approximate})"
         return str(self.kind)
 
 

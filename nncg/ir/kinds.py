@@ -1,7 +1,8 @@
 """The closed vocabularies of both IRs as enums: loop kinds, operators, comparisons, buffer roles and
-layouts, activation kinds, conv algorithms and vector axes. Each member is also its text (it compares,
-hashes, prints and formats as its value), so IR text and generated C spell them as before, and IR
-nodes built from text are converted on construction: a misspelt kind fails where it is made."""
+layouts, activation kinds and GELU approximations, conv algorithms and vector axes. Each member is
+also its text (it compares, hashes, prints and formats as its value), so IR text and generated C
+spell them as before, and IR nodes built from text are converted on construction: a misspelt kind
+fails where it is made."""
 
 from __future__ import annotations
 
@@ -46,7 +47,8 @@ class Comparison(TextEnum):
 
 class MathFunction(TextEnum):
     """The math functions kernels call: math.h's (C89, double) in scalar code, where sigmoid is
-    1 / (1 + exp(-x)) and erf is C99's; polynomial approximations on vectors (backends/vector_math.py)."""
+    1 / (1 + exp(-x)) and erf, which C89 lacks, a helper (backends/scalar_math.py); polynomial
+    approximations on vectors (backends/vector_math.py)."""
 
     EXP = "exp"
     LOG = "log"
@@ -80,6 +82,16 @@ class ActivationKind(TextEnum):
     HARD_SWISH = "hard_swish"
     ELU = "elu"
     SILU = "silu"
+    ERF = "erf"
+    GELU = "gelu"
+
+
+class GeluApproximation(TextEnum):
+    """How a gelu activation computes x * Phi(x): exactly, with erf, or with ONNX's (and torch's) tanh
+    approximation."""
+
+    NONE = "none"
+    TANH = "tanh"
 
 
 class ConvAlgorithm(TextEnum):

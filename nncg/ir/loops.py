@@ -164,7 +164,7 @@ class Select:
 
 @dataclass(frozen=True)
 class Call:
-    """fn(arg) per lane: a math.h function of C89, in float."""
+    """fn(arg) per lane, in float: how each target computes it, see MathFunction."""
 
     fn: MathFunction
     arg: Expr

@@ -96,6 +96,8 @@ IR_OPS: dict[str, IrOp] = {
     "HardSwish": IrOp(Activation, no_macs),
     "Elu": IrOp(Activation, no_macs),
     "Silu": IrOp(Activation, no_macs),
+    "Erf": IrOp(Activation, no_macs),
+    "Gelu": IrOp(Activation, no_macs),
     "PRelu": IrOp(None, no_macs),
     "Max": IrOp(None, no_macs),
     "Min": IrOp(None, no_macs),

@@ -70,6 +70,8 @@ LOWERINGS = {
     "HardSwish": lower_activation,
     "Elu": lower_activation,
     "Silu": lower_activation,
+    "Erf": lower_activation,
+    "Gelu": lower_activation,
     "PRelu": lower_prelu,
     "Max": lower_binary,
     "Min": lower_binary,

@@ -1,8 +1,10 @@
 """Activations applied where a value is stored: a max for ReLU, a max or conditional move for leaky,
-max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, SiLU, tanh and ELU through math function calls
-(math.h in scalar code, polynomials on vectors)."""
+max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, SiLU, tanh, ELU, erf and GELU through math
+function calls (math.h or a helper in scalar code, polynomials on vectors)."""
 
 from __future__ import annotations
+
+import math
 
 from ..ir.graph import Activation
 from ..ir.loops import Binary, Call, Const, Expr, Select
@@ -69,6 +71,33 @@ def _silu(value: Expr, act: Activation) -> Expr:
     return Binary("*", value, _sigmoid(value, act))
 
 
+def _erf(value: Expr, _act: Activation) -> Expr:
+    return Call("erf", value)
+
+
+def _gelu(value: Expr, act: Activation) -> Expr:
+    return _gelu_tanh(value) if act.approximate == "tanh" else _gelu_exact(value)
+
+
+def _gelu_exact(x: Expr) -> Expr:
+    """0.5 x (1 + erf(x / sqrt(2)))."""
+    gate = Binary("+", _splat(1.0, x), Call("erf", Binary("*", x, _splat(math.sqrt(0.5), x))))
+    return Binary("*", Binary("*", x, _splat(0.5, x)), gate)
+
+
+# 2u = 2 sqrt(2/pi) (x + 0.044715 x^3) = x (LINEAR + CUBIC x^2)
+GELU_TANH_LINEAR = 2 * math.sqrt(2 / math.pi)
+GELU_TANH_CUBIC = GELU_TANH_LINEAR * 0.044715
+
+
+def _gelu_tanh(x: Expr) -> Expr:
+    """0.5 x (1 + tanh(u)), u = sqrt(2/pi) (x + 0.044715 x^3), computed as the equal x sigmoid(2u):
+    no cancellation in 1 + tanh(u) where x is negative and the result tiny."""
+    square = Binary("*", x, x)
+    twice_u = Binary("*", x, Binary("+", _splat(GELU_TANH_LINEAR, x), Binary("*", _splat(GELU_TANH_CUBIC, x), square)))
+    return Binary("*", x, Call("sigmoid", twice_u))
+
+
 ACTIVATIONS = {
     "relu": _relu,
     "clip": _clip,
@@ -79,4 +108,6 @@ ACTIVATIONS = {
     "hard_swish": _hard_swish,
     "elu": _elu,
     "silu": _silu,
+    "erf": _erf,
+    "gelu": _gelu,
 }

@@ -1,17 +1,19 @@
 """Graph pass `fuse-activation`: a pointwise activation node (Relu, LeakyRelu, Clip, Sigmoid, Tanh,
-HardSigmoid, HardSwish, Elu, Silu: every node whose attributes are an Activation) is applied by its
-producer at the store, so the activation costs no extra pass over memory.
+HardSigmoid, HardSwish, Elu, Silu, Erf, Gelu: every node whose attributes are an Activation) is applied
+by its producer at the store, so the activation costs no extra pass over memory.
 
-First, the gated forms torch exports are made one activation: Mul(x, Sigmoid(x)) (SiLU, Swish) becomes
-a Silu node and Mul(x, HardSigmoid(x)) a HardSwish, either operand order, when the Mul is the gate's
-only reader. x then usually has one reader left, so its producer applies the whole x * gate(x) at its
-store; with no producer to take it, the Silu is one pass over memory instead of two."""
+First, the composite forms torch exports are made one activation: its GELU decompositions become a
+Gelu node (fuse_gelu.py); Mul(x, Sigmoid(x)) (SiLU, Swish) becomes a Silu node and
+Mul(x, HardSigmoid(x)) a HardSwish, either operand order, when the Mul is the gate's only reader. x
+then usually has one reader left, so its producer applies the whole x * gate(x) at its store; with no
+producer to take it, the Silu is one pass over memory instead of two (a Gelu instead of five or more)."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
 from ..ir.graph import Activation, Graph, Node
+from .fuse_gelu import fuse_gelu
 from .rewrite import merge_into_producer, sole_consumer
 
 PRODUCERS = ("Conv", "Dense", "ScaleShift")
@@ -22,7 +24,7 @@ GATED = {"Sigmoid": ("Silu", "silu"), "HardSigmoid": ("HardSwish", "hard_swish")
 
 
 def fuse_activation(graph: Graph) -> Graph:
-    return _fuse_producers(fuse_gated(graph))
+    return _fuse_producers(fuse_gated(fuse_gelu(graph)))
 
 
 def fuse_gated(graph: Graph) -> Graph:
