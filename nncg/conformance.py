@@ -52,15 +52,11 @@ EXCLUDED: dict[str, str] = {
     "test_slice_start_out_of_bounds": f"empty output (start past the end of the axis): {_EMPTY}",
     r"test_split_zero_size_splits_opset\d+": f"empty tensors (zero-size splits): {_EMPTY}",
     # --- attribute combinations NNCG refuses with a clear error ------------------------------------
-    r"test_resize_.*_cubic(_.*)?": "cubic mode: NNCG's Resize does nearest and linear",
-    r"test_resize_.*_antialias": "antialias: not supported by NNCG's Resize",
-    r"test_resize_tf_crop_and_resize(_.*)?": "coordinate_transformation_mode tf_crop_and_resize: not supported by NNCG",
-    r"test_resize_.*_not_(larger|smaller)": "keep_aspect_ratio_policy not_larger / not_smaller: NNCG does stretch only",
     r"test_matmul_(1d_1d|1d_3d|4d_1d)": "1-D MatMul operand: NNCG supports inputs of rank >= 2",
     # --- where onnx's reference and onnxruntime disagree: NNCG follows onnxruntime ---------------------
-    "test_resize_downsample_scales_linear_align_corners": (
-        "align_corners with a fractional output length (4 x 0.6 = 2.4): onnx's reference divides by "
-        "2.4 - 1, onnxruntime and NNCG by the integer length 2 - 1"
+    r"test_resize_downsample_scales_(linear|cubic)_align_corners": (
+        "align_corners with a fractional output length (4 x 0.6 = 2.4, 4 x 0.8 = 3.2): onnx's reference "
+        "divides by 2.4 - 1 (3.2 - 1), onnxruntime and NNCG by the integer length 2 - 1 (3 - 1)"
     ),
 }
 

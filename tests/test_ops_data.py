@@ -590,22 +590,6 @@ def fails(m, *fragments):
         assert fragment in message, message
 
 
-def test_resize_cubic_is_refused():
-    fails(resize_model((1, 1, 4, 4), scales=[1, 1, 2, 2], mode="cubic"), "mode 'cubic'", "nearest and linear")
-
-
-def test_resize_unsupported_options_are_refused():
-    fails(
-        resize_model((1, 1, 4, 4), opset=11, scales=[1, 1, 2, 2], coordinate_transformation_mode="tf_crop_and_resize"),
-        "tf_crop_and_resize",
-    )
-    fails(resize_model((1, 1, 4, 4), opset=18, scales=[1, 1, 0.5, 0.5], mode="linear", antialias=1), "antialias")
-    fails(
-        resize_model((1, 1, 4, 4), opset=18, sizes=[1, 1, 8, 6], keep_aspect_ratio_policy="not_larger"),
-        "keep_aspect_ratio_policy",
-    )
-
-
 def test_resize_runtime_scales_are_refused():
     node = helper.make_node("Resize", ["x", "", "s"], ["y"])
     graph = helper.make_graph(

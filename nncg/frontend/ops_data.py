@@ -36,9 +36,10 @@ COORDINATE_MODES = (
     "align_corners",
     "asymmetric",
     "tf_half_pixel_for_nn",
+    "tf_crop_and_resize",
 )
 NEAREST_MODES = ("round_prefer_floor", "round_prefer_ceil", "floor", "ceil")
-RESIZE_MODES = ("nearest", "linear")
+RESIZE_MODES = ("nearest", "linear", "cubic")
 
 # --- Concat, Split -------------------------------------------------------------------------------
 
@@ -230,16 +231,13 @@ def _check_border_source(op: OnnxOp, mode: str, shape: Shape, begin: list[int], 
 
 def convert_resize(op: OnnxOp, ctx: Context) -> Node:
     shape = ctx.shape(op.input(0))
-    mode = _resize_mode(op)
+    mode = _resize_mode(op, RESIZE_MODES if ctx.opset >= 11 else RESIZE_MODES[:2])
     if ctx.opset < 11:  # Resize-10: inputs X, scales; asymmetric coordinates, legacy rounding
         scales = _scales_input(op, ctx, 1, len(shape), None)
         if scales is None:
             raise op.error("has an empty scales input; Resize-10 needs one scale per input dim: give them")
-        return _resize(op, ctx, scales, None, mode, "asymmetric", "simple")
-    _refuse_resize_options(op)
+        return _resize(op, ctx, ResizeAttrs(tuple(scales), mode, "asymmetric", "simple"))
     coordinates = op.attr("coordinate_transformation_mode", "half_pixel")
-    if coordinates == "tf_crop_and_resize":
-        raise op.error("has coordinate_transformation_mode tf_crop_and_resize, which NNCG does not support")
     if coordinates not in COORDINATE_MODES:
         raise op.error(
             f"has coordinate_transformation_mode {shown(coordinates)}; NNCG supports {', '.join(COORDINATE_MODES)}"
@@ -256,13 +254,26 @@ def convert_resize(op: OnnxOp, ctx: Context) -> Node:
             f"has {'both' if scales is not None else 'neither'} scales and sizes; give exactly one of them "
             "(the other empty, or left out)"
         )
-    return _resize(op, ctx, scales, sizes, mode, coordinates, nearest)
+    if sizes is not None:
+        scales, sizes = _sizes_and_scales(op, shape, sizes, axes)
+    attrs = ResizeAttrs(
+        tuple(scales),
+        mode,
+        coordinates,
+        nearest if mode == "nearest" else "round_prefer_floor",
+        cubic_coeff_a=float(np.float32(op.attr("cubic_coeff_a", -0.75))),
+        exclude_outside=bool(op.attr("exclude_outside", 0)),
+        antialias=_antialias(op, mode),
+        roi=_roi(op, ctx, len(shape), axes) if coordinates == "tf_crop_and_resize" else (),
+        extrapolation_value=float(np.float32(op.attr("extrapolation_value", 0.0))),
+    )
+    return _resize(op, ctx, attrs, sizes)
 
 
 def convert_upsample(op: OnnxOp, ctx: Context) -> Node:
     """Upsample (opset 7 to 9) is Resize-10: asymmetric coordinates, legacy nearest rounding."""
     rank = len(ctx.shape(op.input(0)))
-    mode = _resize_mode(op)
+    mode = _resize_mode(op, RESIZE_MODES[:2])
     if op.input(1):
         scales = _scales_input(op, ctx, 1, rank, None)
     elif op.attr("scales") is not None:
@@ -271,39 +282,70 @@ def convert_upsample(op: OnnxOp, ctx: Context) -> Node:
         raise op.error("has no scales (neither an input nor an attribute); give one scale per input dim")
     if min(scales) < 1:
         raise op.error(f"has scales {scales}; Upsample needs scales >= 1")
-    return _resize(op, ctx, scales, None, mode, "asymmetric", "simple")
+    return _resize(op, ctx, ResizeAttrs(tuple(scales), mode, "asymmetric", "simple"))
 
 
-def _resize(op, ctx, scales, sizes, mode: str, coordinates: str, nearest: str) -> Node:
-    """The IR node; scales are float32 values, sizes (when given) define the scales as out/in.
-    The nearest mode is recorded only for mode nearest (linear ignores it)."""
+def _resize(op: OnnxOp, ctx: Context, attrs: ResizeAttrs, sizes: list[int] | None = None) -> Node:
+    """The IR node; the output shape is `sizes` when given, else floor(in * scale) in float32, as
+    onnxruntime computes it."""
     in_shape = ctx.shape(op.input(0))
     if sizes is not None:
         out = tuple(sizes)
-        scales = [float(np.float32(o) / np.float32(n)) for o, n in zip(out, in_shape)]
     else:
-        # floor(in * scale), in float32 as onnxruntime computes it
-        out = tuple(int(np.floor(np.float32(s) * np.float32(n))) for s, n in zip(scales, in_shape))
+        out = tuple(int(np.floor(np.float32(s) * np.float32(n))) for s, n in zip(attrs.scales, in_shape))
     if min(out) < 1:
         raise op.error(f"resizes {list(in_shape)} to {list(out)}; NNCG cannot compile empty tensors")
     ctx.set_shape(op, op.node.output[0], out)
-    attrs = ResizeAttrs(tuple(scales), mode, coordinates, nearest if mode == "nearest" else "round_prefer_floor")
     return op.ir_node("Resize", [op.input(0)], attrs)
 
 
-def _resize_mode(op: OnnxOp) -> str:
+def _resize_mode(op: OnnxOp, modes: tuple[str, ...] = RESIZE_MODES) -> str:
     mode = op.attr("mode", "nearest")
-    if mode not in RESIZE_MODES:
-        raise op.error(f"has mode {shown(mode)}; NNCG supports {' and '.join(RESIZE_MODES)} (cubic is not supported)")
+    if mode not in modes:
+        raise op.error(f"has mode {shown(mode)}; {op.type} here supports {', '.join(modes)}")
     return mode
 
 
-def _refuse_resize_options(op: OnnxOp) -> None:
-    if op.attr("antialias", 0):
-        raise op.error("has antialias=1, which NNCG does not support")
+def _sizes_and_scales(op: OnnxOp, shape: Shape, sizes: list[int], axes: list[int] | None) -> tuple[list, list]:
+    """Scales out/in in float32 for `stretch`; with keep_aspect_ratio_policy not_larger (not_smaller)
+    the smallest (largest) of the listed axes' scales for all of them, and sizes round(in * scale)
+    (ONNX shape inference has refused any other policy)."""
+    scales = [float(np.float32(o) / np.float32(n)) for o, n in zip(sizes, shape)]
     policy = op.attr("keep_aspect_ratio_policy", "stretch")
-    if policy != "stretch":
-        raise op.error(f"has keep_aspect_ratio_policy {shown(policy)}; NNCG supports only stretch")
+    if policy == "stretch":
+        return scales, sizes
+    listed = range(len(shape)) if axes is None else axes
+    pick = min if policy == "not_larger" else max
+    scale = np.float32(pick(scales[d] for d in listed))
+    scales = [float(scale) if d in listed else 1.0 for d in range(len(shape))]
+    sizes = [
+        int(np.float32(scale) * np.float32(n) + np.float32(0.5)) if d in listed else n for d, n in enumerate(shape)
+    ]
+    return scales, sizes
+
+
+def _antialias(op: OnnxOp, mode: str) -> bool:
+    antialias = bool(op.attr("antialias", 0))
+    if antialias and mode == "nearest":
+        raise op.error("has antialias=1 with mode nearest; antialias applies to linear and cubic only")
+    return antialias
+
+
+def _roi(op: OnnxOp, ctx: Context, rank: int, axes: list[int] | None) -> tuple[tuple[float, float], ...]:
+    """tf_crop_and_resize's region per dim: (start, end) as fractions of the input length (dims not
+    in `axes` keep the whole length)."""
+    roi = ctx.constant_input(op, 1, "roi", SHAPE_HINT) if op.input(1) else np.zeros(0, np.float32)
+    listed = list(range(rank)) if axes is None else axes
+    if roi.dtype.kind != "f" or roi.size != 2 * len(listed):
+        raise op.error(
+            f"has a roi of {roi.size} values; tf_crop_and_resize needs {2 * len(listed)} floats "
+            "(the starts, then the ends, of the resized axes)"
+        )
+    values = roi.astype(np.float32).reshape(-1).tolist()
+    region = [(0.0, 1.0)] * rank
+    for i, axis in enumerate(listed):
+        region[axis] = (values[i], values[len(listed) + i])
+    return tuple(region)
 
 
 def _scales_input(op: OnnxOp, ctx: Context, index: int, rank: int, axes: list[int] | None) -> list[float] | None:

@@ -221,12 +221,21 @@ class ResizeAttrs:
     """Resize and Upsample: output coordinate o of dim d maps to input coordinate
     transform(o, scales[d]) (coordinate_transformation_mode as in ONNX Resize); mode nearest picks one
     input by nearest_mode ("simple" is Resize-10/Upsample: floor when enlarging, ceil when shrinking),
-    linear interpolates between the two neighbours. Output shape in Graph.shapes."""
+    linear interpolates between the two neighbours, cubic between four (Keys' kernel with
+    cubic_coeff_a). With antialias, linear and cubic stretch their kernel by 1/scale when shrinking;
+    exclude_outside drops taps outside the input and renormalises. tf_crop_and_resize maps the output
+    onto roi (start, end) of each dim, in input-length units, and writes extrapolation_value where
+    that reaches outside the input. Output shape in Graph.shapes."""
 
     scales: tuple[float, ...]
     mode: str = "nearest"
     coordinate_transformation_mode: str = "half_pixel"
     nearest_mode: str = "round_prefer_floor"
+    cubic_coeff_a: float = -0.75
+    exclude_outside: bool = False
+    antialias: bool = False
+    roi: tuple[tuple[float, float], ...] = ()
+    extrapolation_value: float = 0.0
 
 
 # Every attribute record a node may carry.

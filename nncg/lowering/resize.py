@@ -1,7 +1,10 @@
-"""Resize lowering (nearest and linear; Upsample too) with every source index fixed at compile time.
+"""Resize lowering (nearest, linear and cubic, antialiased or not; Upsample too) with every source
+index fixed at compile time.
 
 Per dim, each output coordinate o reads a few input coordinates ("taps") with weights: one tap for
-nearest, two for linear (one at the clamped borders). The map o -> taps is not affine in general
+nearest, two for linear (one at the clamped borders), four for cubic, more for an antialiased
+kernel stretched over a shrinking dim; tf_crop_and_resize's positions outside the input read none
+and hold the extrapolation value. The map o -> taps is not affine in general
 (e.g. floor(o / 2)), but it is periodic: taps(o + P) = taps(o) shifted by Q input positions, over
 most of the dim. So a dim is cut into pieces: a loop over blocks of P outputs whose body has one
 statement per residue r < P, with source index Q * block + constant (affine), plus single positions
@@ -34,6 +37,7 @@ from ..ir.loops import Affine, Binary, Const, Expr, Load, Loop, Stmt, Store
 from .context import LoweringContext, TensorRef, dim_vars
 
 Taps = tuple[tuple[int, float], ...]  # (input coordinate, weight) pairs of one output coordinate
+EXTRAPOLATED = -1  # the coordinate of tf_crop_and_resize's one tap outside the input; its weight is the value
 WEIGHT_TOLERANCE = 1e-6  # weights this close count as equal when looking for a period
 DIRECT_STATEMENTS = 64  # statements of one nest over all dims; above, the dims are resized one at a time
 MAX_PERIOD = 64  # longest period (statements per block) tried, exact or windowed
@@ -133,21 +137,29 @@ def resize_taps(attrs: ResizeAttrs, in_shape: tuple[int, ...], out_shape: tuple[
 
 def dim_taps(attrs: ResizeAttrs, d: int, n_in: int, n_out: int) -> list[Taps]:
     scale = np.float32(attrs.scales[d])
+    roi = attrs.roi[d] if attrs.roi else None
     if scale == 1:
         # onnxruntime maps a dim of scale 1 onto itself, whatever the coordinate mode: only
-        # tf_half_pixel_for_nn would move it ((o + 0.5) / 1 rounds up to o + 1).
+        # tf_half_pixel_for_nn would move it ((o + 0.5) / 1 rounds up to o + 1) and only
+        # tf_crop_and_resize's roi would crop it (onnx's reference does both).
         return [((o, 1.0),) for o in range(n_out)]
     taps = []
     for o in range(n_out):
-        x = source_coordinate(attrs.coordinate_transformation_mode, np.float32(o), scale, n_in, n_out)
-        if attrs.mode == "nearest":
+        x = source_coordinate(attrs.coordinate_transformation_mode, np.float32(o), scale, n_in, n_out, roi)
+        if roi is not None and not 0 <= x <= n_in - 1:
+            taps.append(((EXTRAPOLATED, attrs.extrapolation_value),))
+        elif attrs.mode == "nearest":
             taps.append(((_nearest(x, attrs.nearest_mode, scale, n_in), 1.0),))
-        else:
+        elif attrs.mode == "linear" and not attrs.antialias and not attrs.exclude_outside:
             taps.append(_linear(x, n_in))
+        else:
+            taps.append(_kernel_taps(attrs, x, float(scale), n_in))
     return taps
 
 
-def source_coordinate(mode: str, o: np.float32, scale: np.float32, n_in: int, n_out: int) -> np.float32:
+def source_coordinate(
+    mode: str, o: np.float32, scale: np.float32, n_in: int, n_out: int, roi: tuple[float, float] | None = None
+) -> np.float32:
     """The input coordinate of output coordinate o (ONNX Resize coordinate_transformation_mode)."""
     half = np.float32(0.5)
     if mode == "asymmetric":
@@ -156,6 +168,11 @@ def source_coordinate(mode: str, o: np.float32, scale: np.float32, n_in: int, n_
         return (o + half) / scale
     if mode == "align_corners":
         return np.float32(0) if n_out == 1 else o * np.float32(n_in - 1) / np.float32(n_out - 1)
+    if mode == "tf_crop_and_resize":
+        start, end = np.float32(roi[0]), np.float32(roi[1])
+        if n_out == 1:
+            return half * (start + end) * np.float32(n_in - 1)
+        return start * np.float32(n_in - 1) + o * (end - start) * np.float32(n_in - 1) / np.float32(n_out - 1)
     if mode == "pytorch_half_pixel":
         return (o + half) / scale - half if n_out > 1 else np.float32(0)
     if mode == "half_pixel_symmetric":  # the offset in float32, the rest in double, as onnxruntime has it
@@ -192,6 +209,40 @@ def _linear(x: np.float32, n_in: int) -> Taps:
     if hi == lo or frac == 0.0:
         return ((lo, 1.0),)
     return ((lo, float(np.float32(1) - np.float32(frac))), (hi, frac))
+
+
+def _kernel_taps(attrs: ResizeAttrs, x: np.float32, scale: float, n_in: int) -> Taps:
+    """Linear (triangle) or cubic kernel taps around x, as ONNX's reference places them: the kernel
+    is stretched by 1/scale when shrinking with antialias, taps past the borders read the border
+    pixel (or are dropped with exclude_outside), and the weights are normalised to sum to 1."""
+    x = float(x)
+    ratio = x - math.floor(x) if x != math.floor(x) else 1.0  # in (0, 1]: x = base + ratio
+    base = round(x - ratio)
+    stretch = min(scale, 1.0) if attrs.antialias else 1.0
+    radius = 2 if attrs.mode == "cubic" else 1
+    first = math.floor(-radius / stretch) + 1
+    weights: dict[int, float] = {}
+    for i in range(first, 2 - first):
+        pixel = base + i
+        if attrs.exclude_outside and not 0 <= pixel < n_in:
+            continue
+        pixel = min(max(pixel, 0), n_in - 1)
+        weights[pixel] = weights.get(pixel, 0.0) + _kernel(attrs, (i - ratio) * stretch)
+    total = sum(weights.values())
+    return tuple((c, float(np.float32(w / total))) for c, w in weights.items() if w != 0.0)
+
+
+def _kernel(attrs: ResizeAttrs, t: float) -> float:
+    """The interpolation kernel at distance t: the triangle 1 - |t|, or Keys' cubic with a = cubic_coeff_a."""
+    t = abs(t)
+    if attrs.mode != "cubic":
+        return max(0.0, 1.0 - t)
+    a = attrs.cubic_coeff_a
+    if t <= 1:
+        return ((a + 2) * t - (a + 3)) * t * t + 1
+    if t < 2:
+        return ((a * t - 5 * a) * t + 8 * a) * t - 4 * a
+    return 0.0
 
 
 # ---------------------------------------------------------------------------- periodic pieces
@@ -236,6 +287,8 @@ def _shift(a: Taps, b: Taps) -> int | None:
     """Q when b is a with every input coordinate moved by Q and the same weights, else None."""
     if len(a) != len(b):
         return None
+    if any(c == EXTRAPOLATED for c, _ in (*a, *b)):
+        return 0 if a == b else None
     step = b[0][0] - a[0][0]
     same = all(cb - ca == step and abs(wb - wa) <= WEIGHT_TOLERANCE for (ca, wa), (cb, wb) in zip(a, b))
     return step if same else None
@@ -334,7 +387,10 @@ class _NestBuilder:
             inner: list[Stmt] = []
             for r, residue in enumerate(piece.taps):
                 here = block * piece.period + (piece.start + r)
-                reads = tuple((block * piece.step + c, self._weight(piece, block, w)) for c, w in residue)
+                reads = tuple(
+                    (None, w) if c == EXTRAPOLATED else (block * piece.step + c, self._weight(piece, block, w))
+                    for c, w in residue
+                )
                 inner += self.dims(level + 1, _put(at, d, here), _put(taps, d, reads))
             body += [Loop(self.names[d], piece.blocks, tuple(inner), parallel=True)] if piece.blocks > 1 else inner
         return tuple(body)
@@ -345,7 +401,11 @@ class _NestBuilder:
         return w if piece.table is None else Load(piece.table, block * piece.table_step + w)
 
     def _blend(self, taps: tuple[tuple, ...]) -> Expr:
-        """Sum over the cross product of the dims' taps of weight product * input element."""
+        """Sum over the cross product of the dims' taps of weight product * input element; the
+        extrapolation value where a dim reads outside the input (its one tap has no coordinate)."""
+        for (coordinate, value), *others in taps:
+            if coordinate is None and not others:
+                return Const.splat(float(value))
         total: Expr | None = None
         for combo in itertools.product(*taps):
             constant = [np.float32(w) for _, w in combo if not isinstance(w, Load)]
