@@ -9,7 +9,7 @@ outputs back, shaped as the ONNX outputs. NNCG compiles float32 models with stat
 anything else is refused with an NncgError (a BackendError for what is wrong with the inputs).
 
 Parameter inputs. NNCG needs operator parameters (Reshape's shape, Slice's starts/ends/axes/steps,
-Pad's pads, Resize's scales, Clip's bounds, ...) as compile-time constants, while onnx's test cases
+Pad's pads, Resize's scales, ...) as compile-time constants, while onnx's test cases
 often feed them as graph inputs. As an ahead-of-time backend would, this adapter specialises on
 them: a graph input is a parameter input when every node reading it reads it in a slot listed in
 PARAMETER_INPUTS (made from the op records in nncg/frontend/ops.py) and the graph does not return

@@ -97,6 +97,14 @@ class Context:
         self.constants[name] = array
         return name
 
+    def add_value(self, base: str, shape: Shape | None = None) -> str:
+        """A fresh name for a value (or node) a converter adds; values get their shape."""
+        name = fresh_name(base, self.taken)
+        self.taken.add(name)
+        if shape is not None:
+            self.shapes[name] = tuple(shape)
+        return name
+
     def set_shape(self, op: OnnxOp, value: str, shape: Shape) -> None:
         """Record the shape NNCG computed, refusing if ONNX shape inference disagrees."""
         inferred = self.shapes.get(value)

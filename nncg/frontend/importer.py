@@ -30,12 +30,18 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     ctx = _context(proto, folded)
     computed = [(name, node.op_type, node.output) for node, name in folded.nodes]
     check_computed_shapes(computed, ctx.shapes, ctx.is_used)  # before converters size anything by them
-    nodes = tuple(CONVERTERS[node.op_type](OnnxOp.of(node, name), ctx) for node, name in folded.nodes)
+    nodes = tuple(ir_node for node, name in folded.nodes for ir_node in _converted(node, name, ctx))
     graph = _assemble(proto.graph, nodes, ctx)
     check_computed_shapes([(n.name, n.op, n.outputs) for n in graph.nodes], graph.shapes)  # converters' own too
     check_constants(graph, constant_origins(proto.graph, folded))
     check_attributes(graph)
     return graph
+
+
+def _converted(node: onnx.NodeProto, name: str, ctx: Context) -> tuple[Node, ...]:
+    """The graph IR nodes of one ONNX node: most converters make one, a few a short chain."""
+    converted = CONVERTERS[node.op_type](OnnxOp.of(node, name), ctx)
+    return converted if isinstance(converted, tuple) else (converted,)
 
 
 # Operators of quantised models, named in the error: int8 compilation does not exist yet, and

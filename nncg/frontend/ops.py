@@ -47,7 +47,7 @@ from nncg.frontend.ops_shape import (
 )
 from nncg.ir.graph import Node
 
-Converter = Callable[[OnnxOp, Context], Node]
+Converter = Callable[[OnnxOp, Context], Node | tuple[Node, ...]]  # a few ops become a short chain
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "GlobalAveragePool": ConvertedOp(convert_global_pool, ("AveragePool",)),
     "GlobalMaxPool": ConvertedOp(convert_global_pool, ("MaxPool",)),
     "Relu": ConvertedOp(convert_relu, ("Relu",)),
-    "Clip": ConvertedOp(convert_clip, ("Clip",), (1, 2)),  # min, max (opset 11+)
+    "Clip": ConvertedOp(convert_clip, ("Clip", "Max", "Min")),  # min, max at run time: Max, Min
     "LeakyRelu": ConvertedOp(convert_leaky_relu, ("LeakyRelu",)),
     "BatchNormalization": ConvertedOp(convert_batchnorm, ("BatchNormalization",)),
     "Softmax": ConvertedOp(convert_softmax, ("Softmax",)),
@@ -89,7 +89,7 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "Split": ConvertedOp(convert_split, ("Split",), (1,)),  # split (opset 13+)
     "Slice": ConvertedOp(convert_slice, ("Slice",), (1, 2, 3, 4)),  # starts, ends, axes, steps (opset 10+)
     "Transpose": ConvertedOp(convert_transpose, ("Transpose",)),
-    "Pad": ConvertedOp(convert_pad, ("Pad",), (1, 2, 3)),  # pads, constant_value, axes (opset 11+)
+    "Pad": ConvertedOp(convert_pad, ("Pad",), (1, 3)),  # pads, axes (opset 11+); constant_value may be a runtime input
     # roi, scales, sizes (opset 11+; scales alone in opset 10)
     "Resize": ConvertedOp(convert_resize, ("Resize",), (1, 2, 3)),
     "Upsample": ConvertedOp(convert_upsample, ("Resize",), (1,)),  # scales (opset 9)

@@ -187,20 +187,25 @@ def convert_pad(op: OnnxOp, ctx: Context) -> Node:
     if mode in ("reflect", "wrap"):
         _check_border_source(op, mode, shape, begin, end)
     ctx.set_shape(op, op.node.output[0], out)
-    return op.ir_node("Pad", [op.input(0)], PadAttrs(tuple(begin), tuple(end), mode, value))
+    attrs = PadAttrs(tuple(begin), tuple(end), mode, 0.0 if isinstance(value, str) else value)
+    return op.ir_node("Pad", [op.input(0), *([value] if isinstance(value, str) else [])], attrs)
 
 
-def _pad_params(op: OnnxOp, ctx: Context, rank: int) -> tuple[list[int], float, list[int]]:
+def _pad_params(op: OnnxOp, ctx: Context, rank: int) -> tuple[list[int], float | str, list[int]]:
     """pads, the constant value and the padded axes: attributes before opset 11, constant inputs
-    from 11 (axes from 18)."""
+    from 11 (axes from 18), but for a constant value computed at run time: its value's name."""
     if ctx.opset < 11:
         if op.attr("pads") is None:
             raise op.error("has no pads attribute, which Pad before opset 11 requires: add the pads")
         return [int(p) for p in op.attr("pads")], float(op.attr("value", 0.0)), list(range(rank))
     pads = _ints(op, ctx.constant_input(op, 1, "pads", SHAPE_HINT), "pads").tolist()
     value = 0.0
-    if op.input(2):
-        constant = ctx.constant_input(op, 2, "constant_value", SHAPE_HINT)
+    if op.input(2) and ctx.const(op.input(2)) is None:
+        if math.prod(ctx.shape(op.input(2))) != 1:
+            raise op.error(f"has a constant_value of shape {list(ctx.shape(op.input(2)))}; it must be one float")
+        value = op.input(2)
+    elif op.input(2):
+        constant = ctx.const(op.input(2))
         if constant.size != 1 or constant.dtype.kind != "f":
             raise op.error(
                 f"has constant_value of type {constant.dtype.name} and size {constant.size}; it must be one float"

@@ -4,6 +4,7 @@ BatchNormalization, Softmax) into graph IR nodes with fully resolved attribute r
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 from nncg.frontend.context import Context, OnnxOp
@@ -72,17 +73,37 @@ def convert_global_pool(op: OnnxOp, ctx: Context) -> Node:
     return op.ir_node(op.node.op_type.removeprefix("Global"), [x], attrs)
 
 
-def convert_clip(op: OnnxOp, ctx: Context) -> Node:
-    """Clip's bounds: attributes before opset 11, optional constant inputs from 11 on."""
+def convert_clip(op: OnnxOp, ctx: Context) -> Node | tuple[Node, ...]:
+    """Clip's bounds: attributes before opset 11, optional scalar inputs from 11 on. Constant bounds
+    make a clip activation (fused into the producer's store); a bound computed at run time (a graph
+    input, say) a Max with it, then a Min with the upper one."""
     if ctx.opset < 11:
         low, high = float(op.attr("min", float("-inf"))), float(op.attr("max", float("inf")))
-    else:
-        bounds = [ctx.constant_input(op, i, name) if op.input(i) else None for i, name in ((1, "min"), (2, "max"))]
-        if any(b is not None and b.size != 1 for b in bounds):
-            raise op.error("has a min or max that is not a scalar; only scalar bounds are supported")
-        low = float(bounds[0].reshape(())) if bounds[0] is not None else float("-inf")
-        high = float(bounds[1].reshape(())) if bounds[1] is not None else float("inf")
+        return op.ir_node("Clip", [op.input(0)], Activation("clip", low=low, high=high))
+    bounds = (op.input(1), op.input(2))
+    for bound in bounds:
+        if bound and math.prod(ctx.shape(bound)) != 1:
+            raise op.error(f"has a min or max of shape {list(ctx.shape(bound))}; Clip's bounds are scalars")
+    if any(bound and ctx.const(bound) is None for bound in bounds):
+        return _runtime_clip(op, ctx, bounds)
+    low, high = (float(ctx.const(b).reshape(())) if b else default for b, default in zip(bounds, (-math.inf, math.inf)))
     return op.ir_node("Clip", [op.input(0)], Activation("clip", low=low, high=high))
+
+
+def _runtime_clip(op: OnnxOp, ctx: Context, bounds: tuple[str | None, str | None]) -> tuple[Node, ...]:
+    """max(x, min), then min(that, max): the bounds broadcast as scalars (ONNX Clip gives NaN bounds
+    no meaning, so the order of max and min does not matter)."""
+    steps = [(kind, bound) for kind, bound in zip(("Max", "Min"), bounds) if bound]
+    shape = ctx.shape(op.input(0))
+    nodes, value = [], op.input(0)
+    for i, (kind, bound) in enumerate(steps):
+        last = i == len(steps) - 1
+        out = op.node.output[0] if last else ctx.add_value(f"{op.node.output[0]}_{kind.lower()}", shape)
+        name = op.name if last else ctx.add_value(f"{op.name}_{kind.lower()}")
+        nodes.append(Node(op=kind, name=name, inputs=(value, bound), outputs=(out,)))
+        value = out
+    ctx.set_shape(op, op.node.output[0], shape)
+    return tuple(nodes)
 
 
 def convert_relu(op: OnnxOp, ctx: Context) -> Node:

@@ -207,8 +207,9 @@ class TransposeAttrs:
 
 @dataclass(frozen=True)
 class PadAttrs:
-    """Pad each dim by pads_begin/pads_end (negative: crop). mode: constant (with `value`), reflect
-    (mirror without repeating the border), edge (repeat the border) or wrap (periodic)."""
+    """Pad each dim by pads_begin/pads_end (negative: crop). mode: constant (with `value`, or the
+    one element of the node's second input when the value comes at run time), reflect (mirror
+    without repeating the border), edge (repeat the border) or wrap (periodic)."""
 
     pads_begin: Shape
     pads_end: Shape

@@ -16,7 +16,7 @@ import itertools
 from dataclasses import dataclass
 
 from ..ir.graph import Node, PadAttrs
-from ..ir.loops import Affine, Const, Load, Stmt, Store
+from ..ir.loops import Affine, Const, Expr, Load, Stmt, Store
 from .context import LoweringContext, TensorRef
 from .reshape import box_nest, copy_order
 
@@ -37,19 +37,21 @@ def lower_pad(ctx: LoweringContext, node: Node) -> None:
     x = ctx.ref(node.inputs[0])
     out = ctx.output(node.outputs[0], copy_order(ctx, node.outputs[0], x.order))
     per_dim = [segments(n, b, e, attrs.mode) for n, b, e in zip(x.shape, attrs.pads_begin, attrs.pads_end)]
+    value = Load(ctx.ref(node.inputs[1]).buffer, Affine()) if len(node.inputs) > 1 else Const.splat(attrs.value)
     body: list[Stmt] = []
     for box in itertools.product(*per_dim):
-        body += box_nest([s.length for s in box], out.order, _filler(x, out, box, attrs.value))
+        body += box_nest([s.length for s in box], out.order, _filler(x, out, box, value))
     ctx.emit(node.name, node.op, tuple(body))
 
 
-def _filler(x: TensorRef, out: TensorRef, box: tuple[Segment, ...], value: float):
-    """The store of one box: the constant if any dim is in a constant border, else a load."""
+def _filler(x: TensorRef, out: TensorRef, box: tuple[Segment, ...], value: Expr):
+    """The store of one box: the constant value (a literal, or the load of the runtime scalar) if any
+    dim is in a constant border, else a load."""
 
     def store(idx: list[Affine]) -> Store:
         at = out.at([i + s.out_start for i, s in zip(idx, box)])
         if any(s.src_start is None for s in box):
-            return Store(out.buffer, at, Const.splat(value))
+            return Store(out.buffer, at, value)
         src = [i * s.src_step + s.src_start for i, s in zip(idx, box)]
         return Store(out.buffer, at, Load(x.buffer, x.at(src)))
 
