@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import sys
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -38,10 +39,11 @@ class SmallCnn(nn.Module):
         return self.head(self.features(x))
 
 
-def seeded(module: nn.Module, seed: int = 0) -> nn.Module:
-    """`module` with random BatchNorm statistics and affine parameters (fixed by `seed`), so that the
-    normalisation is not the identity and the outputs are of order one."""
+def seeded(build: Callable[[], nn.Module], seed: int = 0) -> nn.Module:
+    """The module `build` makes, its random weights fixed by `seed`, with random BatchNorm statistics and
+    affine parameters, so that the normalisation is not the identity and the outputs are of order one."""
     torch.manual_seed(seed)
+    module = build()
     for m in module.modules():
         if isinstance(m, nn.BatchNorm2d):
             n = m.num_features
@@ -73,7 +75,7 @@ def max_errors(compiled, proto, expected: np.ndarray, x) -> tuple[float, float]:
 
 @pytest.mark.parametrize("exporter", EXPORTERS)
 def test_small_cnn_compiles_deterministically_and_matches_onnxruntime_and_torch(exporter):
-    module = seeded(SmallCnn())
+    module = seeded(SmallCnn)
     x = torch.randn(1, 3, 16, 16)
     expected = inference(module, x)
     module.train()  # compiled for inference whatever its mode
@@ -99,7 +101,7 @@ def torch_models():
 @pytest.mark.parametrize("name", ["mobilenet_v2", "resnet18"])
 def test_torchvision_architecture_matches_onnxruntime_and_torch(torch_models, name, exporter):
     # nncg.compile(module) is export_onnx then the ONNX compile: exporting once keeps the test quick.
-    module = seeded(torch_models.build(name, width=0.25, num_classes=10))
+    module = seeded(lambda: torch_models.ARCHITECTURES[name](width=0.25, num_classes=10))
     x = torch.randn(1, 3, 32, 32)
     proto = export_onnx(module, x, exporter)
     against_ort, against_torch = max_errors(nncg.compile(proto, target="ssse3"), proto, inference(module, x), x)
