@@ -7,7 +7,7 @@ __version__ = "0.1.0"
 
 from .backends import get_target  # noqa: E402
 from .compiler import CompiledModel, compile, emit  # noqa: E402
-from .errors import NncgError  # noqa: E402
+from .errors import NncgError, NncgWarning  # noqa: E402
 from .frontend import import_onnx, load_model  # noqa: E402
 from .options import CompileOptions  # noqa: E402
 from .passes import PassManager, default_pipeline  # noqa: E402
@@ -16,6 +16,7 @@ __all__ = [
     "CompileOptions",
     "CompiledModel",
     "NncgError",
+    "NncgWarning",
     "PassManager",
     "compile",
     "default_pipeline",

@@ -11,6 +11,7 @@ from collections.abc import Mapping
 import onnx
 
 from .errors import NncgError
+from .frontend.torch_export import check_exporter, is_torch_module
 from .passes.plan_memory import WEIGHTS_MODES
 from .safe_text import capped, shown
 
@@ -19,10 +20,12 @@ MODEL_TYPES = (str, os.PathLike, bytes, bytearray, memoryview, onnx.ModelProto)
 
 
 def check_compile_arguments(
-    model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights, code_budget
-) -> None:
+    model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights, code_budget,
+    example_inputs, exporter,
+) -> None:  # fmt: skip
     """Raises NncgError for the first argument of nncg.compile that has the wrong type or value."""
     _check_model(model)
+    _check_torch_arguments(model, input_shapes, example_inputs, exporter)
     _check_str("target", target)
     _check_unroll(unroll)
     _check_str("name", name, optional=True)
@@ -44,10 +47,19 @@ def check_write_arguments(directory, cmake) -> None:
 
 
 def _check_model(model) -> None:
-    if not isinstance(model, MODEL_TYPES):
-        raise NncgError(f"model must be a file path, bytes or an onnx.ModelProto; {_got(model)}")
+    if not isinstance(model, MODEL_TYPES) and not is_torch_module(model):
+        raise NncgError(f"model must be a file path, bytes, an onnx.ModelProto or a torch.nn.Module; {_got(model)}")
     if isinstance(model, (str, os.PathLike)):
         _check_path("model", model)
+
+
+def _check_torch_arguments(model, input_shapes, example_inputs, exporter) -> None:
+    """example_inputs fix a torch module's input shapes; input_shapes fix an ONNX model's."""
+    check_exporter(exporter)
+    if not is_torch_module(model) and example_inputs is not None:
+        raise NncgError("example_inputs is for a torch.nn.Module; an ONNX model's input shapes are set by input_shapes")
+    if is_torch_module(model) and input_shapes is not None:
+        raise NncgError("input_shapes is for ONNX models; a torch.nn.Module's input shapes are its example_inputs'")
 
 
 def _check_path(what: str, path) -> None:

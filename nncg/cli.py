@@ -6,13 +6,16 @@ import argparse
 import re
 import shlex
 import sys
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import NoReturn
 
 from . import __version__
 from .arguments import DIM_MAX
 from .backends import BACKENDS
-from .errors import NncgError
+from .errors import NncgError, NncgWarning
 from .options import CompileOptions
 from .output_files import check_output_folder
 from .passes.unroll import CODE_BUDGET
@@ -136,8 +139,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    notes: list[str] = []
     try:
-        return run(args)
+        with collected_notes(notes):
+            status = run(args)
     except NncgError as exc:
         return fail(str(exc))
     except OSError as exc:  # the file system's answer (a full disk, a vanished file): the user's to fix
@@ -155,6 +160,27 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 3
+    for note in notes:  # after the run, so that bad input stays one error line
+        print(terminal_line(f"nncg-onnx: note: {note}"), file=sys.stderr)
+    return status
+
+
+@contextmanager
+def collected_notes(notes: list[str]) -> Iterator[None]:
+    """NNCG's warnings (defaults it chose, such as batch 1) into `notes`, each text once; other
+    warnings are shown as usual."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", NncgWarning)
+        show = warnings.showwarning
+
+        def collect(message, category, *args, **kwargs):
+            if not issubclass(category, NncgWarning):
+                return show(message, category, *args, **kwargs)
+            if str(message) not in notes:
+                notes.append(str(message))
+
+        warnings.showwarning = collect
+        yield
 
 
 def fail(message: str) -> int:

@@ -10,7 +10,7 @@ import hashlib
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 import onnx
 
@@ -22,6 +22,7 @@ from .bench.macs import macs_by_layer
 from .cmake import CMAKE_LISTS, cmake_file
 from .errors import NncgError
 from .frontend import import_onnx
+from .frontend.torch_export import DEFAULT_EXPORTER, export_onnx, is_torch_module
 from .ir.c_names import program_name
 from .ir.loops import Program
 from .limits import check_program_limits
@@ -30,6 +31,9 @@ from .output_files import write_files
 from .passes import PassManager
 from .passes.unroll import CODE_BUDGET
 from .safe_text import c_comment, capped, shown
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass(frozen=True)
@@ -74,7 +78,7 @@ class CompiledModel:
 
 
 def compile(
-    model: str | os.PathLike | bytes | onnx.ModelProto,
+    model: str | os.PathLike | bytes | onnx.ModelProto | torch.nn.Module,
     target: str = "ansi-c",
     unroll: str | int | None = "auto",
     name: str | None = None,
@@ -85,8 +89,13 @@ def compile(
     profile: bool = False,
     weights: str = "auto",
     code_budget: int | None = CODE_BUDGET,
+    example_inputs: torch.Tensor | tuple[torch.Tensor, ...] | None = None,
+    exporter: str = DEFAULT_EXPORTER,
 ) -> CompiledModel:
-    """Compiles an ONNX model to C for `target`. `unroll` is "auto" (small loops unrolled, see the
+    """Compiles a model to C for `target`: ONNX (a file path, bytes or an onnx.ModelProto) or a
+    torch.nn.Module, exported in eval mode for inputs shaped like `example_inputs` (a float32 tensor or
+    a tuple of them) by torch.onnx.export's `exporter`, "dynamo" (torch.export; needs onnxscript) or
+    "torchscript" (see nncg/frontend/torch_export.py). `unroll` is "auto" (small loops unrolled, see the
     unroll pass), a level (int: the paper's levels) or None/"none" for no unrolling; `pipeline`
     replaces the default pass pipeline entirely; `profile` adds per-layer timers to the generated
     code (for `--profile`; they need POSIX clock_gettime); `weights` is embed (static const arrays),
@@ -94,17 +103,20 @@ def compile(
     statements of the unrolled program (None: the paper's levels exactly)."""
     check_compile_arguments(
         model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights,
-        code_budget,
+        code_budget, example_inputs, exporter,
     )  # fmt: skip
     options = CompileOptions.of(unroll, weights, code_budget, pipeline)
     backend = get_backend(target)
+    from_torch = is_torch_module(model)
+    if from_torch:
+        model = export_onnx(model, example_inputs, exporter)
     graph = import_onnx(model, input_shapes)
     manager = PassManager(
         options.pass_pipeline(backend.target), backend.target, verify=verify_ir, print_ir_after_all=print_ir_after_all
     )
     name = program_name(name or _default_name(model, graph.name))
     program = manager.run(_with_name(graph, name))
-    options = f"target={target} pipeline={manager.pipeline}"
+    options = f"target={target} pipeline={manager.pipeline}" + (f" torch-exporter={exporter}" if from_torch else "")
     if input_shapes:
         options += " input-shape=" + ",".join(f"{capped(k)}={'x'.join(map(str, v))}" for k, v in input_shapes.items())
     compiled = emit(program, target, options, _sha256(model), manager.pipeline, profile)

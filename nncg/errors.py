@@ -13,3 +13,8 @@ class NncgError(Exception):
 
 class UnsupportedOpsError(NncgError):
     """The model uses operators NNCG cannot compile; lists every one of them at once."""
+
+
+class NncgWarning(UserWarning):
+    """A default NNCG chose for the user (e.g. batch 1 for a dynamic batch dimension); the message says
+    how to choose otherwise. The CLI prints it as one note line on stderr."""

@@ -32,4 +32,4 @@ if [ ${#missing[@]} -gt 0 ]; then
         DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
     fi
 fi
-python3 -m pip install -q '.[test,bench]'  # bench: torch (CPU), for the real-size model tests
+python3 -m pip install -q '.[test,bench]'  # bench: torch (CPU) and onnxscript, for the real-size model and torch route tests

@@ -110,7 +110,7 @@ def bad_inputs(tmp_path):
             [unsupported_model(tmp_path / "u.onnx")],
             r"Sin \(node 'squash'\).*Mod \(node 'wrap'\).*Conv",
         ),
-        "dynamic input": ([float_model(tmp_path / "d.onnx", ["N", 3])], r"x\[N,3\].*--input-shape x=1x3"),
+        "dynamic input": ([float_model(tmp_path / "d.onnx", ["N", 3, "H"])], r"x\[N,3,H\].*--input-shape x=1x3x1"),
         "wrong input-shape": ([float_model(tmp_path / "d2.onnx", ["N", 3]), "--input-shape", "y=1x3"], "y"),
         "int input": ([float_model(tmp_path / "i.onnx", [1, 3], op="Identity", dtype=TensorProto.INT64)], "int64"),
         "bad unroll": ([EXAMPLES / "ball.onnx", "--unroll", "deep"], "unroll level 'deep'"),
@@ -149,6 +149,55 @@ def test_input_shape_fixes_a_dynamic_input(tmp_path):
     result = nncg_onnx(model, "-o", tmp_path, "--input-shape", "x=2x3x4x5", "--verify")
     assert result.returncode == 0, result.stderr
     assert "#define D_X_SIZE 120" in (tmp_path / "d.h").read_text()
+
+
+def two_input_model(path, x_shape, z_shape):
+    graph = helper.make_graph(
+        [helper.make_node("Add", ["x", "z"], ["y"])],
+        "g",
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in (("x", x_shape), ("z", z_shape))],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+    )
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8), path)
+    return path
+
+
+def test_dynamic_batch_defaults_to_1_with_one_note_per_input(tmp_path):
+    model = two_input_model(tmp_path / "b.onnx", ["N", 3, 4], ["batch", 3, 4])
+    result = nncg_onnx(model, "-o", tmp_path, "--verify")  # --verify loads the model a second time
+    assert result.returncode == 0, result.stderr
+    assert "PASS" in result.stdout and "(1, 3, 4)" in result.stdout
+    assert result.stderr.splitlines() == [
+        "nncg-onnx: note: input 'x' has a dynamic batch dimension x[N,3,4]; compiled for batch 1: "
+        "for batch B give --input-shape x=Bx3x4 (input_shapes in Python)",
+        "nncg-onnx: note: input 'z' has a dynamic batch dimension z[batch,3,4]; compiled for batch 1: "
+        "for batch B give --input-shape z=Bx3x4 (input_shapes in Python)",
+    ]
+    assert "#define B_X_SIZE 12" in (tmp_path / "b.h").read_text()
+
+
+def test_input_shape_overrides_the_default_batch(tmp_path):
+    model = two_input_model(tmp_path / "b.onnx", ["N", 3, 4], ["N", 3, 4])
+    result = nncg_onnx(model, "-o", tmp_path, "--input-shape", "x=2x3x4", "--input-shape", "z=2x3x4", "--verify")
+    assert result.returncode == 0, result.stderr
+    assert "PASS" in result.stdout and "(2, 3, 4)" in result.stdout and result.stderr == ""
+    assert "#define B_X_SIZE 24" in (tmp_path / "b.h").read_text()
+
+
+def test_the_note_escapes_the_models_names(tmp_path):
+    name = "in\x1b[31m*/\n"
+    graph = helper.make_graph(
+        [helper.make_node("Relu", [name], ["y"])],
+        "g",
+        [helper.make_tensor_value_info(name, TensorProto.FLOAT, ["\u202ebatch", 3])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+    )
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8), tmp_path / "e.onnx")
+    result = nncg_onnx(tmp_path / "e.onnx", "-o", tmp_path)
+    assert result.returncode == 0, result.stderr
+    (note,) = result.stderr.splitlines()
+    assert note.isprintable() and note.isascii(), note
+    assert "dynamic batch dimension" in note and "\\x1b" in note and "\\u202e" in note, note
 
 
 def test_verify_exits_1_above_tolerance(tmp_path):

@@ -6,10 +6,10 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-from helpers import onnx_model
+from helpers import compile_and_check, onnx_model
 from onnx import TensorProto, helper, numpy_helper
 
-from nncg.errors import NncgError, UnsupportedOpsError
+from nncg.errors import NncgError, NncgWarning, UnsupportedOpsError
 from nncg.frontend import import_onnx, load_model
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_nn import convert_maxpool
@@ -221,13 +221,61 @@ def test_non_float32_output():
     fails(proto, "output 'y' is int64")
 
 
+def local_functions_model(function_opset: int = 13) -> onnx.ModelProto:
+    """x -> Block(x) -> y, where the model-local function Block calls ConvLeaky twice and ConvLeaky
+    (Conv then LeakyRelu with the caller's alpha attribute) is a model-local function too."""
+    leaky = helper.make_node("LeakyRelu", ["c"], ["Y"])
+    leaky.attribute.append(helper.make_attribute_ref("alpha", onnx.AttributeProto.FLOAT))
+    conv_leaky = helper.make_function(
+        "my.fns", "ConvLeaky", ["X", "W"], ["Y"],
+        [helper.make_node("Conv", ["X", "W"], ["c"], pads=[1, 1, 1, 1]), leaky],
+        [helper.make_opsetid("", function_opset)], attributes=["alpha"],
+    )  # fmt: skip
+    block = helper.make_function(
+        "my.fns", "Block", ["X", "W1", "W2"], ["Y"],
+        [helper.make_node("ConvLeaky", ["X", "W1"], ["h"], domain="my.fns", alpha=0.1),
+         helper.make_node("ConvLeaky", ["h", "W2"], ["Y"], domain="my.fns", alpha=0.3)],
+        [helper.make_opsetid("", function_opset), helper.make_opsetid("my.fns", 1)],
+    )  # fmt: skip
+    proto = onnx_model(
+        [helper.make_node("Block", ["x", "w1", "w2"], ["y"], domain="my.fns")],
+        inputs={"x": [1, 2, 6, 6]}, outputs={"y": [1, 4, 6, 6]},
+        initializers={"w1": rand(3, 2, 3, 3), "w2": rand(4, 3, 3, 3)},
+    )  # fmt: skip
+    proto.opset_import.append(helper.make_opsetid("my.fns", 1))
+    proto.functions.extend([conv_leaky, block])
+    return proto
+
+
+def test_local_functions_are_inlined():
+    proto = local_functions_model()
+    graph = import_onnx(proto)
+    assert [n.op for n in graph.nodes].count("Conv") == 2 and not load_model(proto).functions
+    compile_and_check(proto, "ansi-c")
+
+
+def test_local_functions_onnx_cannot_convert_to_the_models_opset_are_refused():
+    fails(local_functions_model(function_opset=11), "cannot inline the model's local functions", "Type unknown")
+
+
 def test_dynamic_dim_param():
-    fails(one_op("Relu", ["N", 3, 8, 8]), "input 'x'", "x[N,3,8,8]", "--input-shape x=1x3x8x8")
+    fails(one_op("Relu", ["N", 3, "H", 8]), "input 'x'", "x[N,3,H,8]", "--input-shape x=1x3x1x8")
 
 
 def test_missing_dim_value():
-    proto = one_op("Relu", [None, 3])
-    fails(proto, "x[?,3]", "--input-shape x=1x3")
+    proto = one_op("Relu", [3, None])
+    fails(proto, "x[3,?]", "--input-shape x=3x1")
+
+
+@pytest.mark.parametrize("batch", ["N", None])
+def test_dynamic_batch_defaults_to_1_with_a_warning(batch):
+    with pytest.warns(NncgWarning, match=r"input 'x' has a dynamic batch dimension .*--input-shape x=Bx3x8x8"):
+        graph = import_onnx(one_op("Relu", [batch, 3, 8, 8]))
+    assert graph.inputs[0].shape == (1, 3, 8, 8) and graph.shapes["y"] == (1, 3, 8, 8)
+
+
+def test_a_dynamic_vector_length_is_no_batch():
+    fails(one_op("Relu", ["N"]), "x[N]", "--input-shape x=1")
 
 
 def test_unknown_rank():

@@ -118,7 +118,7 @@ def broken_graphs() -> dict:
         onnx_model([helper.make_node("Relu", ["x", "x"], ["y"], name="r")], inputs={"x": [1, 2]}),
         ["Relu node 'r'", "Relu-13", "input size 2"],
     )
-    cases["dynamic_shape"] = (relu(("N", 4)), ["dynamic shape", "--input-shape x=1x4"])
+    cases["dynamic_shape"] = (relu((4, "N")), ["dynamic shape", "--input-shape x=4x1"])
     int_input = onnx_model(
         [helper.make_node("Cast", ["ids"], ["y"], to=F)],
         inputs={"ids": helper.make_tensor_value_info("ids", TensorProto.INT64, [1, 4])},

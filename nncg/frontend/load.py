@@ -6,13 +6,15 @@ The result is the exact model NNCG compiles, so callers can run onnxruntime on i
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Mapping
 
 import numpy as np
 import onnx
+import onnx.inliner
 from onnx.external_data_helper import load_external_data_for_model, uses_external_data
 
-from nncg.errors import NncgError, UnsupportedOpsError
+from nncg.errors import NncgError, NncgWarning, UnsupportedOpsError
 from nncg.frontend.names import node_names
 from nncg.frontend.shapes import dtype_name, format_shape, inferred_shapes, one_line, static_shape
 from nncg.frontend.wiring import check_operators, check_wiring
@@ -38,6 +40,7 @@ def load_with_shapes(
     _check_structure(proto, where)
     _check_ir_version(proto)
     _check_external_data(proto, where)
+    proto = _inline_local_functions(proto)
     _normalise_default_domain(proto)
     _check_domains(proto)
     opset = opset_version(proto)
@@ -183,6 +186,20 @@ def _check_external_data(model: onnx.ModelProto, where: str) -> None:
         )
 
 
+def _inline_local_functions(model: onnx.ModelProto) -> onnx.ModelProto:
+    """The model with its calls of model-local functions (torch's dynamo exporter, onnxscript) replaced
+    by the functions' nodes: NNCG compiles standard operators only."""
+    if not model.functions:
+        return model
+    try:
+        return onnx.inliner.inline_local_functions(model, convert_version=True)
+    except Exception as exc:  # the inliner's C++ errors surface as RuntimeError and others
+        raise NncgError(
+            f"cannot inline the model's local functions ({one_line(exc)}); re-export the model without "
+            "local functions, or with them at the model's opset (onnx converts only typed function bodies)"
+        ) from None
+
+
 def _normalise_default_domain(model: onnx.ModelProto) -> None:
     """Spell the default domain "" everywhere: onnx's checker and shape inference know ONNX's
     operators only under "", not under its alias "ai.onnx" (onnxruntime accepts both)."""
@@ -249,6 +266,8 @@ def fix_input_shapes(graph: onnx.GraphProto, input_shapes: dict[str, tuple[int, 
         _check_float32(value, "input")
         if value.name in input_shapes:
             _set_shape(value, input_shapes[value.name])
+        elif _only_batch_is_dynamic(value):
+            _default_batch(value)
         else:
             _require_static(value)
         check_tensor_size(f"input {shown(value.name)}", static_shape(value))
@@ -288,6 +307,29 @@ def _check_float32(value: onnx.ValueInfoProto, kind: str) -> None:
 
 def _is_static(dim: onnx.TensorShapeProto.Dimension) -> bool:
     return dim.HasField("dim_value") and dim.dim_value > 0
+
+
+def _only_batch_is_dynamic(value: onnx.ValueInfoProto) -> bool:
+    """The first of two or more dims has no size (a dim_param such as N, batch_size, unk__0), the rest do."""
+    ttype = value.type.tensor_type
+    dims = ttype.shape.dim if ttype.HasField("shape") else []
+    return len(dims) >= 2 and not dims[0].HasField("dim_value") and all(_is_static(d) for d in dims[1:])
+
+
+def _default_batch(value: onnx.ValueInfoProto) -> None:
+    """Fix a dynamic batch dimension at 1, as exporters with dynamic axes (torch, tf2onnx, Keras) leave
+    it, telling the user (NncgWarning, a note in the CLI) how to choose another batch size."""
+    dims = value.type.tensor_type.shape.dim
+    example = "x".join(["B", *(str(d.dim_value) for d in dims[1:])])
+    warnings.warn(
+        NncgWarning(
+            f"input {shown(value.name)} has a dynamic batch dimension {format_shape(value.name, value)}; "
+            f"compiled for batch 1: for batch B give --input-shape {capped(escaped(value.name))}={example} "
+            "(input_shapes in Python)"
+        ),
+        stacklevel=1,  # shown once per input: the warnings registry keys on the text and this line
+    )
+    dims[0].dim_value = 1
 
 
 def _require_static(value: onnx.ValueInfoProto) -> None:
