@@ -19,19 +19,9 @@ MODEL_TYPES = (str, os.PathLike, bytes, bytearray, memoryview, onnx.ModelProto)
 
 
 def check_compile_arguments(
-    model,
-    target,
-    unroll,
-    name,
-    input_shapes,
-    pipeline,
-    print_ir_after_all,
-    verify_ir,
-    profile,
-    weights,
-    code_budget,
+    model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights, code_budget,
     expose_layers,
-) -> None:
+) -> None:  # fmt: skip
     """Raises NncgError for the first argument of nncg.compile that has the wrong type or value."""
     _check_model(model)
     _check_str("target", target)
