@@ -6,11 +6,12 @@ Not a pipeline pass: it runs on the planned program, and the normal build never 
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 from ..ir.c_names import Namespace, buffer_name, layer_name
 from ..ir.kinds import BufferRole, Layout
-from ..ir.loops import Buffer, Kernel, Program, StoredValue
+from ..ir.loops import Buffer, Kernel, Program, Stmt, StoredValue
 from ..lowering.context import TensorRef, row_major
 from ..lowering.reshape import copy_nest
 
@@ -24,7 +25,7 @@ def with_exposed_layers(program: Program) -> Program:
     outputs, copies = [], {}
     for value in program.values:
         out = Buffer(
-            buffer_names.claim(f"layer_{value.value}"), _size(value), BufferRole.OUTPUT, value.shape,
+            buffer_names.claim(f"layer_{value.value}"), math.prod(value.shape), BufferRole.OUTPUT, value.shape,
             Layout.ROW_MAJOR, value.value,
         )  # fmt: skip
         kernel = Kernel(kernel_names.claim(f"expose_{value.value}"), "Copy", _copy_out(value, out))
@@ -34,14 +35,7 @@ def with_exposed_layers(program: Program) -> Program:
     return replace(program, buffers=program.buffers + tuple(outputs), kernels=kernels)
 
 
-def _size(value: StoredValue) -> int:
-    size = 1
-    for extent in value.shape:
-        size *= extent
-    return size
-
-
-def _copy_out(value: StoredValue, out: Buffer):
+def _copy_out(value: StoredValue, out: Buffer) -> tuple[Stmt, ...]:
     """The value's elements, wherever its layout, halo or Concat slab puts them, into `out` row-major."""
     src = TensorRef(value.buffer, value.shape, value.order, value.halo)
     return copy_nest(src, TensorRef(out.name, value.shape, row_major(len(value.shape))))
