@@ -21,7 +21,7 @@ MODEL_TYPES = (str, os.PathLike, bytes, bytearray, memoryview, onnx.ModelProto)
 
 def check_compile_arguments(
     model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights, code_budget,
-    example_inputs, exporter,
+    example_inputs, exporter, expose_layers,
 ) -> None:  # fmt: skip
     """Raises NncgError for the first argument of nncg.compile that has the wrong type or value."""
     _check_model(model)
@@ -34,6 +34,7 @@ def check_compile_arguments(
     _check_stream("print_ir_after_all", print_ir_after_all)
     _check_bool("verify_ir", verify_ir)
     _check_bool("profile", profile)
+    _check_bool("expose_layers", expose_layers)
     if weights not in WEIGHTS_MODES:
         raise NncgError(f"weights must be one of {', '.join(WEIGHTS_MODES)}; {_got(weights)}")
     if code_budget is not None and not _whole(code_budget):

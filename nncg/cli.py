@@ -121,6 +121,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="compile the C with the host compiler, run it and onnxruntime on the same random "
         "inputs, print the errors; exit 1 above tolerance",
     )
+    p.add_argument(
+        "--per-layer",
+        action="store_true",
+        help="with --verify: also build a debug build that writes every layer's output, compare each with "
+        "onnxruntime's and name the first layer above tolerance",
+    )
     p.add_argument("--tolerance", type=float, default=1e-4, help="max relative error for --verify (default 1e-4)")
     p.add_argument(
         "--benchmark",
@@ -202,6 +208,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.model:
         raise NncgError("no model given: nncg-onnx MODEL.onnx --target ssse3 -o build/")
+    if args.per_layer and not args.verify:
+        raise NncgError("--per-layer is a kind of --verify: give both")
     check_output_folder(Path(args.output_dir))  # before compiling (or tuning for a minute)
     options = CompileOptions.of(args.unroll, args.weights, args.code_budget, args.pipeline)
     if args.tune or args.tune_runner:
@@ -216,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
     )
     paths = compiled.write(args.output_dir, cmake=args.cmake)
     print(terminal_line(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}"))
-    status = verify_command(args, compiled) if args.verify else 0
+    status = verify_command(args, compiled, options) if args.verify else 0
     if args.benchmark or args.profile:
         measure_command(args, options)
     return status
@@ -246,14 +254,19 @@ def tune_command(args: argparse.Namespace) -> str:
     )  # fmt: skip
 
 
-def verify_command(args: argparse.Namespace, compiled) -> int:
+def verify_command(args: argparse.Namespace, compiled, compile_options: CompileOptions) -> int:
+    """The outputs' table (and with --per-layer every layer's); 1 when any is above tolerance."""
     from .frontend import load_model
     from .verify import verify
+    from .verify_layers import verify_per_layer
 
     model = load_model(args.model, input_shapes(args))
-    report = verify(model, compiled, tolerance=args.tolerance, cc=args.cc)
-    print(report.format())
-    return 0 if report.ok else 1
+    reports = [verify(model, compiled, tolerance=args.tolerance, cc=args.cc)]
+    if args.per_layer:
+        options = dict(name=args.name, input_shapes=input_shapes(args), **compile_options.kwargs())
+        reports.append(verify_per_layer(args.model, args.target, tolerance=args.tolerance, cc=args.cc, **options))
+    print("\n".join(report.format() for report in reports))
+    return 0 if all(report.ok for report in reports) else 1
 
 
 def measure_command(args: argparse.Namespace, compile_options: CompileOptions) -> None:

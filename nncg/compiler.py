@@ -29,6 +29,7 @@ from .limits import check_program_limits
 from .options import CompileOptions
 from .output_files import write_files
 from .passes import PassManager
+from .passes.expose_layers import with_exposed_layers
 from .passes.unroll import CODE_BUDGET
 from .safe_text import c_comment, capped, shown
 
@@ -91,6 +92,7 @@ def compile(
     code_budget: int | None = CODE_BUDGET,
     example_inputs: torch.Tensor | tuple[torch.Tensor, ...] | None = None,
     exporter: str = DEFAULT_EXPORTER,
+    expose_layers: bool = False,
 ) -> CompiledModel:
     """Compiles a model to C for `target`: ONNX (a file path, bytes or an onnx.ModelProto) or a
     torch.nn.Module, exported in eval mode for inputs shaped like `example_inputs` (a float32 tensor or
@@ -100,10 +102,12 @@ def compile(
     replaces the default pass pipeline entirely; `profile` adds per-layer timers to the generated
     code (for `--profile`; they need POSIX clock_gettime); `weights` is embed (static const arrays),
     bin (NAME.weights, passed by pointer) or auto (bin when large); `code_budget` caps the
-    statements of the unrolled program (None: the paper's levels exactly)."""
+    statements of the unrolled program (None: the paper's levels exactly); `expose_layers` makes the
+    debug build of verify_per_layer: every layer's output, as a graph value after the passes, is an
+    extra output of the function after the model's own (see passes/expose_layers.py)."""
     check_compile_arguments(
         model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights,
-        code_budget, example_inputs, exporter,
+        code_budget, example_inputs, exporter, expose_layers,
     )  # fmt: skip
     options = CompileOptions.of(unroll, weights, code_budget, pipeline)
     backend = get_backend(target)
@@ -116,6 +120,8 @@ def compile(
     )
     name = program_name(name or _default_name(model, graph.name))
     program = manager.run(_with_name(graph, name))
+    if expose_layers:
+        program = with_exposed_layers(program)
     options = f"target={target} pipeline={manager.pipeline}" + (f" torch-exporter={exporter}" if from_torch else "")
     if input_shapes:
         options += " input-shape=" + ",".join(f"{capped(k)}={'x'.join(map(str, v))}" for k, v in input_shapes.items())

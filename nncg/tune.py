@@ -26,6 +26,7 @@ from pathlib import Path
 from .backends import get_target
 from .bench.benchmark import calibrate, pinned
 from .bench.harness import CompiledHarness
+from .bench.progress import progress_bar
 from .compiler import compile as compile_model
 from .frontend import import_onnx
 from .ir.signature import ir_signature, layer_signature
@@ -131,7 +132,7 @@ class _Session:
             {layer: options[layer][-1 if i < k else 0] for i, layer in enumerate(layers)}
             for k in range(len(layers) + 1)
         ]
-        totals = self.measure.totals([with_layer_choices(pipeline, {name: build}) for build in builds])
+        totals = self.measure.totals(name, [with_layer_choices(pipeline, {name: build}) for build in builds])
         self.known[key] = builds[min(range(len(builds)), key=totals.__getitem__)]
         return self.known[key]
 
@@ -191,9 +192,9 @@ class _Measurer:
             best[name] = options[min(scored)[1]]
         return best
 
-    def totals(self, pipelines: list[str]) -> list[float]:
+    def totals(self, what: str, pipelines: list[str]) -> list[float]:
         """Seconds per inference of each build: the sum of its layers' best times."""
-        self.progress(f"tune: {len(pipelines)} builds of the model")
+        self.progress(f"tune: {what}: {len(pipelines)} builds of the model")
         return [sum(times.values()) for times in self._layer_times(pipelines)]
 
     def _layer_times(self, pipelines: list[str]) -> list[dict[str, float]]:
@@ -210,8 +211,14 @@ class _Measurer:
                 workdir.mkdir()
                 return CompiledHarness(compiled[i], workdir, self.cc, inputs, profile=True, runner=self.runner)
 
-            with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-                harnesses = list(pool.map(build, range(len(pipelines))))
+            with (
+                ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool,
+                progress_bar(len(pipelines), "tune: building") as bar,
+            ):
+                harnesses = []
+                for harness in pool.map(build, range(len(pipelines))):
+                    harnesses.append(harness)
+                    bar.update()
             try:
                 with pinned(self.cpu):
                     return self._interleaved(harnesses)
@@ -224,13 +231,13 @@ class _Measurer:
         best: list[dict[str, float]] = [{} for _ in harnesses]
         for h in harnesses:
             h.layer_seconds()  # drop what calibration accumulated
-        for batch in range(self.batches):
-            for i, h in enumerate(harnesses):
-                h.run(calls[i])
-                for layer, seconds in h.layer_seconds():
-                    best[i][layer] = min(best[i].get(layer, float("inf")), seconds / calls[i])
-            if (batch + 1) % 5 == 0 or batch + 1 == self.batches:
-                self.progress(f"tune:   {batch + 1}/{self.batches} batches")
+        with progress_bar(self.batches, f"tune: {len(harnesses)} builds, batches") as bar:
+            for _ in range(self.batches):
+                for i, h in enumerate(harnesses):
+                    h.run(calls[i])
+                    for layer, seconds in h.layer_seconds():
+                        best[i][layer] = min(best[i].get(layer, float("inf")), seconds / calls[i])
+                bar.update()
         return best
 
 

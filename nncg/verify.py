@@ -280,9 +280,13 @@ def _read_output(path: Path, spec: Any) -> np.ndarray:
 
 
 def reference_outputs(
-    model: onnx.ModelProto, compiled_inputs: Sequence[Any], inputs: Sequence[np.ndarray]
+    model: onnx.ModelProto,
+    compiled_inputs: Sequence[Any],
+    inputs: Sequence[np.ndarray],
+    output_names: Sequence[str] | None = None,
 ) -> list[np.ndarray]:
-    """onnxruntime (CPU, no graph optimizations) on the same inputs; outputs in graph order."""
+    """onnxruntime (CPU, no graph optimizations) on the same inputs; the graph's outputs in graph order,
+    or the named ones (graph outputs all) in that order."""
     import onnxruntime as ort  # imported here: only verification needs it, not compiling
 
     options = ort.SessionOptions()
@@ -292,7 +296,7 @@ def reference_outputs(
     feed = {spec.name: np.asarray(array, dtype=np.float32) for spec, array in zip(compiled_inputs, inputs)}
     try:
         session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
-        return [np.asarray(out) for out in session.run(None, feed)]
+        return [np.asarray(out) for out in session.run(None if output_names is None else list(output_names), feed)]
     except Exception as exc:  # onnxruntime raises its own exception types
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise VerificationError(f"onnxruntime cannot run this model for comparison: {first}") from None

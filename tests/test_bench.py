@@ -1,14 +1,18 @@
 """The benchmark harness, profile and report run and give well-formed output (never timing claims)."""
 
+import io
 import math
 import re
 from pathlib import Path
 
+import onnxruntime
 import pytest
 from helpers import nncg_onnx
 
-from nncg.bench.benchmark import benchmark, format_profile, format_results, profile
+from nncg.bench.benchmark import BenchResult, benchmark, format_profile, format_results, interleaved_medians, profile
+from nncg.bench.harness import ObjectSizes
 from nncg.bench.macs import total_macs
+from nncg.bench.progress import progress_bar
 from nncg.frontend import import_onnx
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -49,3 +53,48 @@ def test_cli_benchmark_and_profile_print_their_tables(tmp_path):
     assert result.returncode == 0, result.stderr
     assert re.search(r"^ball\s+ssse3\s+[\d.]+\s+[\d.]+\s+[\d.]+\s+[\d.]+x", result.stdout, re.M)
     assert re.search(r"^conv1\s+[\d.]+\s+[\d.]+\s+12800\s", result.stdout, re.M)
+    assert f"ORT: onnxruntime {onnxruntime.__version__}, 1 thread," in result.stdout
+    assert "\r" not in result.stderr  # stderr is a pipe here: no progress bar
+
+
+def result_at(percent: float | None, version: str = "1.2.3") -> BenchResult:
+    """A result whose GFLOP/s are `percent` of a 10 GFLOP/s peak (None: no peak known); no timing."""
+    return BenchResult(
+        model="m", target="avx2", nncg_us=2.0, ort_bound_us=4.0, ort_run_us=5.0, max_abs_err=0.0, max_rel_err=0.0,
+        sizes=ObjectSizes(1, 1, 0, 1), macs=int(percent or 1) * 100, peak_isa="avx2-fma",
+        peak_gflops=None if percent is None else 10.0, generate_seconds=0.1, compile_seconds=0.1, ort_version=version,
+    )  # fmt: skip
+
+
+def test_percent_of_peak_above_100_is_labelled_effective():
+    assert result_at(150).percent_of_peak == pytest.approx(150.0)  # 2 * 15000 MACs in 2 us = 15 GFLOP/s
+    assert result_at(150).peak_cell() == "150.0 effective (avx2-fma)"
+    assert result_at(50).peak_cell() == "50.0 (avx2-fma)" and result_at(100).peak_cell() == "100.0 (avx2-fma)"
+    assert result_at(None).peak_cell() == "n/a"
+    assert "effective: above 100 %" in format_results([result_at(50), result_at(150)])
+    assert "effective" not in format_results([result_at(50), result_at(None)])
+
+
+def test_the_report_names_the_onnxruntime_version_and_threads_once():
+    text = format_results([result_at(50, "1.2.3"), result_at(60, "1.2.3")])
+    assert text.count("ORT: onnxruntime 1.2.3, 1 thread, all graph optimisations") == 1
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_bar_draws_on_a_terminal_only(monkeypatch):
+    for stream, drawn in ((io.StringIO(), False), (Terminal(), True)):
+        monkeypatch.setattr("sys.stderr", stream)
+        with progress_bar(3, "benchmark: batches") as bar:
+            for _ in range(3):
+                bar.update()
+        assert ("benchmark: batches" in stream.getvalue()) is drawn
+
+
+def test_interleaved_timing_is_quiet_when_stderr_is_not_a_terminal(capsys):
+    medians = interleaved_medians({"a": lambda calls: 1.0, "b": lambda calls: 2.0}, batches=4, min_seconds=0.5)
+    assert medians == {"a": 1.0, "b": 2.0}
+    assert capsys.readouterr().err == ""

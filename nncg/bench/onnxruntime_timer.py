@@ -8,13 +8,16 @@ import time
 import numpy as np
 import onnx
 
+THREADS = 1  # intra-op threads: the generated C runs on one core
+
 
 class OnnxruntimeTimer:
     def __init__(self, model: onnx.ModelProto, input_names: list[str], inputs: list[np.ndarray]):
         import onnxruntime as ort  # only benchmarking needs it at import time
 
+        self.version = ort.__version__
         options = ort.SessionOptions()
-        options.intra_op_num_threads = 1
+        options.intra_op_num_threads = THREADS
         options.inter_op_num_threads = 1
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL

@@ -317,15 +317,32 @@ class ArenaPlan:
 
 
 @dataclass(frozen=True)
+class StoredValue:
+    """Where the lowering stored a graph value and when it is complete, for the debug build that reads
+    every layer's output back (verify --per-layer): the buffer, the logical shape, the physical
+    order of its dims (outermost first), its halo ((before, after) per dim; () for none) and the
+    kernel after which the buffer holds the value."""
+
+    value: str
+    buffer: str
+    shape: tuple[int, ...]
+    order: tuple[int, ...]
+    halo: tuple[tuple[int, int], ...]
+    layer: str
+
+
+@dataclass(frozen=True)
 class Program:
     """Buffers (inputs and outputs in ONNX graph order) and kernels run in order.
-    `constants` holds the data of the constant buffers, keyed by buffer name."""
+    `constants` holds the data of the constant buffers, keyed by buffer name; `values` where each
+    node output of the graph lives (not part of the code: equality ignores it)."""
 
     name: str
     buffers: tuple[Buffer, ...]
     kernels: tuple[Kernel, ...]
     constants: dict[str, np.ndarray] = field(default_factory=dict)
     arena: ArenaPlan | None = None  # set by the plan-memory pass
+    values: tuple[StoredValue, ...] = ()
 
     def __eq__(self, other: object) -> bool:
         """Structural equality, constants included (same names, dtypes, shapes and values)."""

@@ -9,7 +9,7 @@ from ..errors import NncgError
 from ..ir.c_names import program_name
 from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm
-from ..ir.loops import Program
+from ..ir.loops import Program, StoredValue
 from .concat import lower_concat
 from .context import LoweringContext, row_major
 from .conv import lower_conv
@@ -97,12 +97,24 @@ def lower(graph: Graph, function_name: str | None = None, halos: bool | str = "a
         outputs[value.name] = ctx.add_buffer(value.name, "output", value.shape, row_major(len(value.shape)), value.name)
         if value.name not in ctx.refs:  # an input that is also an output is copied, not aliased
             ctx.refs[value.name] = outputs[value.name]
+    stored = []
     for node in graph.nodes:
         _lower_node(ctx, node)
+        stored += _stored_values(ctx, node)
     for value, target in outputs.items():
         if ctx.refs[value] != target:
             ctx.emit_helper(f"copy_{value}", "Copy", copy_nest(ctx.refs[value], target))
-    return Program(name, tuple(ctx.buffers), tuple(ctx.kernels), ctx.constants)
+    return Program(name, tuple(ctx.buffers), tuple(ctx.kernels), ctx.constants, values=tuple(stored))
+
+
+def _stored_values(ctx: LoweringContext, node: Node) -> list[StoredValue]:
+    """Where the node's outputs live, complete after the last kernel so far (none before the first
+    kernel: a relabelled input has nothing to read back)."""
+    if not ctx.kernels:
+        return []
+    layer = ctx.kernels[-1].name
+    refs = {value: ctx.refs[value] for value in node.outputs if value in ctx.refs}
+    return [StoredValue(v, r.buffer, r.shape, r.order, r.halo, layer) for v, r in refs.items()]
 
 
 def _lower_node(ctx: LoweringContext, node: Node) -> None:

@@ -191,7 +191,9 @@ def _rename(program: Program, renames: dict[str, str]) -> Program:
         return replace(s, buffer=_resolve(s.buffer, renames)) if isinstance(s, Store) else s
 
     kernels = tuple(replace(k, body=map_body(k.body, rename_stmt)) for k in program.kernels)
-    return replace(program, kernels=kernels, buffers=tuple(b for b in program.buffers if b.name not in renames))
+    buffers = tuple(b for b in program.buffers if b.name not in renames)
+    values = tuple(replace(v, buffer=_resolve(v.buffer, renames)) for v in program.values)
+    return replace(program, kernels=kernels, buffers=buffers, values=values)
 
 
 # ---------------------------------------------------------------------------- placement
