@@ -26,8 +26,9 @@ SHAPE = (1, 3, 4, 13)
 
 
 class Case:
-    """One op with its attributes (Pow: its exponent), the opset it needs and the range of its input:
-    x times a constant spanning `scales` along the last dim, squared first for a positive domain."""
+    """One op with its attributes (Pow: its exponent, or one per element of the last dim), the opset
+    it needs and the range of its input: x times a constant spanning `scales` along the last dim,
+    squared first for a positive domain."""
 
     def __init__(self, op, scales=(-2, 3), positive=False, opset=13, exponent=None, **attrs):
         self.op, self.scales, self.positive, self.opset, self.exponent, self.attrs = (
@@ -38,6 +39,7 @@ class Case:
             exponent,
             attrs,
         )
+        self.kernel = "PowPerElement" if isinstance(exponent, list) else op
 
     def nodes(self, x):
         inputs = [x] if self.exponent is None else [x, "e"]
@@ -55,6 +57,9 @@ class Case:
         inits = {"k": k, **self.initializers()}
         return onnx_model(nodes, inputs={"x": SHAPE}, initializers=inits, opset=self.opset)
 
+
+# One per element of the last dim: the special ones, odd and even integers, others.
+EXPONENTS = [2.0, 3.0, -1.0, 0.5, 2.5, 0.0, 4.0, 5.0, -2.0, -3.0, 1.5, 1.0, -0.5]
 
 CASES = {
     "abs": Case("Abs", (-3, 4)),
@@ -88,6 +93,8 @@ CASES = {
     "pow_4": Case("Pow", (-3, 2), exponent=4.0),  # even: |x|^4 for negative x
     "pow_5": Case("Pow", (-3, 1.5), exponent=5.0),  # odd: the sign of x
     "pow_minus_3": Case("Pow", (-2, 3), exponent=-3.0),
+    "pow_per_element": Case("Pow", (-2, 2), exponent=EXPONENTS),  # negative x to 0.5, 2.5, ...: NaN
+    "pow_per_element_positive": Case("Pow", (-3, 3), positive=True, exponent=EXPONENTS),
 }
 
 
@@ -96,7 +103,7 @@ CASES = {
 def test_op_over_small_to_large_magnitudes(target, case):
     c = CASES[case]
     compiled = compile_and_check(c.model(), target)
-    ops = ["Mul", "Mul", c.op] if c.positive else ["Mul", c.op]
+    ops = ["Mul", "Mul", c.kernel] if c.positive else ["Mul", c.kernel]
     assert kernel_ops(compiled) == ops
 
 
@@ -113,6 +120,7 @@ def test_pow_exponent_from_a_constant_node():
 # Each op whose input may be any sign; Sqrt and Log see negative values too (NaN, not compared).
 FUSED = ("abs", "neg", "exp", "log", "sqrt", "reciprocal", "softplus", "softsign", "mish", "selu_attrs")
 FUSED += ("celu_alpha", "thresholded_relu_alpha", "hard_sigmoid_attrs", "pow_2", "pow_half", "pow_4", "pow_5")
+# (an exponent per element is no activation: PowPerElement reads the Conv's output)
 
 
 def conv_model(case):
@@ -177,6 +185,28 @@ def test_special_values_as_onnxruntime(target, case):
     np.testing.assert_array_equal(np.signbit(out[exact]), np.signbit(ref[exact]))
     finite = np.isfinite(ref) & ~exact
     conditioning = np.abs(np.log(np.abs(ref[finite]))) if case in EXP_LOG_POWERS else 0.0
+    assert np.all(np.abs(out[finite] - ref[finite]) <= TWO_ULPS * (1 + conditioning) * np.abs(ref[finite]))
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_special_values_to_an_exponent_per_element(target):
+    """Each row of specials to its own exponent, as onnxruntime; the exceptions (-0 counts as +0,
+    -Inf to an exponent that is no integer is NaN) are left out of the inputs."""
+    x = np.tile(np.where(SPECIAL_INPUTS == -np.inf, -3.0, SPECIAL_INPUTS + 0.0), (5, 1)).astype(np.float32)
+    exponents = np.float32([[3.0], [-2.0], [0.0], [2.5], [-3.0]])
+    assert not np.any(np.signbit(x) & (x == 0))
+    pow_ = helper.make_node("Pow", ["x", "e"], ["y"])
+    model = onnx_model([pow_], inputs={"x": x.shape}, initializers={"e": exponents})
+    compiled = nncg.compile(model, target=target, verify_ir=True)
+    skip_unless_host_runs(target)
+    (out,) = run_compiled(compiled, [x])
+    (ref,) = reference_outputs(model, compiled.inputs, [x])
+    np.testing.assert_array_equal(np.isnan(out), np.isnan(ref))
+    exact = np.isinf(ref) | (ref == 0)
+    np.testing.assert_array_equal(out[exact], ref[exact])
+    np.testing.assert_array_equal(np.signbit(out[exact]), np.signbit(ref[exact]))
+    finite = np.isfinite(ref) & ~exact
+    conditioning = np.abs(np.log(np.abs(ref[finite])))
     assert np.all(np.abs(out[finite] - ref[finite]) <= TWO_ULPS * (1 + conditioning) * np.abs(ref[finite]))
 
 
@@ -255,10 +285,11 @@ def test_pow_with_a_runtime_exponent_is_refused():
         nncg.compile(model)
 
 
-def test_pow_with_different_exponents_per_element_is_refused():
+def test_pow_with_an_infinite_exponent_is_refused():
     pow_ = helper.make_node("Pow", ["x", "e"], ["y"], name="p")
-    model = onnx_model([pow_], inputs={"x": (1, 3)}, initializers={"e": np.float32([1, 2, 3])})
-    with pytest.raises(NncgError, match="^Pow 'p' has an exponent with 3 different elements; NNCG compiles Pow by one"):
+    model = onnx_model([pow_], inputs={"x": (1, 3)}, initializers={"e": np.float32([1, np.inf, 3])})
+    message = "^Pow 'p' has an infinite or NaN exponent; NNCG compiles Pow by finite exponents$"
+    with pytest.raises(NncgError, match=message):
         nncg.compile(model)
 
 

@@ -106,7 +106,7 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "Erf": ConvertedOp(convert_activation, ("Erf",)),
     "Gelu": ConvertedOp(convert_activation, ("Gelu",)),
     **{name: ConvertedOp(convert_activation, (name,)) for name in UNARY_ACTIVATIONS},
-    "Pow": ConvertedOp(convert_pow, ("Pow",), (1,)),  # exponent
+    "Pow": ConvertedOp(convert_pow, ("Pow", "PowPerElement"), (1,)),  # exponent
     "PRelu": ConvertedOp(convert_prelu, ("PRelu",)),
     # One input is an Identity; a scalar constant bound is a Clip.
     "Max": ConvertedOp(convert_variadic, ("Max", "Clip", "Identity")),

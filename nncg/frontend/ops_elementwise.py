@@ -1,12 +1,11 @@
 """ONNX front end (ONNX -> graph IR), step 3: the pointwise activations and unary math ops (Sigmoid,
 Tanh, HardSigmoid, HardSwish, Elu, Erf, Gelu, Abs, Neg, Sqrt, Exp, Log, Reciprocal, Softplus,
-Softsign, Mish, Selu, Celu, ThresholdedRelu; Pow by a constant exponent), PRelu, the variadic
+Softsign, Mish, Selu, Celu, ThresholdedRelu; Pow by constant exponents), PRelu, the variadic
 Max/Min/Sum, LogSoftmax, LRN and ReduceMean.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -65,20 +64,22 @@ def convert_activation(op: OnnxOp, ctx: Context) -> Node:
 
 
 def convert_pow(op: OnnxOp, ctx: Context) -> Node:
-    """Pow by one constant exponent (a scalar, or a tensor of equal elements that keeps x's shape):
-    a pointwise activation, which x's producer can apply at its store."""
+    """Pow by a constant exponent that keeps x's shape. One exponent for all elements is a pointwise
+    activation, which x's producer can apply at its store; an exponent per element a PowPerElement
+    node reading it (as float32) and the sign each gives a negative base's power: -1 for an odd
+    integer, 1 for an even one, 0 for the rest (their powers of a negative base are NaN)."""
     x, exponent = op.input(0), ctx.constant_input(op, 1, "exponent", POW_HINT)
-    values = np.unique(exponent)
-    if values.size != 1:
-        raise op.error(
-            f"has an exponent with {values.size} different elements; NNCG compiles Pow by one exponent for all"
-        )
     if _broadcast_shape(op, ctx, [x, op.input(1)]) != ctx.shape(x):
         raise op.error(f"has an exponent of shape {list(exponent.shape)}, which broadcasts X {list(ctx.shape(x))} up")
-    y = float(values[0])
-    if not math.isfinite(y):
-        raise op.error(f"has exponent {y}; NNCG compiles Pow by a finite exponent")
-    return op.ir_node("Pow", [x], Activation("pow", alpha=y))
+    if not np.all(np.isfinite(exponent)):
+        raise op.error("has an infinite or NaN exponent; NNCG compiles Pow by finite exponents")
+    values = np.unique(exponent)
+    if values.size == 1:
+        return op.ir_node("Pow", [x], Activation("pow", alpha=float(values[0])))
+    y = exponent.astype(np.float32)
+    sign = np.where(y % 2 == 0, 1, np.where(y % 2 == 1, -1, 0)).astype(np.float32)
+    per_element = [ctx.add_constant(f"{op.name}_exponent", y), ctx.add_constant(f"{op.name}_sign", sign)]
+    return op.ir_node("PowPerElement", [x, *per_element])
 
 
 def convert_prelu(op: OnnxOp, ctx: Context) -> Node:

@@ -112,6 +112,7 @@ IR_OPS: dict[str, IrOp] = {
     "Celu": IrOp(Activation, no_macs),
     "ThresholdedRelu": IrOp(Activation, no_macs),
     "PRelu": IrOp(None, no_macs),
+    "PowPerElement": IrOp(None, no_macs),
     "Max": IrOp(None, no_macs),
     "Min": IrOp(None, no_macs),
     "Sum": IrOp(None, no_macs),
