@@ -31,14 +31,8 @@ class Case:
     squared first for a positive domain."""
 
     def __init__(self, op, scales=(-2, 3), positive=False, opset=13, exponent=None, **attrs):
-        self.op, self.scales, self.positive, self.opset, self.exponent, self.attrs = (
-            op,
-            scales,
-            positive,
-            opset,
-            exponent,
-            attrs,
-        )
+        self.op, self.scales, self.positive, self.opset = op, scales, positive, opset
+        self.exponent, self.attrs = exponent, attrs
         self.kernel = "PowPerElement" if isinstance(exponent, list) else op
 
     def nodes(self, x):
