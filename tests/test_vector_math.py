@@ -22,7 +22,7 @@ from nncg.backends import BACKENDS
 from nncg.backends.simd_needs import Needs
 from nncg.backends.vector_math import ULP_BOUNDS, operations_used, with_callees
 
-FUNCTIONS = ("exp", "log", "tanh", "sigmoid", "erf")
+FUNCTIONS = ("exp", "log", "tanh", "sigmoid", "erf", "softplus", "abs", "sqrt")
 FLT_MIN = float(np.finfo(np.float32).tiny)
 OPT = "-O2"
 
@@ -95,6 +95,9 @@ def reference(fn: str, x: np.ndarray) -> np.ndarray:
             "tanh": np.tanh,
             "sigmoid": special.expit,
             "erf": special.erf,
+            "softplus": lambda v: np.logaddexp(0.0, v),
+            "abs": np.abs,
+            "sqrt": np.sqrt,
         }[fn](x64)
 
 
@@ -213,20 +216,21 @@ def test_vector_math_is_within_its_ulp_bound_over_the_float_range(build, tmp_pat
 
 
 SPECIALS = [  # a list: 0.0 and -0.0 are one key of a dict
-    # x, (exp, log, tanh, sigmoid, erf); None: not a special value of that function
-    (0.0, (1.0, -np.inf, 0.0, 0.5, 0.0)),
-    (-0.0, (1.0, -np.inf, -0.0, 0.5, -0.0)),
-    (np.inf, (np.inf, np.inf, 1.0, 1.0, 1.0)),
-    (-np.inf, (0.0, np.nan, -1.0, 0.0, -1.0)),
-    (np.nan, (np.nan,) * 5),
-    (-1.0, (None, np.nan, None, None, None)),
-    (88.72284, (np.inf, None, 1.0, 1.0, 1.0)),  # the first float whose exp overflows
-    (1000.0, (np.inf, None, 1.0, 1.0, 1.0)),
-    (-1000.0, (0.0, np.nan, -1.0, 0.0, -1.0)),
-    (-104.0, (0.0, np.nan, -1.0, 0.0, -1.0)),
-    (20.0, (None, None, 1.0, 1.0, 1.0)),
-    (-20.0, (None, np.nan, -1.0, None, -1.0)),
-    (1.0, (None, 0.0, None, None, None)),
+    # x, (exp, log, tanh, sigmoid, erf, softplus, abs, sqrt); None: not a special value of that function
+    (0.0, (1.0, -np.inf, 0.0, 0.5, 0.0, None, 0.0, 0.0)),
+    (-0.0, (1.0, -np.inf, -0.0, 0.5, -0.0, None, 0.0, -0.0)),
+    (np.inf, (np.inf, np.inf, 1.0, 1.0, 1.0, np.inf, np.inf, np.inf)),
+    (-np.inf, (0.0, np.nan, -1.0, 0.0, -1.0, 0.0, np.inf, np.nan)),
+    (np.nan, (np.nan,) * 8),
+    (-1.0, (None, np.nan, None, None, None, None, 1.0, np.nan)),
+    (88.72284, (np.inf, None, 1.0, 1.0, 1.0, 88.72284, None, None)),  # the first float whose exp overflows
+    (1000.0, (np.inf, None, 1.0, 1.0, 1.0, 1000.0, 1000.0, None)),
+    (-1000.0, (0.0, np.nan, -1.0, 0.0, -1.0, 0.0, 1000.0, np.nan)),
+    (-104.0, (0.0, np.nan, -1.0, 0.0, -1.0, 0.0, None, np.nan)),
+    (20.0, (None, None, 1.0, 1.0, 1.0, None, None, None)),
+    (-20.0, (None, np.nan, -1.0, None, -1.0, None, 20.0, np.nan)),
+    (1.0, (None, 0.0, None, None, None, None, 1.0, 1.0)),
+    (4.0, (None, None, None, None, None, None, None, 2.0)),
 ]
 
 

@@ -4,8 +4,8 @@ one of them has is chosen by the preprocessor in small helpers printed when the 
 
 - Fused multiply-add: vfmaq_f32 on AArch64 and on ARMv7 with VFPv4 (__ARM_FEATURE_FMA, e.g.
   -mfpu=neon-vfpv4); plain ARMv7 NEON has only vmlaq_f32, a multiply and an add with two roundings.
-- Division: vdivq_f32 exists on AArch64 only; ARMv7 divides lane by lane (exact, unlike the
-  reciprocal estimate and Newton steps).
+- Division and square root: vdivq_f32 and vsqrtq_f32 exist on AArch64 only; ARMv7 divides and
+  takes roots lane by lane (exact, unlike the reciprocal estimates and Newton steps).
 - A constant vector that is not a splat is a row of one static const table, loaded with vld1q_f32:
   standard C99 on every compiler (clang's vld1q_f32 is a macro, so a braced initialiser inside its
   argument would not do), the same lanes whatever the byte order."""
@@ -48,6 +48,25 @@ DIV_HELPER = (
     "#endif",
 )
 
+SQRT_HELPER = (
+    "/* sqrt of each lane: one instruction on AArch64; ARMv7 NEON has only an estimate, so each lane takes VFP's",
+    "   correctly rounded vsqrt.f32 */",
+    "#if defined(__aarch64__)",
+    "#define nncg_sqrtq_f32(a) vsqrtq_f32(a)",
+    "#else",
+    "static float32x4_t nncg_sqrtq_f32(float32x4_t a)",
+    "{",
+    "    float x[4];",
+    "    vst1q_f32(x, a);",
+    "    x[0] = sqrtf(x[0]);",
+    "    x[1] = sqrtf(x[1]);",
+    "    x[2] = sqrtf(x[2]);",
+    "    x[3] = sqrtf(x[3]);",
+    "    return vld1q_f32(x);",
+    "}",
+    "#endif",
+)
+
 # Correct everywhere; gcc 12 for ARMv7 spells vcgtq_f32 as a generic `a > b`, which it compares
 # lane by lane in VFP without -ffast-math (NEON flushes denormals); clang does not.
 Q_REGISTER = VectorWidth(
@@ -62,8 +81,9 @@ Q_REGISTER = VectorWidth(
         "fma": "nncg_vfmaq_f32({c}, {a}, {b})",
         **{cmp: f"vbslq_f32({name}({{lhs}}, {{rhs}}), {{then}}, {{otherwise}})" for cmp, name in COMPARE.items()},
         "math": "nncg_v{fn}q_f32",
+        "sqrt": "nncg_sqrtq_f32({a})",
     },
-    helpers={"fma": FMA_MACRO, "/": DIV_HELPER},
+    helpers={"fma": FMA_MACRO, "/": DIV_HELPER, "sqrt": SQRT_HELPER},
     bits={
         "type": "int32x4_t",
         "splat": "vdupq_n_s32({value})",

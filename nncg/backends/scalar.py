@@ -164,7 +164,10 @@ class ScalarPrinter:
             return self.expr(sigmoid_by_exp(e.arg))
         if e.fn in HELPERS:  # not in C89's math.h either
             return f"{helper_name(e.fn)}({self.expr(e.arg)})"
-        return f"(float){e.fn}({self.expr(e.arg)})"  # C89 has only the double versions
+        return f"(float){C89_NAMES.get(e.fn, e.fn)}({self.expr(e.arg)})"  # C89 has only the double versions
+
+
+C89_NAMES = {"abs": "fabs"}  # math.h's name of a MathFunction, where it is not the same
 
 
 def sigmoid_by_exp(x: Expr) -> Expr:

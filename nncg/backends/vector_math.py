@@ -1,9 +1,10 @@
-"""Backend: exp, log, tanh, sigmoid and erf of a float vector as polynomial approximations, without
-a math.h call per lane. Each algorithm is written once, here, over a width's templates (the float
-operations of vector_width.OPERATIONS plus the integer and bit operations of BIT_OPERATIONS), so
-every ISA prints the same algorithm with the same constants; an ISA only fills its table (x86.py,
-neon.py). Where a template is fused (`fma`) the ISA rounds once, elsewhere twice: the results differ
-in the last bit between ISAs, all within the bounds below.
+"""Backend: exp, log, tanh, sigmoid, erf and softplus of a float vector as polynomial approximations,
+without a math.h call per lane; abs (the sign bit cleared) and sqrt (the ISA's instruction) beside
+them. Each algorithm is written once, here, over a width's templates (the float operations of
+vector_width.OPERATIONS plus the integer and bit operations of BIT_OPERATIONS), so every ISA prints
+the same algorithm with the same constants; an ISA only fills its table (x86.py, neon.py). Where a
+template is fused (`fma`) the ISA rounds once, elsewhere twice: the results differ in the last bit
+between ISAs, all within the bounds below.
 
 Accuracy: the bounds, in ULPs (the float32 spacing at the exact result, 2^-149 for denormals), hold
 on SSE (no FMA), AVX2, AVX-512 and NEON (AArch64; ARMv7 with and without VFPv4's FMA), checked by
@@ -13,11 +14,12 @@ numpy/scipy; the largest errors measured, there and over every 64th bit pattern 
     function  bound  measured    function  bound  measured
     exp       1.5    1.00        sigmoid   2.5    2.28
     log       1      0.81        erf       1.5    1.29 (SSE), 1.11 (NEON), 1.03 (AVX)
-    tanh      1.5    1.28
+    tanh      1.5    1.28        softplus  2      1.67 (every 4096th)
+    abs       0      0           sqrt      0.5    0.5 (correctly rounded)
 
 Specials are exact: NaN in, NaN out; exp(+Inf) = +Inf (and every x > 88.7228 overflows to +Inf),
 exp(-Inf) = 0; log(+-0) = -Inf, log(x < 0) = NaN, log(+Inf) = +Inf; tanh, erf and sigmoid saturate
-to +-1 (0 and 1); tanh(-0) = erf(-0) = -0.
+to +-1 (0 and 1); tanh(-0) = erf(-0) = -0; softplus(+Inf) = +Inf, softplus(-Inf) = 0.
 
 Denormals are computed, not flushed, where the FPU does not flush them (x86 without DAZ/FTZ,
 AArch64): exp of x in [-103.97, -87.34] is a (gradually underflowing) denormal, the product of two
@@ -82,7 +84,7 @@ ERF_R = (
 )
 
 # The bounds stated above, in ULPs, asserted by tests/test_vector_math.py on every vector target.
-ULP_BOUNDS = {"exp": 1.5, "log": 1.0, "tanh": 1.5, "sigmoid": 2.5, "erf": 1.5}
+ULP_BOUNDS = {"exp": 1.5, "log": 1.0, "tanh": 1.5, "sigmoid": 2.5, "erf": 1.5, "softplus": 2.0, "abs": 0.0, "sqrt": 0.5}
 
 # Float bit patterns, as the int32 an integer splat takes.
 SIGN = "(-2147483647 - 1)"  # 0x80000000
@@ -212,6 +214,23 @@ def _erf(b: _Body) -> str:
     return _with_sign_of_x(b, b.select("<", a, b.c(1.0), small, large))
 
 
+def _softplus(b: _Body) -> str:
+    # max(x, 0) + log(1 + exp(-|x|)): exp never overflows, and log(1 + e) is log1p's: log(u) less
+    # ((u - 1) - e) / u, the error of rounding u = 1 + e, so a tiny e (x far below 0) is kept.
+    e = b.let("e", b.call("exp", b.masked("x", SIGN, "|")))
+    u = b.let("u", b.op("+", b.c(1.0), e))
+    log1p = b.op("-", b.call("log", u), b.op("/", b.op("-", b.op("-", u, b.c(1.0)), e), u))
+    return b.op("+", b.op("max", "x", b.c(0.0)), log1p)
+
+
+def _abs(b: _Body) -> str:
+    return b.masked("x", MAGNITUDE)
+
+
+def _sqrt(b: _Body) -> str:
+    return b.spell("sqrt", a="x")
+
+
 def _with_sign_of_x(b: _Body, magnitude: str) -> str:
     sign = b.i("&", a=b.i("from_float", a="x"), b=b.ibits(SIGN))
     return b.i("to_float", a=b.i("|", a=b.i("from_float", a=magnitude), b=sign))
@@ -223,10 +242,13 @@ ALGORITHMS: dict[str, tuple[Callable[[_Body], str], str]] = {
     "tanh": (_tanh, "an odd polynomial below |x| = 0.625, 1 - 2 / (exp(2|x|) + 1) above"),
     "sigmoid": (_sigmoid, "1 / (1 + exp(-x)), as exp(x) / (1 + exp(x)) below 0"),
     "erf": (_erf, "x + x P(x^2) below |x| = 1, 1 - exp(-x^2) R(1/|x|) above"),
+    "softplus": (_softplus, "max(x, 0) + log1p(exp(-|x|)), log1p as log(1 + e) corrected"),
+    "abs": (_abs, "the sign bit cleared"),
+    "sqrt": (_sqrt, "the ISA's square root"),
 }
 assert set(ALGORITHMS) == set(MathFunction)
 # The functions a helper calls, printed before it.
-CALLS = {"tanh": ("exp",), "sigmoid": ("exp",), "erf": ("exp",)}
+CALLS = {"tanh": ("exp",), "sigmoid": ("exp",), "erf": ("exp",), "softplus": ("exp", "log")}
 
 
 def has_vector_math(width: VectorWidth) -> bool:

@@ -17,14 +17,15 @@ OPERATIONS = {
     **{cmp: ("lhs", "rhs", "then", "otherwise") for cmp in COMPARISONS},  # (lhs cmp rhs) ? then : otherwise
     "math": ("fn",),  # the NAME of the helper computing the math function fn of each lane: NAME(x)
     # Optional:
+    "sqrt": ("a",),  # the correctly rounded square root of each lane; required with `bits`
     "fma": ("a", "b", "c"),  # a * b + c, one rounding; required when the target has FMA
     "vector": ("values",),  # a constant vector lane by lane; without it constants are table rows
     "table": (),  # the name of the static table of constant vectors (when there is no `vector`)
 }
-OPTIONAL = ("fma", "vector", "table")
+OPTIONAL = ("sqrt", "fma", "vector", "table")
 
 # The integer and bit operations on vectors of int32 lanes the vector math functions are written in
-# (vector_math.py). A width without them computes a math function with math.h, lane by lane.
+# (vector_math.py), with `sqrt`. A width without them computes a math function with math.h, lane by lane.
 BIT_OPERATIONS = {
     "type": (),  # the C type of a vector of int32 lanes (`__m256i`, `int32x4_t`)
     "splat": ("value",),  # an int32 constant in every lane
@@ -58,6 +59,7 @@ class VectorWidth:
         """What this table lacks or has too much of, for a target with (or without) FMA."""
         required = [op for op in OPERATIONS if op not in OPTIONAL] + (["fma"] if fma else [])
         required += [] if "vector" in self.ops else ["table"]
+        required += ["sqrt"] if self.bits else []
         missing = [op for op in required if op not in self.ops]
         unknown = [op for op in (*self.ops, *self.helpers) if op not in OPERATIONS]
         if self.bits:

@@ -28,6 +28,7 @@ def x86_width(prefix: str, vector_type: str, select: str, fma: bool) -> VectorWi
         **{op: f"{p}_{name}_ps({{a}}, {{b}})" for op, name in ARITH.items()},
         **{cmp: _select(p, select, cmp) for cmp in COMPARE},
         "math": f"nncg{p.removeprefix('_mm')}_{{fn}}_ps",
+        "sqrt": f"{p}_sqrt_ps({{a}})",
     }
     if fma:
         ops["fma"] = f"{p}_fmadd_ps({{a}}, {{b}}, {{c}})"

@@ -21,6 +21,7 @@ from nncg.frontend.ops_elementwise import (
     convert_activation,
     convert_log_softmax,
     convert_lrn,
+    convert_pow,
     convert_prelu,
     convert_reduce_mean,
     convert_variadic,
@@ -48,6 +49,10 @@ from nncg.frontend.ops_shape import (
 from nncg.ir.graph import Node
 
 Converter = Callable[[OnnxOp, Context], Node | tuple[Node, ...]]  # a few ops become a short chain
+# The unary math ops beside the activations: pointwise, each its own graph IR op
+UNARY_ACTIVATIONS = (
+    "Abs", "Neg", "Sqrt", "Exp", "Log", "Reciprocal", "Softplus", "Softsign", "Mish", "Selu", "Celu", "ThresholdedRelu",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -100,6 +105,8 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "Elu": ConvertedOp(convert_activation, ("Elu",)),
     "Erf": ConvertedOp(convert_activation, ("Erf",)),
     "Gelu": ConvertedOp(convert_activation, ("Gelu",)),
+    **{name: ConvertedOp(convert_activation, (name,)) for name in UNARY_ACTIVATIONS},
+    "Pow": ConvertedOp(convert_pow, ("Pow", "PowPerElement"), (1,)),  # exponent
     "PRelu": ConvertedOp(convert_prelu, ("PRelu",)),
     # One input is an Identity; a scalar constant bound is a Clip.
     "Max": ConvertedOp(convert_variadic, ("Max", "Clip", "Identity")),

@@ -1,5 +1,7 @@
-"""ONNX front end (ONNX -> graph IR), step 3: the pointwise activations (Sigmoid, Tanh, HardSigmoid,
-HardSwish, Elu, Erf, Gelu), PRelu, the variadic Max/Min/Sum, LogSoftmax, LRN and ReduceMean.
+"""ONNX front end (ONNX -> graph IR), step 3: the pointwise activations and unary math ops (Sigmoid,
+Tanh, HardSigmoid, HardSwish, Elu, Erf, Gelu, Abs, Neg, Sqrt, Exp, Log, Reciprocal, Softplus,
+Softsign, Mish, Selu, Celu, ThresholdedRelu; Pow by constant exponents), PRelu, the variadic
+Max/Min/Sum, LogSoftmax, LRN and ReduceMean.
 """
 
 from __future__ import annotations
@@ -24,6 +26,11 @@ def _gelu(op: OnnxOp) -> Activation:
     return Activation("gelu", approximate=approximate)
 
 
+# Selu's defaults, the float32 values of the ONNX spec
+SELU_ALPHA = 1.67326319217681884765625
+SELU_GAMMA = 1.05070102214813232421875
+POW_HINT = "NNCG compiles Pow by a constant exponent: make it an initializer or a Constant"
+
 # The Activation record of each pointwise op, ONNX defaults filled in.
 ACTIVATIONS: dict[str, Callable[[OnnxOp], Activation]] = {
     "Sigmoid": lambda op: Activation("sigmoid"),
@@ -35,11 +42,44 @@ ACTIVATIONS: dict[str, Callable[[OnnxOp], Activation]] = {
     "Elu": lambda op: Activation("elu", alpha=float(op.attr("alpha", 1.0))),
     "Erf": lambda op: Activation("erf"),
     "Gelu": _gelu,
+    "Abs": lambda op: Activation("abs"),
+    "Neg": lambda op: Activation("neg"),
+    "Sqrt": lambda op: Activation("sqrt"),
+    "Exp": lambda op: Activation("exp"),
+    "Log": lambda op: Activation("log"),
+    "Reciprocal": lambda op: Activation("reciprocal"),
+    "Softplus": lambda op: Activation("softplus"),
+    "Softsign": lambda op: Activation("softsign"),
+    "Mish": lambda op: Activation("mish"),
+    "Selu": lambda op: Activation(
+        "selu", alpha=float(op.attr("alpha", SELU_ALPHA)), gamma=float(op.attr("gamma", SELU_GAMMA))
+    ),
+    "Celu": lambda op: Activation("celu", alpha=float(op.attr("alpha", 1.0))),
+    "ThresholdedRelu": lambda op: Activation("thresholded_relu", alpha=float(op.attr("alpha", 1.0))),
 }
 
 
 def convert_activation(op: OnnxOp, ctx: Context) -> Node:
     return op.ir_node(op.type, [op.input(0)], ACTIVATIONS[op.type](op))
+
+
+def convert_pow(op: OnnxOp, ctx: Context) -> Node:
+    """Pow by a constant exponent that keeps x's shape. One exponent for all elements is a pointwise
+    activation, which x's producer can apply at its store; an exponent per element a PowPerElement
+    node reading it (as float32) and the sign each gives a negative base's power: -1 for an odd
+    integer, 1 for an even one, 0 for the rest (their powers of a negative base are NaN)."""
+    x, exponent = op.input(0), ctx.constant_input(op, 1, "exponent", POW_HINT)
+    if _broadcast_shape(op, ctx, [x, op.input(1)]) != ctx.shape(x):
+        raise op.error(f"has an exponent of shape {list(exponent.shape)}, which broadcasts X {list(ctx.shape(x))} up")
+    if not np.all(np.isfinite(exponent)):
+        raise op.error("has an infinite or NaN exponent; NNCG compiles Pow by finite exponents")
+    values = np.unique(exponent)
+    if values.size == 1:
+        return op.ir_node("Pow", [x], Activation("pow", alpha=float(values[0])))
+    y = exponent.astype(np.float32)
+    sign = np.where(y % 2 == 0, 1, np.where(y % 2 == 1, -1, 0)).astype(np.float32)
+    per_element = [ctx.add_constant(f"{op.name}_exponent", y), ctx.add_constant(f"{op.name}_sign", sign)]
+    return op.ir_node("PowPerElement", [x, *per_element])
 
 
 def convert_prelu(op: OnnxOp, ctx: Context) -> Node:

@@ -24,8 +24,11 @@ class Activation:
     """A pointwise activation that a producer applies at its store: relu, leaky_relu with slope
     alpha, clip to [low, high] (ReLU6 is clip(0, 6)), sigmoid, tanh, hard_sigmoid
     max(0, min(1, alpha*x + beta)), hard_swish x * hard_sigmoid(x) (ONNX's has alpha 1/6 and beta 0.5),
-    elu with scale alpha, silu x * sigmoid(x) (SiLU, Swish), erf, and gelu x * Phi(x), exact or with
-    the tanh approximation (`approximate`)."""
+    elu with scale alpha, silu x * sigmoid(x) (SiLU, Swish), erf, gelu x * Phi(x), exact or with
+    the tanh approximation (`approximate`), abs, neg, sqrt, exp, log, reciprocal, pow x^alpha (a
+    constant exponent), softplus log(1 + exp(x)), softsign x / (1 + |x|), mish x tanh(softplus(x)),
+    selu gamma * elu(alpha), celu max(0, x) + min(0, alpha (exp(x / alpha) - 1)) and
+    thresholded_relu x > alpha ? x : 0."""
 
     kind: ActivationKind
     alpha: float = 0.0
@@ -33,6 +36,7 @@ class Activation:
     high: float = float("inf")
     beta: float = 0.0
     approximate: GeluApproximation = GeluApproximation.NONE
+    gamma: float = 0.0
 
     def __post_init__(self) -> None:
         coerce(self, kind=ActivationKind, approximate=GeluApproximation)
@@ -42,8 +46,10 @@ class Activation:
             return f"clip({self.low:g}, {self.high:g})"
         if self.kind == "hard_sigmoid" or (self.kind == "hard_swish" and (self.alpha, self.beta) != (1 / 6, 0.5)):
             return f"{self.kind}(alpha={self.alpha:g}, beta={self.beta:g})"
-        if self.kind in ("leaky_relu", "elu"):
+        if self.kind in ("leaky_relu", "elu", "pow", "celu", "thresholded_relu"):
             return f"{self.kind}(alpha={self.alpha:g})"
+        if self.kind == "selu":
+            return f"selu(alpha={self.alpha:g}, gamma={self.gamma:g})"
         if self.kind == "gelu" and self.approximate != "none":
             return f"gelu(approximate={self.approximate})"
         return str(self.kind)

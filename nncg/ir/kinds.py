@@ -47,14 +47,18 @@ class Comparison(TextEnum):
 
 class MathFunction(TextEnum):
     """The math functions kernels call: math.h's (C89, double) in scalar code, where sigmoid is
-    1 / (1 + exp(-x)) and erf, which C89 lacks, a helper (backends/scalar_math.py); polynomial
-    approximations on vectors (backends/vector_math.py)."""
+    1 / (1 + exp(-x)), abs is fabs, and erf and softplus, which C89 lacks, are helpers
+    (backends/scalar_math.py); on vectors polynomial approximations, the sqrt instruction and a
+    sign mask (backends/vector_math.py)."""
 
     EXP = "exp"
     LOG = "log"
     TANH = "tanh"
     SIGMOID = "sigmoid"
     ERF = "erf"
+    ABS = "abs"
+    SQRT = "sqrt"
+    SOFTPLUS = "softplus"  # log(1 + exp(x))
 
 
 class BufferRole(TextEnum):
@@ -84,6 +88,19 @@ class ActivationKind(TextEnum):
     SILU = "silu"
     ERF = "erf"
     GELU = "gelu"
+    ABS = "abs"
+    NEG = "neg"
+    SQRT = "sqrt"
+    EXP = "exp"
+    LOG = "log"
+    RECIPROCAL = "reciprocal"
+    POW = "pow"
+    SOFTPLUS = "softplus"
+    SOFTSIGN = "softsign"
+    MISH = "mish"
+    SELU = "selu"
+    CELU = "celu"
+    THRESHOLDED_RELU = "thresholded_relu"
 
 
 class GeluApproximation(TextEnum):

@@ -16,7 +16,14 @@ from .conv import lower_conv
 from .conv_blocked import lower_blocked_conv
 from .conv_transpose import lower_conv_transpose
 from .dense import lower_dense
-from .elementwise import lower_activation, lower_batchnorm, lower_binary, lower_prelu, lower_scale_shift
+from .elementwise import (
+    lower_activation,
+    lower_batchnorm,
+    lower_binary,
+    lower_pow_per_element,
+    lower_prelu,
+    lower_scale_shift,
+)
 from .lrn import lower_lrn
 from .pad import lower_pad
 from .pool import lower_averagepool, lower_maxpool
@@ -72,7 +79,21 @@ LOWERINGS = {
     "Silu": lower_activation,
     "Erf": lower_activation,
     "Gelu": lower_activation,
+    "Abs": lower_activation,
+    "Neg": lower_activation,
+    "Sqrt": lower_activation,
+    "Exp": lower_activation,
+    "Log": lower_activation,
+    "Reciprocal": lower_activation,
+    "Pow": lower_activation,
+    "Softplus": lower_activation,
+    "Softsign": lower_activation,
+    "Mish": lower_activation,
+    "Selu": lower_activation,
+    "Celu": lower_activation,
+    "ThresholdedRelu": lower_activation,
     "PRelu": lower_prelu,
+    "PowPerElement": lower_pow_per_element,
     "Max": lower_binary,
     "Min": lower_binary,
     "Sum": lower_binary,

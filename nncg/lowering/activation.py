@@ -1,10 +1,13 @@
 """Activations applied where a value is stored: a max for ReLU, a max or conditional move for leaky,
-max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, SiLU, tanh, ELU, erf and GELU through math
-function calls (math.h or a helper in scalar code, polynomials on vectors)."""
+max and min for Clip (ReLU6) and the hard sigmoids; sigmoid, SiLU, tanh, ELU, erf, GELU, abs, sqrt,
+exp, log, softplus and what is made of them through math function calls (math.h or a helper in
+scalar code, polynomials and instructions on vectors); Pow by a constant exponent as products, a
+square root or exp(y log x)."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 from ..ir.graph import Activation
 from ..ir.loops import Binary, Call, Const, Expr, Select
@@ -98,6 +101,75 @@ def _gelu_tanh(x: Expr) -> Expr:
     return Binary("*", x, Call("sigmoid", twice_u))
 
 
+def _call(fn: str) -> Callable[[Expr, Activation], Expr]:
+    return lambda value, _act: Call(fn, value)
+
+
+def _neg(value: Expr, _act: Activation) -> Expr:
+    return Binary("*", value, _splat(-1.0, value))  # exact, and -(+0) = -0
+
+
+def _reciprocal(value: Expr, _act: Activation) -> Expr:
+    return Binary("/", _splat(1.0, value), value)
+
+
+def _pow(x: Expr, act: Activation) -> Expr:
+    """x^alpha as ONNX (C's pow) has it: the common exponents as products, a square root or a
+    reciprocal; others as exp(alpha log x), which is NaN for a negative x, and for an integer alpha
+    from |x|, with x's sign restored for an odd one: x |x|^(alpha - 1), or 1/x |x|^(alpha + 1) below 0
+    (so pow(-0, odd) keeps its sign). Unlike pow, -Inf to an exponent that is no integer is NaN, and
+    sqrt(-0) = -0."""
+    y = act.alpha
+    special = {
+        0.0: lambda: _splat(1.0, x),
+        0.5: lambda: Call("sqrt", x),
+        -0.5: lambda: _reciprocal(Call("sqrt", x), act),
+        1.0: lambda: x,
+        -1.0: lambda: _reciprocal(x, act),
+        2.0: lambda: Binary("*", x, x),
+        3.0: lambda: Binary("*", Binary("*", x, x), x),
+    }
+    if y in special:
+        return special[y]()
+    if not y.is_integer():
+        return _exp_times_log(x, y)
+    if y % 2 == 0:
+        return _exp_times_log(Call("abs", x), y)
+    if y > 0:
+        return Binary("*", x, _exp_times_log(Call("abs", x), y - 1))
+    return Binary("*", _reciprocal(x, act), _exp_times_log(Call("abs", x), y + 1))
+
+
+def _exp_times_log(x: Expr, y: float) -> Expr:
+    """exp(y log x)."""
+    return Call("exp", Binary("*", Call("log", x), _splat(y, x)))
+
+
+def _softsign(value: Expr, _act: Activation) -> Expr:
+    return Binary("/", value, Binary("+", _splat(1.0, value), Call("abs", value)))
+
+
+def _mish(value: Expr, _act: Activation) -> Expr:
+    return Binary("*", value, Call("tanh", Call("softplus", value)))
+
+
+def _selu(value: Expr, act: Activation) -> Expr:
+    """gamma x above 0, gamma alpha (exp(x) - 1) elsewhere."""
+    negative = Binary("*", Binary("-", Call("exp", value), _splat(1.0, value)), _splat(act.gamma * act.alpha, value))
+    return Select(">", value, _splat(0.0, value), Binary("*", value, _splat(act.gamma, value)), negative)
+
+
+def _celu(value: Expr, act: Activation) -> Expr:
+    """max(0, x) + min(0, alpha (exp(x / alpha) - 1)), as ONNX defines it: right for any alpha's sign."""
+    scaled = Call("exp", Binary("/", value, _splat(act.alpha, value)))
+    negative = Binary("*", _splat(act.alpha, value), Binary("-", scaled, _splat(1.0, value)))
+    return Binary("+", Binary("max", value, _splat(0.0, value)), Binary("min", _splat(0.0, value), negative))
+
+
+def _thresholded_relu(value: Expr, act: Activation) -> Expr:
+    return Select(">", value, _splat(act.alpha, value), value, _splat(0.0, value))
+
+
 ACTIVATIONS = {
     "relu": _relu,
     "clip": _clip,
@@ -110,4 +182,17 @@ ACTIVATIONS = {
     "silu": _silu,
     "erf": _erf,
     "gelu": _gelu,
+    "abs": _call("abs"),
+    "neg": _neg,
+    "sqrt": _call("sqrt"),
+    "exp": _call("exp"),
+    "log": _call("log"),
+    "reciprocal": _reciprocal,
+    "pow": _pow,
+    "softplus": _call("softplus"),
+    "softsign": _softsign,
+    "mish": _mish,
+    "selu": _selu,
+    "celu": _celu,
+    "thresholded_relu": _thresholded_relu,
 }

@@ -1,5 +1,6 @@
 """Element-wise lowerings: standalone activations, per-channel scale and shift (BatchNorm), the
-arithmetic ops (binary Add/Sub/Mul/Div, variadic Max/Min/Sum) and PRelu with NumPy broadcasting.
+arithmetic ops (binary Add/Sub/Mul/Div, variadic Max/Min/Sum), PRelu and Pow by an exponent per
+element with NumPy broadcasting.
 Loops run in the output's memory order."""
 
 from __future__ import annotations
@@ -108,6 +109,23 @@ def lower_prelu(ctx: LoweringContext, node: Node) -> None:
         return Select(">", x, Const.splat(0.0), x, Binary("*", slope, x))
 
     broadcast(ctx, node, prelu)
+
+
+def lower_pow_per_element(ctx: LoweringContext, node: Node) -> None:
+    """x^y with a constant exponent y per element and the sign s of a negative base's power (-1, 1,
+    or 0 where y is no integer): exp(y log|x|) times s below 0, or exp(y log x), whose negative x
+    give log's NaN; 1 where y is 0, as pow (even for x = 0, Inf or NaN). Unlike pow, x = -0 counts as
+    +0 and -Inf to an exponent that is no integer is NaN."""
+
+    def power(loads: list[Load]) -> Expr:
+        x, y, sign = loads
+        zero = Const.splat(0.0)
+        base = Select(">", Binary("*", sign, sign), zero, Call("abs", x), x)
+        magnitude = Call("exp", Binary("*", Call("log", base), y))
+        signed = Select("<", x, zero, Binary("*", magnitude, sign), magnitude)
+        return Select(">", Call("abs", y), zero, signed, Const.splat(1.0))
+
+    broadcast(ctx, node, power)
 
 
 def broadcast(ctx: LoweringContext, node: Node, combine: Callable[[list[Load]], Expr]) -> None:

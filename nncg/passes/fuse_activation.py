@@ -1,6 +1,7 @@
 """Graph pass `fuse-activation`: a pointwise activation node (Relu, LeakyRelu, Clip, Sigmoid, Tanh,
-HardSigmoid, HardSwish, Elu, Silu, Erf, Gelu: every node whose attributes are an Activation) is applied
-by its producer at the store, so the activation costs no extra pass over memory.
+HardSigmoid, HardSwish, Elu, Silu, Erf, Gelu, the unary math ops such as Abs, Sqrt, Softplus, Mish
+and Pow by one exponent: every node whose attributes are an Activation) is applied by its producer
+at the store, so the activation costs no extra pass over memory.
 
 First, the composite forms torch exports are made one activation: its GELU decompositions become a
 Gelu node (fuse_gelu.py); Mul(x, Sigmoid(x)) (SiLU, Swish) becomes a Silu node and

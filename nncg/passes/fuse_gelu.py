@@ -9,7 +9,7 @@ The three factors x, 0.5 and the gate (1 + ...) may be multiplied in any associa
 (x * 0.5) * gate), each commutative op with its operands either way round. Each constant is one
 element within RTOL of its exact value; each intermediate is read by the next node of the pattern
 only and is no graph output, so nothing else needs it stored. Pow(x, 3), onnxscript's cube, is not
-matched: NNCG does not import Pow."""
+matched: it stays a pow activation node, and the GELU runs node by node."""
 
 from __future__ import annotations
 
