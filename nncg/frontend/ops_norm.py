@@ -17,15 +17,14 @@ def convert_instance_norm(op: OnnxOp, ctx: Context) -> Node:
 
 
 def convert_group_norm(op: OnnxOp, ctx: Context) -> Node:
-    """scale and bias per group (opset 18) or per channel (opset 21)."""
+    """Opset 21's: scale and bias per channel. Opsets 18 to 20 had them per group, a form onnx has
+    deprecated and its checker refuses (load_model reports it)."""
     shape = _checked_input(op, ctx)
     groups = op.attr("num_groups")
     if not isinstance(groups, int) or groups < 1 or shape[1] % groups:
         raise op.error(f"has num_groups={groups}; it must divide the {shape[1]} channels")
-    per_group = ctx.opset < 21
-    expected, what = ((groups,), "one per group") if per_group else ((shape[1],), "one per channel")
-    _check_parameters(op, ctx, expected, what)
-    attrs = NormAttrs(_epsilon(op), groups=groups, per_group_affine=per_group)
+    _check_parameters(op, ctx, (shape[1],), "one per channel")
+    attrs = NormAttrs(_epsilon(op), groups=groups)
     return op.ir_node("GroupNormalization", [op.input(i) for i in range(3)], attrs)
 
 

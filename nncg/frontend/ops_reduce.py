@@ -42,11 +42,7 @@ def convert_arg_extreme(op: OnnxOp, ctx: Context) -> Node:
     indices reach only graph outputs, which load_model lets be int64 for this op alone."""
     x = op.input(0)
     shape = ctx.shape(x)
-    rank = len(shape)
-    axis = op.attr("axis", 0)
-    if not -rank <= axis < rank:
-        raise op.error(f"has axis {axis}; it must be in [-{rank}, {rank}) for its rank-{rank} input")
-    axis %= rank
+    axis = op.attr("axis", 0) % len(shape)  # in [-rank, rank): ONNX shape inference checks it
     if shape[axis] > MAX_EXACT_INDEX:
         raise op.error(
             f"reduces an axis of {shape[axis]} elements; NNCG writes the indices as float32, exact up to "

@@ -184,14 +184,13 @@ class NormAttrs:
     set of elements normalised together. Layer: per index of the dims before `axis`, over the dims
     from `axis` on; scale and bias broadcast to those dims, bias optional. Group and Instance: per
     (n, group of channels), over its channels and the spatial dims (`groups` groups; Instance has
-    one per channel); scale and bias per channel, or per group with `per_group_affine` (opset 18).
-    Inputs x, scale[, bias]; outputs y, then LayerNormalization's mean and 1 / sqrt(var + epsilon)
-    per group where `mean_output` and `inv_std_output` say they are used."""
+    one per channel); scale and bias per channel. Inputs x, scale[, bias]; outputs y, then
+    LayerNormalization's mean and 1 / sqrt(var + epsilon) per group where `mean_output` and
+    `inv_std_output` say they are used."""
 
     epsilon: float = 1e-5
     axis: int = 1
     groups: int = 1
-    per_group_affine: bool = False
     mean_output: bool = False
     inv_std_output: bool = False
 

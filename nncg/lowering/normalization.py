@@ -45,7 +45,7 @@ def lower_normalization(ctx: LoweringContext, node: Node) -> None:
             return Binary("-", Load(x.buffer, x.at(idx)), mean)
 
         def normalised(idx: list[Affine]) -> tuple[Stmt, ...]:
-            scale, bias = _affine(ctx, node, idx, outer_env[outer_vars[1]] if rank > 1 else Affine())
+            scale, bias = _affine(ctx, node, idx)
             value = Binary("*", deviation(idx), Binary("*", inv, scale))
             return (Store(out.buffer, out.at(idx), value if bias is None else Binary("+", value, bias)),)
 
@@ -80,12 +80,12 @@ def _square(value: Expr) -> Expr:
     return Binary("*", value, value)
 
 
-def _affine(ctx: LoweringContext, node: Node, idx: list[Affine], group: Affine) -> tuple[Expr, Expr | None]:
-    """scale and bias (None: no bias) at x's index `idx`, in the group `group` of channels."""
+def _affine(ctx: LoweringContext, node: Node, idx: list[Affine]) -> tuple[Expr, Expr | None]:
+    """scale and bias (None: no bias) at x's index `idx`: broadcast to the normalised dims
+    (LayerNormalization) or per channel."""
     refs = [ctx.ref(name) for name in node.inputs[1:3]]
     if node.op == "LayerNormalization":
         loads = [broadcast_load(ref, idx) for ref in refs]
     else:
-        channel = group if node.attrs.per_group_affine else idx[1]
-        loads = [Load(ref.buffer, ref.at([channel])) for ref in refs]
+        loads = [Load(ref.buffer, ref.at([idx[1]])) for ref in refs]
     return loads[0], loads[1] if len(loads) > 1 else None
