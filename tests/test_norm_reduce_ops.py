@@ -252,7 +252,8 @@ def test_normalization(case, target):
 
 @pytest.mark.parametrize("target", TARGETS)
 def test_conv_group_norm_relu(target):
-    """A small model: Conv -> GroupNormalization -> Relu -> Conv."""
+    """A small model: Conv -> GroupNormalization -> Relu -> Conv; the Relu is applied at the
+    normalisation's store."""
     first, w1 = conv("x", "c", 3, 12)
     second, w2 = conv("r", "y", 12, 5)
     nodes = [first, group_norm(4, "c", "g", epsilon=1e-5), helper.make_node("Relu", ["g"], ["r"])]
@@ -260,7 +261,7 @@ def test_conv_group_norm_relu(target):
         [*nodes, second], inputs={"x": (1, 3, 8, 9)}, initializers={**w1, **w2, **norm_parameters(12)}, opset=21
     )
     compiled = compile_and_check(m, target)
-    assert "GroupNormalization" in kernel_ops(compiled)
+    assert kernel_ops(compiled)[:3] == ["Conv", "GroupNormalization", "Conv"]  # then a layout Copy
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -281,6 +282,21 @@ def test_normalization_of_large_offsets_is_stable(target):
         opset=17,
     )
     compile_and_check(m, target)
+
+
+@pytest.mark.parametrize("target", ("ansi-c", "avx2"))
+def test_activation_after_layer_norm_with_statistics_stays_apart(target):
+    """The fused activation would apply to y only, but merging rewrites all outputs: not fused."""
+    nodes = [layer_norm(outputs=("n", "mean", "inv_std")), helper.make_node("Sigmoid", ["n"], ["y"])]
+    m = onnx_model(
+        nodes,
+        inputs={"x": (2, 5, 11)},
+        outputs=("y", "mean", "inv_std"),
+        initializers=norm_parameters(11),
+        opset=17,
+    )
+    compiled = compile_and_check(m, target)
+    assert kernel_ops(compiled) == ["LayerNormalization", "Sigmoid"]
 
 
 def test_normalization_ir():

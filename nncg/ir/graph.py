@@ -186,13 +186,14 @@ class NormAttrs:
     (n, group of channels), over its channels and the spatial dims (`groups` groups; Instance has
     one per channel); scale and bias per channel. Inputs x, scale[, bias]; outputs y, then
     LayerNormalization's mean and 1 / sqrt(var + epsilon) per group where `mean_output` and
-    `inv_std_output` say they are used."""
+    `inv_std_output` say they are used. `activation` is applied to y at its store (fuse-activation)."""
 
     epsilon: float = 1e-5
     axis: int = 1
     groups: int = 1
     mean_output: bool = False
     inv_std_output: bool = False
+    activation: Activation | None = None
 
 
 @dataclass(frozen=True)

@@ -1,12 +1,12 @@
 """InstanceNormalization, GroupNormalization and LayerNormalization lowerings. Per group of elements
 normalised together: the mean, then the variance as the mean of the squared deviations from it (two
 passes: no cancellation as in E[x^2] - E[x]^2), then y = (x - mean) * (scale / sqrt(var + epsilon))
-+ bias in one store, scale and bias read there. Each dim of x splits into the part that picks the
-group (outer loops, parallel) and the part that runs inside it (inner loops): LayerNormalization's
-dims before `axis` are outer, the others inner; GroupNormalization's channel c is group c // (C / G)
-outside and c % (C / G) inside, the spatial dims inner. Both loop groups run in x's memory order, so
-a channels-last InstanceNormalization vectorises over channels, a row-major LayerNormalization's
-store over its last dim."""
++ bias in one store, scale and bias read there and a fused activation applied. Each dim of x splits
+into the part that picks the group (outer loops, parallel) and the part that runs inside it (inner
+loops): LayerNormalization's dims before `axis` are outer, the others inner; GroupNormalization's
+channel c is group c // (C / G) outside and c % (C / G) inside, the spatial dims inner. Both loop
+groups run in x's memory order, so a channels-last InstanceNormalization vectorises over channels, a
+row-major LayerNormalization's store over its last dim."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from collections.abc import Callable
 
 from ..ir.graph import Node, NormAttrs
 from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Stmt, Store
+from .activation import apply_activation
 from .context import LoweringContext, TensorRef, dim_vars, nest
 from .elementwise import broadcast_load
 from .reduce import power
@@ -47,7 +48,8 @@ def lower_normalization(ctx: LoweringContext, node: Node) -> None:
         def normalised(idx: list[Affine]) -> tuple[Stmt, ...]:
             scale, bias = _affine(ctx, node, idx)
             value = Binary("*", deviation(idx), Binary("*", inv, scale))
-            return (Store(out.buffer, out.at(idx), value if bias is None else Binary("+", value, bias)),)
+            value = value if bias is None else Binary("+", value, bias)
+            return (Store(out.buffer, out.at(idx), apply_activation(value, attrs.activation)),)
 
         add = over(lambda idx: (Assign("s", Binary("+", s, Load(x.buffer, x.at(idx)))),), parallel=False)
         add_squares = over(lambda idx: (Assign("ss", Binary("+", ss, _square(deviation(idx)))),), parallel=False)
