@@ -37,6 +37,7 @@ from onnx.backend.base import Backend, BackendRep, Device, DeviceType
 from nncg.compiler import CompiledModel
 from nncg.compiler import compile as nncg_compile
 from nncg.errors import NncgError
+from nncg.frontend.load import index_outputs
 from nncg.frontend.ops import PARAMETER_INPUTS
 from nncg.frontend.shapes import dtype_name
 from nncg.verify import BuiltModel, build_model
@@ -56,6 +57,7 @@ class _Build:
     compiled: CompiledModel
     built: BuiltModel
     workdir: tempfile.TemporaryDirectory  # removed when the build is garbage collected
+    index_outputs: frozenset[str] = frozenset()  # ArgMax/ArgMin outputs: int64 in ONNX, float32 in the C
 
 
 class NncgBackendRep(BackendRep):
@@ -111,14 +113,16 @@ class NncgBackendRep(BackendRep):
 
     def run(self, inputs: Any, **kwargs: Any) -> tuple[np.ndarray, ...]:
         """Inputs as a list in graph order, a dict by name, or one array for a one-input model;
-        returns the outputs as float32 arrays with the ONNX output shapes, in graph order."""
+        returns the outputs as float32 arrays (ArgMax/ArgMin's as int64) with the ONNX output shapes,
+        in graph order."""
         if kwargs:
             raise TypeError(f"NncgBackendRep.run() got unexpected keyword arguments {sorted(kwargs)}")
         given = dict(zip(self._input_names, self._ordered(inputs)))
         bound = {n: self._checked_parameter(self._parameters[n], given[n]) for n in self.parameter_names}
         build = self._build_for(bound)
         arrays = [self._checked(spec, given[spec.name]) for spec in build.compiled.inputs]
-        return tuple(build.built.run(arrays))
+        outputs = zip(build.compiled.outputs, build.built.run(arrays))
+        return tuple(array.astype(np.int64) if spec.name in build.index_outputs else array for spec, array in outputs)
 
     def _build_for(self, bound: dict[str, np.ndarray]) -> _Build:
         key = tuple((n, a.dtype.str, a.shape, a.tobytes()) for n, a in bound.items())
@@ -215,9 +219,10 @@ class NncgBackend(Backend):
             build = _compile_and_build(source, options, build_options)
             inputs, outputs = build.compiled.inputs, build.compiled.outputs
             return NncgBackendRep([p.name for p in inputs], [p.name for p in outputs], build.compiled.name, build=build)
+        indices = index_outputs(proto.graph)
         for value in proto.graph.output:  # refused now rather than at the first run
             elem = value.type.tensor_type.elem_type if value.type.HasField("tensor_type") else None
-            if elem != onnx.TensorProto.FLOAT:
+            if elem != onnx.TensorProto.FLOAT and value.name not in indices:
                 what = dtype_name(elem) if elem is not None else "not a tensor"
                 raise BackendError(f"NNCG compiles float32 models; output {value.name!r} is {what}")
         if isinstance(source, onnx.ModelProto):  # a snapshot: the caller may change theirs
@@ -319,7 +324,8 @@ def _compile_and_build(model: Any, options: Mapping[str, Any], build_options: Ma
     except BaseException:
         workdir.cleanup()
         raise
-    return _Build(compiled, built, workdir)
+    proto = _parsed(model)
+    return _Build(compiled, built, workdir, frozenset(index_outputs(proto.graph)) if proto is not None else frozenset())
 
 
 def _parsed(source: onnx.ModelProto | bytes | str) -> onnx.ModelProto | None:

@@ -187,21 +187,22 @@ def test_concat_and_pad_attributes_follow_the_permutation():
     check(before, expected)
 
 
-def test_global_pool_over_nhwc_needs_no_transpose():
-    """ReduceMean over H and W of NHWC without keepdims: over dims 2, 3 of NCHW, and [N, C] is left."""
+@pytest.mark.parametrize("op", ["ReduceMean", "ReduceMax", "ReduceL2"])
+def test_global_pool_over_nhwc_needs_no_transpose(op):
+    """A reduction over H and W of NHWC without keepdims: over dims 2, 3 of NCHW, and [N, C] is left."""
     w = {"w": rand(4, 4, 1, 1)}
     shapes = {"x": NCHW, "a": NCHW, "h": NHWC, "y": (1, 4)}
     before = graph(
         [
             conv("x", "a"),
             transpose("a", "h", TO_NHWC),
-            Node("ReduceMean", "gap", ("h",), ("y",), ReduceAttrs((1, 2), False)),
+            Node(op, "gap", ("h",), ("y",), ReduceAttrs((1, 2), False)),
         ],
         w,
         shapes,
     )
     expected = graph(
-        [conv("x", "a"), Node("ReduceMean", "gap", ("a",), ("y",), ReduceAttrs((2, 3), False))],
+        [conv("x", "a"), Node(op, "gap", ("a",), ("y",), ReduceAttrs((2, 3), False))],
         w,
         {"x": NCHW, "a": NCHW, "y": (1, 4)},
     )

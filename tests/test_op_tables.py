@@ -115,12 +115,16 @@ def _conformance_models() -> Iterator[onnx.ModelProto]:
 
 def _rare_conversions() -> Iterator[onnx.ModelProto]:
     """Max/Min of a scalar constant (a Clip); ReduceMean over the spatial dims (a global pool) and
-    over no axes with noop_with_empty_axes (an Identity)."""
+    ReduceMean/Max/Min over no axes with noop_with_empty_axes (an Identity); ReduceLogSumExp (onnx's
+    cases are float64) with its axes input."""
     bound = numpy_helper.from_array(np.array(0.5, np.float32), "c")
     for op in ("Max", "Min"):
         yield _model([helper.make_node(op, ["x", "c"], ["y"])], [bound], 13)
     yield _model([helper.make_node("ReduceMean", ["x"], ["y"], axes=[2, 3])], [], 13)
-    yield _model([helper.make_node("ReduceMean", ["x"], ["y"], noop_with_empty_axes=1)], [], 18)
+    for op in ("ReduceMean", "ReduceMax", "ReduceMin"):
+        yield _model([helper.make_node(op, ["x"], ["y"], noop_with_empty_axes=1)], [], 18)
+    axes = numpy_helper.from_array(np.array([1], np.int64), "axes")
+    yield _model([helper.make_node("ReduceLogSumExp", ["x", "axes"], ["y"])], [axes], 18)
 
 
 def _model(nodes: list[onnx.NodeProto], initializers: list[onnx.TensorProto], opset: int) -> onnx.ModelProto:

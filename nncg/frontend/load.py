@@ -47,8 +47,10 @@ def load_with_shapes(
     # Inputs, outputs, wiring and operators first: onnx.checker would reject them with messages that
     # do not say how to fix them.
     fix_input_shapes(proto.graph, dict(input_shapes or {}))
+    indices = index_outputs(proto.graph)
     for value in proto.graph.output:
-        _check_float32(value, "output")
+        if value.name not in indices:
+            _check_float32(value, "output")
     check_wiring(proto.graph)
     check_operators(proto.graph, opset, proto.ir_version)
     _run_checker(proto)
@@ -283,6 +285,15 @@ def _check_shape_keys(graph: onnx.GraphProto, inputs: list, input_shapes: dict) 
         raise NncgError(
             f"input_shapes names {shown(key)}, which is {what}; the model's inputs are " + ", ".join(map(shown, names))
         )
+
+
+def index_outputs(graph: onnx.GraphProto) -> set[str]:
+    """Graph outputs declared int64 that an ArgMax or ArgMin computes: the one int64 result NNCG
+    produces (its indices written as float32, see ops_reduce.convert_arg_extreme)."""
+    declared = {v.name for v in graph.output if v.type.tensor_type.elem_type == onnx.TensorProto.INT64}
+    arg_extremes = [node for node in graph.node if node.op_type in ("ArgMax", "ArgMin") and not node.domain]
+    produced = {node.output[0] for node in arg_extremes if node.output}
+    return declared & produced
 
 
 def _check_float32(value: onnx.ValueInfoProto, kind: str) -> None:

@@ -23,7 +23,6 @@ from nncg.frontend.ops_elementwise import (
     convert_lrn,
     convert_pow,
     convert_prelu,
-    convert_reduce_mean,
     convert_variadic,
 )
 from nncg.frontend.ops_linear import convert_binary, convert_gemm, convert_matmul
@@ -38,6 +37,8 @@ from nncg.frontend.ops_nn import (
     convert_relu,
     convert_softmax,
 )
+from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
+from nncg.frontend.ops_reduce import convert_arg_extreme, convert_reduce
 from nncg.frontend.ops_shape import (
     convert_dropout,
     convert_flatten,
@@ -114,9 +115,19 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "Sum": ConvertedOp(convert_variadic, ("Sum", "Identity")),
     "LogSoftmax": ConvertedOp(convert_log_softmax, ("LogSoftmax",)),
     "LRN": ConvertedOp(convert_lrn, ("LRN",)),
-    # axes (opset 18+); the spatial mean with keepdims is a global AveragePool, the mean over no axes
-    # with noop_with_empty_axes an Identity
-    "ReduceMean": ConvertedOp(convert_reduce_mean, ("ReduceMean", "AveragePool", "Identity"), (1,)),
+    # axes (opset 18+, 13+ for ReduceSum); the spatial mean with keepdims is a global AveragePool,
+    # the sum, mean, max or min over no axes with noop_with_empty_axes an Identity
+    "ReduceMean": ConvertedOp(convert_reduce, ("ReduceMean", "AveragePool", "Identity"), (1,)),
+    **{op: ConvertedOp(convert_reduce, (op, "Identity"), (1,)) for op in ("ReduceSum", "ReduceMax", "ReduceMin")},
+    **{
+        op: ConvertedOp(convert_reduce, (op,), (1,))
+        for op in ("ReduceL1", "ReduceL2", "ReduceSumSquare", "ReduceLogSum", "ReduceLogSumExp")
+    },
+    "ArgMax": ConvertedOp(convert_arg_extreme, ("ArgMax",)),
+    "ArgMin": ConvertedOp(convert_arg_extreme, ("ArgMin",)),
+    "InstanceNormalization": ConvertedOp(convert_instance_norm, ("InstanceNormalization",)),
+    "GroupNormalization": ConvertedOp(convert_group_norm, ("GroupNormalization",)),
+    "LayerNormalization": ConvertedOp(convert_layer_norm, ("LayerNormalization",)),
 }
 
 CONVERTERS: dict[str, Converter] = {name: op.convert for name, op in ONNX_OPS.items()}
@@ -127,19 +138,10 @@ FOLDED_OPS = "Constant, ConstantOfShape, Shape, Size and any other op whose inpu
 
 # Parameter inputs of ops that have no converter and import only when folded: the ONNX backend
 # (nncg/onnx_backend.py) binds them too, so that such an op fed by a graph input can fold.
-_REDUCE_AXES = (1,)  # Reduce* from opset 18 (13 for ReduceSum): axes
 FOLDED_PARAMETER_INPUTS: dict[str, tuple[int, ...]] = {
     "ConstantOfShape": (0,),  # shape
     "Expand": (1,),  # shape
-    "ReduceL1": _REDUCE_AXES,
-    "ReduceL2": _REDUCE_AXES,
-    "ReduceLogSum": _REDUCE_AXES,
-    "ReduceLogSumExp": _REDUCE_AXES,
-    "ReduceMax": _REDUCE_AXES,
-    "ReduceMin": _REDUCE_AXES,
-    "ReduceProd": _REDUCE_AXES,
-    "ReduceSum": _REDUCE_AXES,
-    "ReduceSumSquare": _REDUCE_AXES,
+    "ReduceProd": (1,),  # axes (opset 18+)
     "Tile": (1,),  # repeats
 }
 

@@ -1,7 +1,7 @@
 """ONNX front end (ONNX -> graph IR), step 3: the pointwise activations and unary math ops (Sigmoid,
 Tanh, HardSigmoid, HardSwish, Elu, Erf, Gelu, Abs, Neg, Sqrt, Exp, Log, Reciprocal, Softplus,
 Softsign, Mish, Selu, Celu, ThresholdedRelu; Pow by constant exponents), PRelu, the variadic
-Max/Min/Sum, LogSoftmax, LRN and ReduceMean.
+Max/Min/Sum, LogSoftmax and LRN.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from nncg.frontend.context import SHAPE_HINT, Context, OnnxOp
-from nncg.frontend.ops_nn import convert_global_pool, convert_softmax
-from nncg.ir.graph import Activation, LrnAttrs, Node, ReduceAttrs, Shape
+from nncg.frontend.context import Context, OnnxOp
+from nncg.frontend.ops_nn import convert_softmax
+from nncg.ir.graph import Activation, LrnAttrs, Node, Shape
 from nncg.ir.kinds import GeluApproximation
 from nncg.safe_text import shown
 
@@ -118,38 +118,6 @@ def convert_lrn(op: OnnxOp, ctx: Context) -> Node:
         raise op.error(f"has a rank-{rank} input; LRN needs [N, C, D1, ...]")
     attrs = LrnAttrs(size, float(op.attr("alpha", 1e-4)), float(op.attr("beta", 0.75)), float(op.attr("bias", 1.0)))
     return op.ir_node("LRN", [x], attrs)
-
-
-def convert_reduce_mean(op: OnnxOp, ctx: Context) -> Node:
-    """The mean over the spatial dims with keepdims is a GlobalAveragePool; other axes reduce in place."""
-    x = op.input(0)
-    shape = ctx.shape(x)
-    rank = len(shape)
-    axes = _reduce_axes(op, ctx, rank)
-    if not axes and op.attr("noop_with_empty_axes", 0):
-        ctx.set_shape(op, op.node.output[0], shape)
-        return op.ir_node("Identity", [x])
-    axes = axes or tuple(range(rank))  # no axes: reduce them all
-    keepdims = bool(op.attr("keepdims", 1))
-    if keepdims and rank >= 3 and axes == tuple(range(2, rank)):
-        # convert_global_pool names the op after the ONNX type without "Global": set the pool here.
-        return replace(convert_global_pool(op, ctx), op="AveragePool")
-    out_shape = tuple(1 if d in axes else n for d, n in enumerate(shape) if keepdims or d not in axes)
-    ctx.set_shape(op, op.node.output[0], out_shape)
-    return op.ir_node("ReduceMean", [x], ReduceAttrs(axes, keepdims))
-
-
-def _reduce_axes(op: OnnxOp, ctx: Context, rank: int) -> Shape:
-    """The reduced axes, sorted and non-negative: an attribute before opset 18, then a constant input."""
-    if ctx.opset < 18:
-        raw = op.attr("axes", [])
-    else:
-        raw = ctx.constant_input(op, 1, "axes", SHAPE_HINT).tolist() if op.input(1) else []
-    if any(not -rank <= a < rank for a in raw) or len({a % rank for a in raw}) != len(raw):
-        raise op.error(
-            f"has axes {list(raw)}; they must be distinct and in [-{rank}, {rank}) for its rank-{rank} input"
-        )
-    return tuple(sorted(a % rank for a in raw))
 
 
 def _broadcast_shape(op: OnnxOp, ctx: Context, inputs: list[str]) -> Shape:

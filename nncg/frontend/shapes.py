@@ -26,7 +26,8 @@ def inferred_shapes(model: onnx.ModelProto) -> dict[str, Shape]:
     ONNX's MaxPool and AveragePool inference before opset 22 ignores the spec rule that drops a
     window starting in the end padding (onnxruntime follows it), its Resize inference rounds n * scale
     in double where onnxruntime uses float32, and its ConvTranspose inference adds output_padding to a
-    SAME output (onnxruntime gives in * stride); such outputs are pinned to the right shape,
+    SAME output (onnxruntime gives in * stride), and it leaves GroupNormalization's (opset 21) unknown;
+    such outputs are pinned to the right shape,
     fed in as inputs, and inference re-runs so everything downstream (and Shape folding) sees the
     real shape. A negative dimension anywhere is refused, naming the node that makes it.
     """
@@ -120,6 +121,8 @@ def _misinferred(model: onnx.ModelProto, shapes: dict[str, Shape], pinned: dict)
             expected = _resize_output_shape(OnnxOp.of(node, name), in_shape, initializers)
         elif node.op_type == "ConvTranspose":
             expected = _same_conv_transpose_shape(OnnxOp.of(node, name), in_shape, shapes.get(node.output[0]))
+        elif node.op_type == "GroupNormalization":
+            expected = in_shape  # a function op whose output ONNX inference leaves unknown
         else:
             continue
         if expected is not None and shapes.get(node.output[0]) != expected and min(expected) >= 1:

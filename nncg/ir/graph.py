@@ -166,10 +166,40 @@ class LrnAttrs:
 
 @dataclass(frozen=True)
 class ReduceAttrs:
-    """A reduction over `axes` (sorted, non-negative, at least one); keepdims keeps them as size 1."""
+    """A reduction (ReduceSum, ReduceMean, ReduceMax, ...: the op says which) over `axes` (sorted,
+    non-negative; none: each element alone, ReduceL2's |x|); keepdims keeps them as size 1."""
 
     axes: Shape
     keepdims: bool = True
+
+
+@dataclass(frozen=True)
+class ArgMaxAttrs:
+    """ArgMax / ArgMin along `axis` (non-negative): the index of the first extreme element (the last
+    with select_last_index), written as a float (exact: the axis has at most 2**24 elements)."""
+
+    axis: int
+    keepdims: bool = True
+    select_last_index: bool = False
+
+
+@dataclass(frozen=True)
+class NormAttrs:
+    """InstanceNormalization, GroupNormalization, LayerNormalization (inference):
+    y = (x - mean) / sqrt(var + epsilon) * scale + bias, with the mean and biased variance of each
+    set of elements normalised together. Layer: per index of the dims before `axis`, over the dims
+    from `axis` on; scale and bias broadcast to those dims, bias optional. Group and Instance: per
+    (n, group of channels), over its channels and the spatial dims (`groups` groups; Instance has
+    one per channel); scale and bias per channel. Inputs x, scale[, bias]; outputs y, then
+    LayerNormalization's mean and 1 / sqrt(var + epsilon) per group where `mean_output` and
+    `inv_std_output` say they are used. `activation` is applied to y at its store (fuse-activation)."""
+
+    epsilon: float = 1e-5
+    axis: int = 1
+    groups: int = 1
+    mean_output: bool = False
+    inv_std_output: bool = False
+    activation: Activation | None = None
 
 
 @dataclass(frozen=True)
@@ -248,8 +278,8 @@ class ResizeAttrs:
 # Every attribute record a node may carry.
 AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
-    SoftmaxAttrs, LrnAttrs, ReduceAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs, SplitAttrs, TransposeAttrs,
-    PadAttrs, ResizeAttrs,
+    SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
+    SplitAttrs, TransposeAttrs, PadAttrs, ResizeAttrs,
 ]  # fmt: skip
 
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 from .graph import (
     Activation,
+    ArgMaxAttrs,
     BatchNormAttrs,
     ConcatAttrs,
     ConvAttrs,
@@ -18,6 +19,7 @@ from .graph import (
     Graph,
     LrnAttrs,
     Node,
+    NormAttrs,
     PadAttrs,
     PoolAttrs,
     ReduceAttrs,
@@ -28,6 +30,19 @@ from .graph import (
     SoftmaxAttrs,
     SplitAttrs,
     TransposeAttrs,
+)
+
+# The reductions, named as in ONNX, all with ReduceAttrs.
+REDUCE_OPS = (
+    "ReduceSum",
+    "ReduceMean",
+    "ReduceMax",
+    "ReduceMin",
+    "ReduceL1",
+    "ReduceL2",
+    "ReduceSumSquare",
+    "ReduceLogSum",
+    "ReduceLogSumExp",
 )
 
 MacRule = Callable[[Graph, Node], int]
@@ -118,5 +133,10 @@ IR_OPS: dict[str, IrOp] = {
     "Sum": IrOp(None, no_macs),
     "LogSoftmax": IrOp(SoftmaxAttrs, no_macs),
     "LRN": IrOp(LrnAttrs, no_macs),
-    "ReduceMean": IrOp(ReduceAttrs, no_macs),
+    **{op: IrOp(ReduceAttrs, no_macs) for op in REDUCE_OPS},
+    "ArgMax": IrOp(ArgMaxAttrs, no_macs),
+    "ArgMin": IrOp(ArgMaxAttrs, no_macs),
+    "InstanceNormalization": IrOp(NormAttrs, no_macs),
+    "GroupNormalization": IrOp(NormAttrs, no_macs),
+    "LayerNormalization": IrOp(NormAttrs, no_macs),
 }

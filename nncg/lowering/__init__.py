@@ -10,6 +10,7 @@ from ..ir.c_names import program_name
 from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm
 from ..ir.loops import Program, StoredValue
+from ..ir.ops import REDUCE_OPS
 from .concat import lower_concat
 from .context import LoweringContext, row_major
 from .conv import lower_conv
@@ -25,9 +26,10 @@ from .elementwise import (
     lower_scale_shift,
 )
 from .lrn import lower_lrn
+from .normalization import lower_normalization
 from .pad import lower_pad
 from .pool import lower_averagepool, lower_maxpool
-from .reduce import lower_reduce_mean
+from .reduce import lower_arg_extreme, lower_reduce
 from .reshape import copy_nest, lower_reshape
 from .resize import lower_resize
 from .slice import lower_slice, lower_split
@@ -99,7 +101,12 @@ LOWERINGS = {
     "Sum": lower_binary,
     "LogSoftmax": lower_log_softmax,
     "LRN": lower_lrn,
-    "ReduceMean": lower_reduce_mean,
+    **dict.fromkeys(REDUCE_OPS, lower_reduce),
+    "ArgMax": lower_arg_extreme,
+    "ArgMin": lower_arg_extreme,
+    "InstanceNormalization": lower_normalization,
+    "GroupNormalization": lower_normalization,
+    "LayerNormalization": lower_normalization,
 }
 
 

@@ -12,8 +12,8 @@ Rules, applied until none fires:
   where it is): y = op(T_p(a), T_p(b), c) becomes op(a, b, c') -> T_p. This holds
   for the pointwise activations, Add, Sub, Mul, Div, Max, Min, Sum and PRelu (a constant operand c is
   broadcast to the output's rank and permuted by p's inverse), Concat (axis remapped), Pad and Slice (per-dim
-  attributes permuted), Softmax and LogSoftmax (axis remapped) and ReduceMean (axes remapped; without
-  keepdims the Transpose of what is left, if any).
+  attributes permuted), Softmax and LogSoftmax (axis remapped) and the reductions, ReduceMean, ReduceSum,
+  ReduceMax, ... (axes remapped; without keepdims the Transpose of what is left, if any).
 A Transpose that reads a graph input, or writes a graph output, stays: the C API's layout does not change. A
 node writing a graph output keeps the Transpose in front of it (lowered, that Transpose is a free relabelling;
 after the node, it would be a copy kernel).
@@ -208,7 +208,7 @@ def _rewrite(graph: Graph, node: Node, perm) -> tuple[Node, dict, tuple[int, ...
         return replace(node, attrs=SliceAttrs(starts, steps)), added, perm
     if node.op in ("Softmax", "LogSoftmax") and not attrs.coerce_2d:
         return replace(node, attrs=SoftmaxAttrs(perm[attrs.axis])), added, perm
-    if node.op == "ReduceMean":
+    if isinstance(attrs, ReduceAttrs):
         axes = tuple(sorted(perm[a] for a in attrs.axes))
         new_node = replace(node, attrs=ReduceAttrs(axes, attrs.keepdims))
         if attrs.keepdims:

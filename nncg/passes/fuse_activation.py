@@ -17,7 +17,7 @@ from ..ir.graph import Activation, Graph, Node
 from .fuse_gelu import fuse_gelu
 from .rewrite import merge_into_producer, sole_consumer
 
-PRODUCERS = ("Conv", "Dense", "ScaleShift")
+PRODUCERS = ("Conv", "Dense", "ScaleShift", "InstanceNormalization", "GroupNormalization", "LayerNormalization")
 
 # A gate g whose Mul(x, g(x)) is one activation: the gate's op -> the fused node's op and activation
 # kind (the gate's parameters carry over: HardSigmoid's alpha and beta).
@@ -62,6 +62,7 @@ def _fuse_producers(graph: Graph) -> Graph:
             producer is not None
             and producer.op in PRODUCERS
             and producer.attrs.activation is None
+            and len(producer.outputs) == 1  # not a LayerNormalization writing its statistics too
             and sole_consumer(graph, act.inputs[0]) is act
         ):
             fused = replace(producer, attrs=replace(producer.attrs, activation=act.attrs))
