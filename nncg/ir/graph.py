@@ -206,6 +206,23 @@ class TransposeAttrs:
 
 
 @dataclass(frozen=True)
+class TileAttrs:
+    """Tile and Expand: y[i] = x[i mod x's extent] per dim, the output `repeats` times x's extent
+    (x has the output's rank; Expand's broadcasting is a repeat of its size-1 dims)."""
+
+    repeats: Shape
+
+
+@dataclass(frozen=True)
+class GatherAttrs:
+    """Gather along `axis` at constant indices (non-negative, inside the axis): y[..., j, ...] =
+    x[..., indices[j], ...]; the indices' own shape is a Reshape after this node."""
+
+    axis: int
+    indices: Shape
+
+
+@dataclass(frozen=True)
 class PadAttrs:
     """Pad each dim by pads_begin/pads_end (negative: crop). mode: constant (with `value`), reflect
     (mirror without repeating the border), edge (repeat the border) or wrap (periodic)."""
@@ -233,7 +250,7 @@ class ResizeAttrs:
 AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs, SplitAttrs, TransposeAttrs,
-    PadAttrs, ResizeAttrs,
+    TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs,
 ]  # fmt: skip
 
 

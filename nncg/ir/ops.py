@@ -15,6 +15,7 @@ from .graph import (
     ConvAttrs,
     ConvTransposeAttrs,
     DenseAttrs,
+    GatherAttrs,
     Graph,
     LrnAttrs,
     Node,
@@ -27,6 +28,7 @@ from .graph import (
     SliceAttrs,
     SoftmaxAttrs,
     SplitAttrs,
+    TileAttrs,
     TransposeAttrs,
 )
 
@@ -88,6 +90,9 @@ IR_OPS: dict[str, IrOp] = {
     "Slice": IrOp(SliceAttrs, no_macs),
     "Split": IrOp(SplitAttrs, no_macs),
     "Transpose": IrOp(TransposeAttrs, no_macs),
+    "Tile": IrOp(TileAttrs, no_macs),
+    "Gather": IrOp(GatherAttrs, no_macs),
+    "Where": IrOp(None, no_macs),
     "Pad": IrOp(PadAttrs, no_macs),
     "Resize": IrOp(ResizeAttrs, no_macs),
     "Sigmoid": IrOp(Activation, no_macs),

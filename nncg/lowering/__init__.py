@@ -16,7 +16,15 @@ from .conv import lower_conv
 from .conv_blocked import lower_blocked_conv
 from .conv_transpose import lower_conv_transpose
 from .dense import lower_dense
-from .elementwise import lower_activation, lower_batchnorm, lower_binary, lower_prelu, lower_scale_shift
+from .elementwise import (
+    lower_activation,
+    lower_batchnorm,
+    lower_binary,
+    lower_prelu,
+    lower_scale_shift,
+    lower_where,
+)
+from .gather import lower_gather
 from .lrn import lower_lrn
 from .pad import lower_pad
 from .pool import lower_averagepool, lower_maxpool
@@ -25,6 +33,7 @@ from .reshape import copy_nest, lower_reshape
 from .resize import lower_resize
 from .slice import lower_slice, lower_split
 from .softmax import lower_log_softmax, lower_softmax
+from .tile import lower_tile
 from .transpose import lower_transpose
 from .winograd import lower_winograd
 
@@ -62,6 +71,9 @@ LOWERINGS = {
     "Slice": lower_slice,
     "Split": lower_split,
     "Transpose": lower_transpose,
+    "Tile": lower_tile,
+    "Gather": lower_gather,
+    "Where": lower_where,
     "Pad": lower_pad,
     "Resize": lower_resize,
     "Sigmoid": lower_activation,

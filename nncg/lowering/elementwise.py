@@ -1,5 +1,5 @@
 """Element-wise lowerings: standalone activations, per-channel scale and shift (BatchNorm), the
-arithmetic ops (binary Add/Sub/Mul/Div, variadic Max/Min/Sum) and PRelu with NumPy broadcasting.
+arithmetic ops (binary Add/Sub/Mul/Div, variadic Max/Min/Sum), PRelu and Where with NumPy broadcasting.
 Loops run in the output's memory order."""
 
 from __future__ import annotations
@@ -108,6 +108,16 @@ def lower_prelu(ctx: LoweringContext, node: Node) -> None:
         return Select(">", x, Const.splat(0.0), x, Binary("*", slope, x))
 
     broadcast(ctx, node, prelu)
+
+
+def lower_where(ctx: LoweringContext, node: Node) -> None:
+    """condition ? x : y per element, the condition a constant of 0s and 1s."""
+
+    def where(loads: list[Load]) -> Expr:
+        condition, x, y = loads
+        return Select(">", condition, Const.splat(0.0), x, y)
+
+    broadcast(ctx, node, where)
 
 
 def broadcast(ctx: LoweringContext, node: Node, combine: Callable[[list[Load]], Expr]) -> None:
