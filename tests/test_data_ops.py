@@ -396,7 +396,9 @@ NEON_MODELS = {
     "space_to_depth_conv": lambda: one_op("SpaceToDepth", (1, 3, 6, 4), with_conv=True, blocksize=2),
     "tile_conv": lambda: one_op("Tile", (1, 3, 2, 5), ["r"], {"r": ints(1, 2, 3, 1)}, with_conv=True),
     "expand": lambda: one_op("Expand", (1, 4, 1, 1), ["s"], {"s": ints(1, 4, 3, 5)}),
-    "gather_conv": lambda: one_op("Gather", (1, 3, 4, 6), ["i"], {"i": ints(5, 0, 2, 3)}, with_conv=True, c_out=6, axis=1),
+    "gather_conv": lambda: one_op(
+        "Gather", (1, 3, 4, 6), ["i"], {"i": ints(5, 0, 2, 3)}, with_conv=True, c_out=6, axis=1
+    ),
     "where": WHERE["broadcast_condition"],
     "matmul_1d": lambda: matmul_model((2, 3, 4), (4,), "B"),
 }

@@ -81,9 +81,9 @@ def test_converters_yield_their_ir_ops_and_read_only_their_parameter_inputs(monk
 
     def spy_converter(name, convert):
         def converted(op, ctx):
-            node = convert(op, ctx)
-            yielded[name].add(node.op)
-            return node
+            nodes = convert(op, ctx)
+            yielded[name].update(node.op for node in (nodes if isinstance(nodes, tuple) else (nodes,)))
+            return nodes
 
         return converted
 
@@ -115,12 +115,18 @@ def _conformance_models() -> Iterator[onnx.ModelProto]:
 
 def _rare_conversions() -> Iterator[onnx.ModelProto]:
     """Max/Min of a scalar constant (a Clip); ReduceMean over the spatial dims (a global pool) and
-    over no axes with noop_with_empty_axes (an Identity)."""
+    over no axes with noop_with_empty_axes (an Identity); Tile repeating nothing (a Reshape); Where
+    whose condition is true everywhere (X broadcast: a Reshape to Y's rank and a Tile)."""
     bound = numpy_helper.from_array(np.array(0.5, np.float32), "c")
     for op in ("Max", "Min"):
         yield _model([helper.make_node(op, ["x", "c"], ["y"])], [bound], 13)
     yield _model([helper.make_node("ReduceMean", ["x"], ["y"], axes=[2, 3])], [], 13)
     yield _model([helper.make_node("ReduceMean", ["x"], ["y"], noop_with_empty_axes=1)], [], 18)
+    ones = numpy_helper.from_array(np.ones(4, np.int64), "r")
+    yield _model([helper.make_node("Tile", ["x", "r"], ["y"])], [ones], 13)
+    true = numpy_helper.from_array(np.ones((1, 1, 1), bool), "m")
+    wide = numpy_helper.from_array(np.zeros((2, 1, 2, 3, 3), np.float32), "z")
+    yield _model([helper.make_node("Where", ["m", "x", "z"], ["y"])], [true, wide], 16)
 
 
 def _model(nodes: list[onnx.NodeProto], initializers: list[onnx.TensorProto], opset: int) -> onnx.ModelProto:

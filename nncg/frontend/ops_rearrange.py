@@ -146,7 +146,9 @@ def convert_gather(op: OnnxOp, ctx: Context) -> Node | tuple[Node, Node]:
     extent = shape[axis]
     outside = [i for i in flat if not -extent <= i < extent]
     if outside:
-        raise op.error(f"has index {outside[0]} outside axis {axis} of size {extent} (valid: {-extent} to {extent - 1})")
+        raise op.error(
+            f"has index {outside[0]} outside axis {axis} of size {extent} (valid: {-extent} to {extent - 1})"
+        )
     if not flat:
         raise op.error("has no indices; NNCG cannot compile empty tensors")
     flat = [i % extent for i in flat]
