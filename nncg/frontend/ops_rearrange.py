@@ -109,7 +109,6 @@ def convert_expand(op: OnnxOp, ctx: Context) -> tuple[Node, ...]:
         ) from None
     if min(out, default=1) < 1:
         raise op.error(f"expands {list(shape)} to the empty shape {list(out)}; NNCG cannot compile empty tensors")
-    ctx.set_shape(op, op.node.output[0], out)
     return broadcast_to(op, ctx, op.input(0), out)
 
 

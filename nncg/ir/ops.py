@@ -92,7 +92,7 @@ IR_OPS: dict[str, IrOp] = {
     "Transpose": IrOp(TransposeAttrs, no_macs),
     "Tile": IrOp(TileAttrs, no_macs),
     "Gather": IrOp(GatherAttrs, no_macs),
-    "Where": IrOp(None, no_macs),
+    "Where": IrOp(None, no_macs),  # inputs: condition (a constant of 0s and 1s), x, y; NumPy broadcasting
     "Pad": IrOp(PadAttrs, no_macs),
     "Resize": IrOp(ResizeAttrs, no_macs),
     "Sigmoid": IrOp(Activation, no_macs),
