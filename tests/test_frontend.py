@@ -869,19 +869,6 @@ def test_matmul_becomes_dense_without_bias():
     np.testing.assert_allclose(x @ graph.constants["W"], run_ort(proto, {"x": x})[0], rtol=1e-5)
 
 
-@pytest.mark.parametrize(
-    ("inputs", "w_shape", "fragment"),
-    [
-        ({"x": [4]}, (4, 5), "1-D input A"),
-        ({"x": [2, 4]}, (4,), "1-D input B"),
-    ],
-)
-def test_matmul_refusals(inputs, w_shape, fragment):
-    node = helper.make_node("MatMul", ["x", "w"], ["y"], name="mm")
-    inits = {} if w_shape is None else {"w": rand(*w_shape)}
-    fails(onnx_model([node], inputs=inputs, initializers=inits), "MatMul 'mm'", fragment)
-
-
 @pytest.mark.parametrize("op", ["Add", "Sub", "Mul", "Div"])
 def test_elementwise_ops_keep_both_inputs(op):
     nodes = [

@@ -55,11 +55,11 @@ def test_parameter_inputs_are_the_records() -> None:
 
 
 def test_readme_lists_exactly_the_supported_ops() -> None:
-    """Every ONNX op named in the README's operator list (the folded-constants bullet and the
-    quantised-models bullet, which names refused ops, aside) has a record, and every record is
-    named there."""
+    """Every ONNX op named in the README's operator list (the folded-constants and quantised-models
+    bullets aside) has a record, and every record is named there."""
     text = README.read_text()
     section = text[text.index("### Supported operators") : text.index("## The pipeline")]
+    # The bullets on folded constants and on quantised models name ops that are folded or refused.
     bullets = [b for b in section.split("\n- ")[1:] if not b.startswith(("Constant subgraphs", "Quantised models"))]
     schemas = {schema.name for schema in onnx.defs.get_all_schemas() if schema.domain == ""}
     listed = {word for bullet in bullets for word in re.findall(r"\b[A-Z]\w*", bullet)} & schemas
@@ -82,7 +82,7 @@ def test_converters_yield_their_ir_ops_and_read_only_their_parameter_inputs(monk
     def spy_converter(name, convert):
         def converted(op, ctx):
             nodes = convert(op, ctx)
-            yielded[name].update(n.op for n in (nodes if isinstance(nodes, tuple) else (nodes,)))
+            yielded[name].update(node.op for node in (nodes if isinstance(nodes, tuple) else (nodes,)))
             return nodes
 
         return converted
@@ -116,7 +116,8 @@ def _conformance_models() -> Iterator[onnx.ModelProto]:
 def _rare_conversions() -> Iterator[onnx.ModelProto]:
     """Max/Min of a scalar constant (a Clip); ReduceMean over the spatial dims (a global pool) and
     ReduceMean/Max/Min over no axes with noop_with_empty_axes (an Identity); ReduceLogSumExp (onnx's
-    cases are float64) with its axes input."""
+    cases are float64) with its axes input; Tile repeating nothing (a Reshape); Where whose condition
+    is true everywhere (X broadcast: a Reshape to Y's rank and a Tile)."""
     bound = numpy_helper.from_array(np.array(0.5, np.float32), "c")
     for op in ("Max", "Min"):
         yield _model([helper.make_node(op, ["x", "c"], ["y"])], [bound], 13)
@@ -125,6 +126,11 @@ def _rare_conversions() -> Iterator[onnx.ModelProto]:
         yield _model([helper.make_node(op, ["x"], ["y"], noop_with_empty_axes=1)], [], 18)
     axes = numpy_helper.from_array(np.array([1], np.int64), "axes")
     yield _model([helper.make_node("ReduceLogSumExp", ["x", "axes"], ["y"])], [axes], 18)
+    ones = numpy_helper.from_array(np.ones(4, np.int64), "r")
+    yield _model([helper.make_node("Tile", ["x", "r"], ["y"])], [ones], 13)
+    true = numpy_helper.from_array(np.ones((1, 1, 1), bool), "m")
+    wide = numpy_helper.from_array(np.zeros((2, 1, 2, 3, 3), np.float32), "z")
+    yield _model([helper.make_node("Where", ["m", "x", "z"], ["y"])], [true, wide], 16)
 
 
 def _model(nodes: list[onnx.NodeProto], initializers: list[onnx.TensorProto], opset: int) -> onnx.ModelProto:

@@ -55,6 +55,11 @@ class OnnxOp:
         """The graph IR node for this op; only the first ONNX output survives conversion."""
         return Node(op=op, name=self.name, inputs=tuple(inputs), outputs=(self.node.output[0],), attrs=attrs)
 
+    def ir_step(self, op: str, step: str, inputs: tuple[str, ...] | list[str], output: str, attrs: object) -> Node:
+        """A graph IR node computing an intermediate value of this op (which becomes several IR nodes;
+        the last one, made by ir_node, keeps the op's name)."""
+        return Node(op=op, name=f"{self.name}_{step}", inputs=tuple(inputs), outputs=(output,), attrs=attrs)
+
 
 def _decode(value: object) -> object:
     return value.decode() if isinstance(value, bytes) else value
@@ -97,12 +102,11 @@ class Context:
         self.constants[name] = array
         return name
 
-    def add_value(self, base: str, shape: Shape | None = None) -> str:
-        """A fresh name for a value (or node) a converter adds; values get their shape."""
-        name = fresh_name(base, self.taken)
+    def intermediate(self, op: OnnxOp, step: str, shape: Shape) -> str:
+        """A fresh value of `shape` between the IR nodes that `op` becomes."""
+        name = fresh_name(f"{op.node.output[0]}_{step}", self.taken)
         self.taken.add(name)
-        if shape is not None:
-            self.shapes[name] = tuple(shape)
+        self.shapes[name] = tuple(shape)
         return name
 
     def set_shape(self, op: OnnxOp, value: str, shape: Shape) -> None:

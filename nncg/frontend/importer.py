@@ -30,18 +30,12 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     ctx = _context(proto, folded)
     computed = [(name, node.op_type, node.output) for node, name in folded.nodes]
     check_computed_shapes(computed, ctx.shapes, ctx.is_used)  # before converters size anything by them
-    nodes = tuple(ir_node for node, name in folded.nodes for ir_node in _converted(node, name, ctx))
+    nodes = tuple(ir_node for node, name in folded.nodes for ir_node in _converted(OnnxOp.of(node, name), ctx))
     graph = _assemble(proto.graph, nodes, ctx)
     check_computed_shapes([(n.name, n.op, n.outputs) for n in graph.nodes], graph.shapes)  # converters' own too
     check_constants(graph, constant_origins(proto.graph, folded))
     check_attributes(graph)
     return graph
-
-
-def _converted(node: onnx.NodeProto, name: str, ctx: Context) -> tuple[Node, ...]:
-    """The graph IR nodes of one ONNX node: most converters make one, a few a short chain."""
-    converted = CONVERTERS[node.op_type](OnnxOp.of(node, name), ctx)
-    return converted if isinstance(converted, tuple) else (converted,)
 
 
 # Operators of quantised models, named in the error: int8 compilation does not exist yet, and
@@ -74,6 +68,12 @@ def check_supported(nodes: list[NamedNode]) -> None:
 
 def _op_type(node: onnx.NodeProto) -> str:
     return node.op_type if node.op_type.isidentifier() and node.op_type.isascii() else shown(node.op_type)
+
+
+def _converted(op: OnnxOp, ctx: Context) -> tuple[Node, ...]:
+    """The IR nodes of one ONNX op (a converter yields one, or a few computing it in steps)."""
+    converted = CONVERTERS[op.type](op, ctx)
+    return converted if isinstance(converted, tuple) else (converted,)
 
 
 def _context(model: onnx.ModelProto, folded: Folded) -> Context:

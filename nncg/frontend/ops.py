@@ -24,6 +24,7 @@ from nncg.frontend.ops_elementwise import (
     convert_pow,
     convert_prelu,
     convert_variadic,
+    convert_where,
 )
 from nncg.frontend.ops_linear import convert_binary, convert_gemm, convert_matmul
 from nncg.frontend.ops_nn import (
@@ -38,6 +39,13 @@ from nncg.frontend.ops_nn import (
     convert_softmax,
 )
 from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
+from nncg.frontend.ops_rearrange import (
+    convert_depth_to_space,
+    convert_expand,
+    convert_gather,
+    convert_space_to_depth,
+    convert_tile,
+)
 from nncg.frontend.ops_reduce import convert_arg_extreme, convert_reduce
 from nncg.frontend.ops_shape import (
     convert_dropout,
@@ -49,7 +57,8 @@ from nncg.frontend.ops_shape import (
 )
 from nncg.ir.graph import Node
 
-Converter = Callable[[OnnxOp, Context], Node | tuple[Node, ...]]  # a few ops become a short chain
+# One IR node, or several computing the op's output in steps (the last writes it).
+Converter = Callable[[OnnxOp, Context], Node | tuple[Node, ...]]
 # The unary math ops beside the activations: pointwise, each its own graph IR op
 UNARY_ACTIVATIONS = (
     "Abs", "Neg", "Sqrt", "Exp", "Log", "Reciprocal", "Softplus", "Softsign", "Mish", "Selu", "Celu", "ThresholdedRelu",
@@ -86,7 +95,8 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "Squeeze": ConvertedOp(convert_squeeze, ("Reshape",), (1,)),  # axes (opset 13+)
     "Unsqueeze": ConvertedOp(convert_unsqueeze, ("Reshape",), (1,)),  # axes (opset 13+)
     "Gemm": ConvertedOp(convert_gemm, ("Dense",)),
-    "MatMul": ConvertedOp(convert_matmul, ("Dense",)),
+    # A 1-D operand is a Reshape to a matrix, and the product a Reshape back.
+    "MatMul": ConvertedOp(convert_matmul, ("Dense", "Reshape")),
     "Add": ConvertedOp(convert_binary, ("Add",)),
     "Sub": ConvertedOp(convert_binary, ("Sub",)),
     "Mul": ConvertedOp(convert_binary, ("Mul",)),
@@ -96,6 +106,15 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "Slice": ConvertedOp(convert_slice, ("Slice",), (1, 2, 3, 4)),  # starts, ends, axes, steps (opset 10+)
     "Transpose": ConvertedOp(convert_transpose, ("Transpose",)),
     "Pad": ConvertedOp(convert_pad, ("Pad",), (1, 3)),  # pads, axes (opset 11+); constant_value may be a runtime input
+    "DepthToSpace": ConvertedOp(convert_depth_to_space, ("Reshape", "Transpose")),
+    "SpaceToDepth": ConvertedOp(convert_space_to_depth, ("Reshape", "Transpose")),
+    # Nothing repeated is a Reshape (a view); Expand's rank grows by a Reshape.
+    "Tile": ConvertedOp(convert_tile, ("Tile", "Reshape"), (1,)),  # repeats
+    "Expand": ConvertedOp(convert_expand, ("Tile", "Reshape"), (1,)),  # shape
+    # Evenly stepping indices are a Slice; their shape (other than 1-D) is a Reshape.
+    "Gather": ConvertedOp(convert_gather, ("Gather", "Slice", "Reshape"), (1,)),  # indices
+    # A condition picking one runtime side everywhere is that side broadcast (Reshape, Tile).
+    "Where": ConvertedOp(convert_where, ("Where", "Reshape", "Tile"), (0,)),  # condition
     # roi, scales, sizes (opset 11+; scales alone in opset 10)
     "Resize": ConvertedOp(convert_resize, ("Resize",), (1, 2, 3)),
     "Upsample": ConvertedOp(convert_upsample, ("Resize",), (1,)),  # scales (opset 9)
@@ -140,9 +159,7 @@ FOLDED_OPS = "Constant, ConstantOfShape, Shape, Size and any other op whose inpu
 # (nncg/onnx_backend.py) binds them too, so that such an op fed by a graph input can fold.
 FOLDED_PARAMETER_INPUTS: dict[str, tuple[int, ...]] = {
     "ConstantOfShape": (0,),  # shape
-    "Expand": (1,),  # shape
     "ReduceProd": (1,),  # axes (opset 18+)
-    "Tile": (1,),  # repeats
 }
 
 # {op_type: indices of the inputs that are operator parameters}: what NNCG compiles as constants.

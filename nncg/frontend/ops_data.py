@@ -88,7 +88,7 @@ def _split_sizes(op: OnnxOp, ctx: Context, dim: int) -> list[int]:
     if ctx.opset < 13:
         split = op.attr("split")
     elif op.input(1):
-        split = _ints(op, ctx.constant_input(op, 1, "split", SHAPE_HINT), "split").tolist()
+        split = int_values(op, ctx.constant_input(op, 1, "split", SHAPE_HINT), "split").tolist()
     else:
         split = None
     if split is not None:
@@ -153,7 +153,7 @@ def _slice_params(op: OnnxOp, ctx: Context) -> tuple[list[int], list[int], list[
     params = []
     for index, role in enumerate(("starts", "ends", "axes", "steps"), start=1):
         given = op.input(index) is not None
-        params.append(_ints(op, ctx.constant_input(op, index, role, SHAPE_HINT), role).tolist() if given else None)
+        params.append(int_values(op, ctx.constant_input(op, index, role, SHAPE_HINT), role).tolist() if given else None)
     return params[0], params[1], params[2], params[3]
 
 
@@ -198,7 +198,7 @@ def _pad_params(op: OnnxOp, ctx: Context, rank: int) -> tuple[list[int], float |
         if op.attr("pads") is None:
             raise op.error("has no pads attribute, which Pad before opset 11 requires: add the pads")
         return [int(p) for p in op.attr("pads")], float(op.attr("value", 0.0)), list(range(rank))
-    pads = _ints(op, ctx.constant_input(op, 1, "pads", SHAPE_HINT), "pads").tolist()
+    pads = int_values(op, ctx.constant_input(op, 1, "pads", SHAPE_HINT), "pads").tolist()
     value = 0.0
     if op.input(2) and ctx.const(op.input(2)) is None:
         if math.prod(ctx.shape(op.input(2))) != 1:
@@ -213,7 +213,7 @@ def _pad_params(op: OnnxOp, ctx: Context, rank: int) -> tuple[list[int], float |
         value = float(constant.reshape(-1)[0])
     axes = list(range(rank))
     if op.input(3):
-        raw = _ints(op, ctx.constant_input(op, 3, "axes", SHAPE_HINT), "axes").tolist()
+        raw = int_values(op, ctx.constant_input(op, 3, "axes", SHAPE_HINT), "axes").tolist()
         axes = [axis_index(op, a, rank) for a in raw]
         if len(set(axes)) != len(axes):
             raise op.error(f"has repeated axes {raw}")
@@ -365,7 +365,7 @@ def _scales_input(op: OnnxOp, ctx: Context, index: int, rank: int, axes: list[in
 
 
 def _sizes_input(op: OnnxOp, ctx: Context, rank: int, axes: list[int] | None) -> list[int]:
-    sizes = _ints(op, ctx.constant_input(op, 3, "sizes", SHAPE_HINT), "sizes").tolist()
+    sizes = int_values(op, ctx.constant_input(op, 3, "sizes", SHAPE_HINT), "sizes").tolist()
     in_shape = ctx.shape(op.input(0))
     full = _per_dim(op, sizes, rank, axes, None)
     return [n if s is None else int(s) for s, n in zip(full, in_shape)]
@@ -387,7 +387,7 @@ def _checked_scales(op: OnnxOp, scales: list[float], rank: int) -> list[float]:
     return [float(np.float32(s)) for s in scales]
 
 
-def _ints(op: OnnxOp, array: np.ndarray, role: str) -> np.ndarray:
+def int_values(op: OnnxOp, array: np.ndarray, role: str) -> np.ndarray:
     if array.dtype.kind not in "iu":
         raise op.error(f"has {role} of type {array.dtype.name}; they must be integers")
     return array.astype(np.int64).reshape(-1)

@@ -1,7 +1,7 @@
 """ONNX front end (ONNX -> graph IR), step 3: the pointwise activations and unary math ops (Sigmoid,
 Tanh, HardSigmoid, HardSwish, Elu, Erf, Gelu, Abs, Neg, Sqrt, Exp, Log, Reciprocal, Softplus,
 Softsign, Mish, Selu, Celu, ThresholdedRelu; Pow by constant exponents), PRelu, the variadic
-Max/Min/Sum, LogSoftmax and LRN.
+Max/Min/Sum, Where, LogSoftmax and LRN.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import numpy as np
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_nn import convert_softmax
+from nncg.frontend.ops_rearrange import CONSTANT_HINT, broadcast_to
 from nncg.ir.graph import Activation, LrnAttrs, Node, Shape
 from nncg.ir.kinds import GeluApproximation
 from nncg.safe_text import shown
@@ -102,6 +103,22 @@ def convert_variadic(op: OnnxOp, ctx: Context) -> Node:
         return op.ir_node("Identity", inputs)
     clip = _scalar_clip(op, ctx, inputs, shape)
     return clip if clip is not None else op.ir_node(op.type, inputs)
+
+
+def convert_where(op: OnnxOp, ctx: Context) -> Node | tuple[Node, ...]:
+    """Where(condition, X, Y) with a constant condition, as 0/1 floats; X and Y broadcast with it. A
+    condition that picks one runtime side everywhere is that side, broadcast."""
+    condition = ctx.constant_input(op, 0, "condition", CONSTANT_HINT)
+    if condition.dtype != np.bool_:
+        raise op.error(f"has a condition of type {condition.dtype.name}; Where needs a bool condition")
+    x, y = op.input(1), op.input(2)
+    out = _broadcast_shape(op, ctx, [op.input(0), x, y])
+    ctx.set_shape(op, op.node.output[0], out)
+    side = x if condition.all() else y if not condition.any() else None
+    if side is not None and ctx.const(side) is None:
+        return broadcast_to(op, ctx, side, out)
+    mask = ctx.add_constant(f"{op.name}_condition", condition.astype(np.float32))
+    return op.ir_node("Where", [mask, x, y])
 
 
 def convert_log_softmax(op: OnnxOp, ctx: Context) -> Node:

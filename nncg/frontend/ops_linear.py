@@ -11,8 +11,7 @@ from dataclasses import replace
 import numpy as np
 
 from nncg.frontend.context import Context, OnnxOp
-from nncg.ir.graph import DenseAttrs, Node
-from nncg.safe_text import shown
+from nncg.ir.graph import DenseAttrs, Node, ReshapeAttrs
 
 
 def convert_gemm(op: OnnxOp, ctx: Context) -> Node:
@@ -65,12 +64,51 @@ def _check_broadcasts(op: OnnxOp, shape: tuple[int, ...], rows: int, cols: int) 
         raise op.error(f"has C of shape {list(shape)}, which does not broadcast to [{rows}, {cols}]")
 
 
-def convert_matmul(op: OnnxOp, ctx: Context) -> Node:
-    """A @ B with either operand computed at runtime; batch dims broadcast (NumPy rules)."""
-    for index, role in enumerate("AB"):
-        if len(ctx.shape(op.input(index))) < 2:
-            raise op.error(f"has a 1-D input {role} {shown(op.input(index))}; only inputs of rank >= 2 are supported")
-    return op.ir_node("Dense", [op.input(0), op.input(1)], DenseAttrs())
+def convert_matmul(op: OnnxOp, ctx: Context) -> Node | tuple[Node, ...]:
+    """A @ B with either operand computed at runtime; batch dims broadcast (NumPy rules). A 1-D A is a
+    row [1, K] and a 1-D B a column [K, 1] (Reshapes, views), the dim they add removed from the
+    product by a Reshape (a view)."""
+    a, b = op.input(0), op.input(1)
+    a_shape, b_shape = ctx.shape(a), ctx.shape(b)
+    if len(a_shape) > 1 and len(b_shape) > 1:
+        return op.ir_node("Dense", [a, b], DenseAttrs())
+    nodes = []
+    if len(a_shape) == 1:
+        a, node = _as_matrix(op, ctx, a, (1, *a_shape), "row")
+        nodes += node
+    if len(b_shape) == 1:
+        b, node = _as_matrix(op, ctx, b, (*b_shape, 1), "column")
+        nodes += node
+    m_k, k_n = ctx.shape(a), ctx.shape(b)
+    if m_k[-1] != k_n[-2]:
+        raise op.error(f"multiplies shapes {list(a_shape)} and {list(b_shape)}, whose inner dims differ")
+    product_shape = (*_broadcast_batch(op, m_k[:-2], k_n[:-2]), m_k[-2], k_n[-1])
+    product = ctx.intermediate(op, "product", product_shape)
+    dropped = {len(product_shape) - 2} if len(a_shape) == 1 else set()
+    dropped |= {len(product_shape) - 1} if len(b_shape) == 1 else set()
+    out = tuple(n for d, n in enumerate(product_shape) if d not in dropped)
+    ctx.set_shape(op, op.node.output[0], out)
+    return (
+        *nodes,
+        op.ir_step("Dense", "product", [a, b], product, DenseAttrs()),
+        op.ir_node("Reshape", [product], ReshapeAttrs(out)),
+    )
+
+
+def _as_matrix(op: OnnxOp, ctx: Context, value: str, shape: tuple[int, ...], step: str) -> tuple[str, list[Node]]:
+    """A 1-D operand as a matrix of `shape`: a reshaped constant, or a Reshape node."""
+    constant = ctx.const(value)
+    if constant is not None:
+        return ctx.add_constant(f"{op.name}_{step}", constant.reshape(shape)), []
+    matrix = ctx.intermediate(op, step, shape)
+    return matrix, [op.ir_step("Reshape", step, [value], matrix, ReshapeAttrs(shape))]
+
+
+def _broadcast_batch(op: OnnxOp, a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
+    try:
+        return tuple(int(d) for d in np.broadcast_shapes(a, b))
+    except ValueError:
+        raise op.error(f"has batch dims {list(a)} and {list(b)}, which do not broadcast together") from None
 
 
 def convert_binary(op: OnnxOp, ctx: Context) -> Node:

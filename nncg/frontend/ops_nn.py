@@ -95,15 +95,11 @@ def _runtime_clip(op: OnnxOp, ctx: Context, bounds: tuple[str | None, str | None
     no meaning, so the order of max and min does not matter)."""
     steps = [(kind, bound) for kind, bound in zip(("Max", "Min"), bounds) if bound]
     shape = ctx.shape(op.input(0))
-    nodes, value = [], op.input(0)
-    for i, (kind, bound) in enumerate(steps):
-        last = i == len(steps) - 1
-        out = op.node.output[0] if last else ctx.add_value(f"{op.node.output[0]}_{kind.lower()}", shape)
-        name = op.name if last else ctx.add_value(f"{op.name}_{kind.lower()}")
-        nodes.append(Node(op=kind, name=name, inputs=(value, bound), outputs=(out,)))
-        value = out
     ctx.set_shape(op, op.node.output[0], shape)
-    return tuple(nodes)
+    if len(steps) == 1:
+        return (op.ir_node(steps[0][0], [op.input(0), steps[0][1]]),)
+    low = ctx.intermediate(op, "low", shape)
+    return (op.ir_step("Max", "low", [op.input(0), bounds[0]], low, None), op.ir_node("Min", [low, bounds[1]]))
 
 
 def convert_relu(op: OnnxOp, ctx: Context) -> Node:

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
-from . import ops_conv, ops_math, ops_resize, ops_shape
+from . import ops_conv, ops_math, ops_rearrange, ops_resize, ops_shape
 from .build import StepContext
 from .draw import Draw, Proposal
 from .recipe import Shape
@@ -54,6 +54,12 @@ OPS: dict[str, OpSpec] = {
     "Concat": OpSpec(ops_shape.build_concat, ops_shape.propose_concat, 1.2),
     "Resize": OpSpec(ops_resize.build_resize, ops_resize.propose_resize, 2.0, min_opset=10),
     "Upsample": OpSpec(ops_resize.build_upsample, ops_resize.propose_upsample, 1.5, max_opset=9),
+    "DepthToSpace": OpSpec(ops_rearrange.build_depth_to_space, ops_rearrange.propose_depth_to_space, 0.4),
+    "SpaceToDepth": OpSpec(ops_rearrange.build_space_to_depth, ops_rearrange.propose_space_to_depth, 0.4),
+    "Tile": OpSpec(ops_rearrange.build_tile, ops_rearrange.propose_tile, 0.4),
+    "Expand": OpSpec(ops_rearrange.build_expand, ops_rearrange.propose_expand, 0.4, min_opset=8),
+    "Gather": OpSpec(ops_rearrange.build_gather, ops_rearrange.propose_gather, 0.5),
+    "Where": OpSpec(ops_rearrange.build_where, ops_rearrange.propose_where, 0.4, min_opset=9),
     "Dropout": OpSpec(ops_shape.build_dropout, ops_shape.propose_dropout, 0.3),
     "Identity": OpSpec(ops_shape.build_identity, ops_shape.propose_identity, 0.2),
 }

@@ -242,6 +242,23 @@ class TransposeAttrs:
 
 
 @dataclass(frozen=True)
+class TileAttrs:
+    """Tile and Expand: y[i] = x[i mod x's extent] per dim, the output `repeats` times x's extent
+    (x has the output's rank; Expand's broadcasting is a repeat of its size-1 dims)."""
+
+    repeats: Shape
+
+
+@dataclass(frozen=True)
+class GatherAttrs:
+    """Gather along `axis` at constant indices (non-negative, inside the axis): y[..., j, ...] =
+    x[..., indices[j], ...]; the indices' own shape is a Reshape after this node."""
+
+    axis: int
+    indices: Shape
+
+
+@dataclass(frozen=True)
 class PadAttrs:
     """Pad each dim by pads_begin/pads_end (negative: crop). mode: constant (with `value`, or the
     one element of the node's second input when the value comes at run time), reflect (mirror
@@ -279,7 +296,7 @@ class ResizeAttrs:
 AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
-    SplitAttrs, TransposeAttrs, PadAttrs, ResizeAttrs,
+    SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs,
 ]  # fmt: skip
 
 

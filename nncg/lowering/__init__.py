@@ -24,7 +24,9 @@ from .elementwise import (
     lower_pow_per_element,
     lower_prelu,
     lower_scale_shift,
+    lower_where,
 )
+from .gather import lower_gather
 from .lrn import lower_lrn
 from .normalization import lower_normalization
 from .pad import lower_pad
@@ -34,6 +36,7 @@ from .reshape import copy_nest, lower_reshape
 from .resize import lower_resize
 from .slice import lower_slice, lower_split
 from .softmax import lower_log_softmax, lower_softmax
+from .tile import lower_tile
 from .transpose import lower_transpose
 from .winograd import lower_winograd
 
@@ -71,6 +74,9 @@ LOWERINGS = {
     "Slice": lower_slice,
     "Split": lower_split,
     "Transpose": lower_transpose,
+    "Tile": lower_tile,
+    "Gather": lower_gather,
+    "Where": lower_where,
     "Pad": lower_pad,
     "Resize": lower_resize,
     "Sigmoid": lower_activation,

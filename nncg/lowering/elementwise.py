@@ -1,5 +1,5 @@
 """Element-wise lowerings: standalone activations, per-channel scale and shift (BatchNorm), the
-arithmetic ops (binary Add/Sub/Mul/Div, variadic Max/Min/Sum), PRelu and Pow by an exponent per
+arithmetic ops (binary Add/Sub/Mul/Div, variadic Max/Min/Sum), PRelu, Where and Pow by an exponent per
 element with NumPy broadcasting.
 Loops run in the output's memory order."""
 
@@ -126,6 +126,16 @@ def lower_pow_per_element(ctx: LoweringContext, node: Node) -> None:
         return Select(">", Call("abs", y), zero, signed, Const.splat(1.0))
 
     broadcast(ctx, node, power)
+
+
+def lower_where(ctx: LoweringContext, node: Node) -> None:
+    """condition ? x : y per element, the condition a constant of 0s and 1s."""
+
+    def where(loads: list[Load]) -> Expr:
+        condition, x, y = loads
+        return Select(">", condition, Const.splat(0.0), x, y)
+
+    broadcast(ctx, node, where)
 
 
 def broadcast(ctx: LoweringContext, node: Node, combine: Callable[[list[Load]], Expr]) -> None:

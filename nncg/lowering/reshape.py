@@ -17,12 +17,53 @@ def lower_reshape(ctx: LoweringContext, node: Node) -> None:
     x = ctx.ref(node.inputs[0])
     value = node.outputs[0]
     shape = ctx.graph.shape(value)
-    if x.is_row_major and not ctx.graph.is_graph_output(value) and not ctx.graph.is_constant(node.inputs[0]):
-        ctx.refs[value] = TensorRef(x.buffer, shape, row_major(len(shape)))
+    view = reshaped_view(x, shape)
+    if view is not None and not ctx.graph.is_graph_output(value) and not ctx.graph.is_constant(node.inputs[0]):
+        ctx.refs[value] = view
         return
     out = ctx.output(value, row_major(len(shape)))
     # The destination seen with the input's shape: same elements, same row-major order.
     ctx.emit(node.name, node.op, copy_nest(x, TensorRef(out.buffer, x.shape, row_major(len(x.shape)))))
+
+
+def reshaped_view(x: TensorRef, shape: tuple[int, ...]) -> TensorRef | None:
+    """x's buffer seen with `shape` when the reshape moves no element, else None. Split into groups of
+    x's dims and the output dims they become (equal products), a reshape moves nothing when each
+    group of x's dims lies together in memory, in order: then its output dims take its place."""
+    if x.is_row_major:
+        return TensorRef(x.buffer, shape, row_major(len(shape)))
+    if x.halo:
+        return None
+    physical = [d for d in x.order if x.shape[d] != 1]
+    groups = sorted(_reshape_groups(x.shape, shape), key=lambda group: physical.index(group[0][0]))
+    if any(physical[physical.index(dims[0]) : physical.index(dims[0]) + len(dims)] != dims for dims, _ in groups):
+        return None
+    order = [d for _, dims in groups for d in dims]
+    for d in (d for d, n in enumerate(shape) if n == 1):  # anywhere; after the dim before them
+        order.insert(order.index(d - 1) + 1 if d else 0, d)
+    return TensorRef(x.buffer, shape, tuple(order))
+
+
+def _reshape_groups(src: tuple[int, ...], dst: tuple[int, ...]) -> list[tuple[list[int], list[int]]]:
+    """The dims (other than size 1) of src and of dst paired into the smallest groups of equal
+    element count, in row-major order: ([src dims], [dst dims]) each."""
+    ins = [d for d, n in enumerate(src) if n != 1]
+    outs = [d for d, n in enumerate(dst) if n != 1]
+    groups = []
+    i = j = 0
+    while i < len(ins):
+        group = ([ins[i]], [outs[j]])
+        have, want = src[ins[i]], dst[outs[j]]
+        i, j = i + 1, j + 1
+        while have != want:
+            if have < want:
+                group[0].append(ins[i])
+                have, i = have * src[ins[i]], i + 1
+            else:
+                group[1].append(outs[j])
+                want, j = want * dst[outs[j]], j + 1
+        groups.append(group)
+    return groups
 
 
 def copy_nest(src: TensorRef, dst: TensorRef) -> tuple[Stmt, ...]:
