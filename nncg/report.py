@@ -150,7 +150,7 @@ def layer_rows(compiled: CompiledModel) -> list[LayerRow]:
 
 
 def buffer_spans(program: Program) -> list[BufferSpan]:
-    """Every arena buffer with its place and lifetime (plan-memory's), by offset."""
+    """Every arena buffer with its place and lifetime (plan-memory's), in order of first use."""
     spans = lifetimes(program)
     return sorted(
         (

@@ -1,7 +1,7 @@
 """The plots of --report (nncg/report.py), drawn with matplotlib's Agg renderer into PNG bytes that are
-the same for the same data: no pyplot state, no timestamp, no software tag, math text off (so names
-are drawn as given), DejaVu Sans (shipped with matplotlib). Labels are layer indices and NNCG's own
-C names, never model text."""
+the same for the same data: no pyplot state, no timestamp, no software tag, DejaVu Sans (shipped with
+matplotlib), math text off (a `$` draws as itself). Labels are layer indices and the layers' C names
+(identifiers NNCG made), never a model's own text."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import matplotlib
 from matplotlib.figure import Figure
 
-STYLE = {"font.family": "DejaVu Sans", "font.size": 9, "text.parse_math": False, "svg.hashsalt": "nncg"}
+STYLE = {"font.family": "DejaVu Sans", "font.size": 9, "text.parse_math": False}
 DPI = 100
 KIB = 1024
 
