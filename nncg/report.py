@@ -171,7 +171,7 @@ def layer_choices(kernel: Kernel, node: Node | None, block: tuple[int, int] | No
     if block:
         choices.append(f"register block {block[0]}x{block[1]} (pixels x channel vectors)")
     loops = sum(isinstance(s, Loop) for s in walk_stmts(kernel.body))
-    choices.append(f"{loops} loops left after unroll" if loops else "fully unrolled")
+    choices.append(f"{loops} loop{'s' * (loops != 1)} left after unroll" if loops else "fully unrolled")
     return tuple(choices)
 
 
@@ -235,8 +235,9 @@ def object_size(compiled: CompiledModel, cc: str | None) -> ObjectSize:
         try:
             run_tool(command, f"compiling {compiled.name}.c", cwd=tmp)
             return ObjectSize(object_sizes(Path(tmp) / f"{compiled.name}.o"), " ".join(command))
-        except NncgError as exc:
-            return ObjectSize(None, f"not measured: {str(exc).splitlines()[0]}")
+        except NncgError as exc:  # its one line keeps the compiler's output after an escaped newline
+            head = str(exc).partition("\\n")[0]
+            return ObjectSize(None, f"not measured for target {compiled.target} on this host: {head}")
 
 
 def benchmark_times(result) -> tuple[list[str], list[float]]:
@@ -339,7 +340,7 @@ def html_page(compiled, rows, size, measurements, images) -> str:
         f"<title>NNCG report: {name}</title><style>{CSS}</style></head><body>",
         f"<h1>NNCG report: {name}</h1>",
         "<h2>Model</h2>",
-        _html_table(["what", "value"], [[what, value] for what, value in model_facts(compiled)], limit=TEXT_LIMIT),
+        _html_table(["what", "value"], [list(fact) for fact in model_facts(compiled)], TEXT_LIMIT, numbers=False),
         "<h3>Inputs and outputs</h3>",
         _html_table(["role", "ONNX name", "C name", "shape"], _params(compiled)),
         "<h2>Layers</h2>",
@@ -389,16 +390,17 @@ def _params(compiled: CompiledModel) -> list[list[str]]:
     ]
 
 
-def _html_table(header: list[str], rows: list[list[str]], limit: int = 200) -> str:
+def _html_table(header: list[str], rows: list[list[str]], limit: int = 200, numbers: bool = True) -> str:
+    """`numbers`: right-align the cells that are numbers (a column of them)."""
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     body = "".join(
-        "<tr>" + "".join(_html_cell(cell, limit) for cell in row) + "</tr>\n" for row in rows
+        "<tr>" + "".join(_html_cell(cell, limit, numbers) for cell in row) + "</tr>\n" for row in rows
     )  # fmt: skip
     return f"<table>\n<thead><tr>{head}</tr></thead>\n<tbody>\n{body}</tbody></table>"
 
 
-def _html_cell(text: str, limit: int) -> str:
-    numeric = text.replace(",", "").replace(".", "").isdigit()
+def _html_cell(text: str, limit: int, numbers: bool) -> str:
+    numeric = numbers and text.replace(",", "").replace(".", "").isdigit()
     opening = '<td class="num">' if numeric else "<td>"
     return f"{opening}{html_text(text, limit)}</td>"
 

@@ -2,6 +2,7 @@
 a row per layer, NAME.report.md has the same tables for CI logs; model names are escaped in both; the
 files are byte-identical run to run and written all or nothing; a browser renders the page."""
 
+import platform
 import re
 import shutil
 import subprocess
@@ -189,6 +190,14 @@ def test_without_a_c_compiler_the_report_says_so(hostile_compiled, tmp_path):
     write_report(compiled, tmp_path, cc="no-such-cc-for-nncg")
     markdown = (tmp_path / "hostile.report.md").read_text()
     assert "not measured: C compiler" in markdown and "| text | rodata |" not in markdown
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="needs a host without arm_neon.h")
+def test_a_target_the_host_cannot_build_gets_no_sizes_but_a_report(hostile_compiled, tmp_path):
+    path, _ = hostile_compiled
+    write_report(nncg.compile(path, target="neon"), tmp_path)
+    markdown = (tmp_path / "hostile.report.md").read_text()
+    assert "not measured for target neon on this host: compiling hostile.c exited with status 1" in markdown
 
 
 def test_report_files_are_written_all_or_nothing(hostile_compiled, tmp_path):
