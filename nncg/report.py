@@ -293,7 +293,7 @@ def _size_cells(size: ObjectSize) -> list[list[str]]:
     return [[str(s.text), str(s.rodata), str(s.data), str(s.bss), str(s.text + s.rodata), str(s.data + s.bss)]]
 
 
-SIZE_HEADER = ["text", "rodata", "data", "bss", "flash (text+rodata)", "RAM (data+bss, arena apart)"]
+SIZE_HEADER = ["text", "rodata", "data", "bss", "flash (text+rodata)", "RAM (data+bss: the arena is in bss)"]
 
 
 def _verify_cells(report) -> list[list[str]]:
