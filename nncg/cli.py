@@ -200,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
         **options.kwargs(),
     )
     paths = compiled.write(args.output_dir, cmake=args.cmake)
-    print(terminal_line(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}"))
+    print_written(paths)
     results: dict[str, object] = {}  # what --report shows of --verify, --benchmark and --profile
     status = verify_command(args, compiled, results) if args.verify else 0
     if args.benchmark or args.profile:
@@ -208,6 +208,10 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         report_command(args, compiled, results)
     return status
+
+
+def print_written(paths) -> None:
+    print(terminal_line(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}"))
 
 
 def input_shapes(args: argparse.Namespace) -> dict[str, tuple[int, ...]] | None:
@@ -264,7 +268,7 @@ def report_command(args: argparse.Namespace, compiled, results: dict[str, object
     from .report import Measurements, write_report
 
     paths = write_report(compiled, args.output_dir, Measurements(**results), cc=args.cc)
-    print(terminal_line(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}"))
+    print_written(paths)
 
 
 if __name__ == "__main__":
