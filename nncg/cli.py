@@ -135,6 +135,13 @@ def build_parser() -> argparse.ArgumentParser:
         "interleaved; print speed-up, GFLOP/s, %% of the ISA's peak, error and object sizes",
     )
     p.add_argument("--profile", action="store_true", help="time every layer of the generated C; print µs, %% and MACs")
+    p.add_argument(
+        "--report",
+        action="store_true",
+        help="also write NAME.report.html (one self-contained page with plots) and NAME.report.md: layers, "
+        "the passes' choices, the memory plan, object sizes and the --verify/--benchmark/--profile results "
+        "(needs matplotlib)",
+    )
     p.add_argument("--cpu", type=whole_number, help="pin --benchmark/--profile to this core")
     p.add_argument("--cc", help="C compiler for --verify, --benchmark, --profile (default: cc, gcc or clang on PATH)")
     p.add_argument("--list-passes", action="store_true", help="list the passes and the default pipeline, then exit")
@@ -211,6 +218,10 @@ def run(args: argparse.Namespace) -> int:
     if args.per_layer and not args.verify:
         raise NncgError("--per-layer is a kind of --verify: give both")
     check_output_folder(Path(args.output_dir))  # before compiling (or tuning for a minute)
+    if args.report:
+        from .report import require_plots
+
+        require_plots()
     options = CompileOptions.of(args.unroll, args.weights, args.code_budget, args.pipeline)
     if args.tune or args.tune_runner:
         options = options.with_pipeline(tune_command(args))
@@ -223,11 +234,18 @@ def run(args: argparse.Namespace) -> int:
         **options.kwargs(),
     )
     paths = compiled.write(args.output_dir, cmake=args.cmake)
-    print(terminal_line(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}"))
-    status = verify_command(args, compiled, options) if args.verify else 0
+    print_written(paths)
+    results: dict[str, object] = {}  # what --report shows of --verify, --benchmark and --profile
+    status = verify_command(args, compiled, options, results) if args.verify else 0
     if args.benchmark or args.profile:
-        measure_command(args, options)
+        measure_command(args, options, results)
+    if args.report:
+        report_command(args, compiled, results)
     return status
+
+
+def print_written(paths) -> None:
+    print(terminal_line(f"wrote {', '.join(f'{p} ({p.stat().st_size} bytes)' for p in paths)}"))
 
 
 def input_shapes(args: argparse.Namespace) -> dict[str, tuple[int, ...]] | None:
@@ -254,7 +272,9 @@ def tune_command(args: argparse.Namespace) -> str:
     )  # fmt: skip
 
 
-def verify_command(args: argparse.Namespace, compiled, compile_options: CompileOptions) -> int:
+def verify_command(
+    args: argparse.Namespace, compiled, compile_options: CompileOptions, results: dict[str, object]
+) -> int:
     """The outputs' table (and with --per-layer every layer's); 1 when any is above tolerance."""
     from .frontend import load_model
     from .verify import verify
@@ -262,6 +282,7 @@ def verify_command(args: argparse.Namespace, compiled, compile_options: CompileO
 
     model = load_model(args.model, input_shapes(args))
     reports = [verify(model, compiled, tolerance=args.tolerance, cc=args.cc)]
+    results["verify"] = reports[0]
     if args.per_layer:
         options = dict(name=args.name, input_shapes=input_shapes(args), **compile_options.kwargs())
         reports.append(verify_per_layer(args.model, args.target, tolerance=args.tolerance, cc=args.cc, **options))
@@ -269,7 +290,7 @@ def verify_command(args: argparse.Namespace, compiled, compile_options: CompileO
     return 0 if all(report.ok for report in reports) else 1
 
 
-def measure_command(args: argparse.Namespace, compile_options: CompileOptions) -> None:
+def measure_command(args: argparse.Namespace, compile_options: CompileOptions, results: dict[str, object]) -> None:
     from .bench.benchmark import benchmark, format_profile, format_results, profile
 
     options = dict(
@@ -277,9 +298,18 @@ def measure_command(args: argparse.Namespace, compile_options: CompileOptions) -
         **compile_options.kwargs(),
     )  # fmt: skip
     if args.benchmark:
-        print(format_results([benchmark(args.model, **options)]))
+        results["benchmark"] = benchmark(args.model, **options)
+        print(format_results([results["benchmark"]]))
     if args.profile:
-        print(format_profile(profile(args.model, **options)))
+        results["profile"] = profile(args.model, **options)
+        print(format_profile(results["profile"]))
+
+
+def report_command(args: argparse.Namespace, compiled, results: dict[str, object]) -> None:
+    from .report import Measurements, write_report
+
+    paths = write_report(compiled, args.output_dir, Measurements(**results), cc=args.cc)
+    print_written(paths)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass, replace
+from collections import Counter
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
@@ -24,6 +25,7 @@ from .errors import NncgError
 from .frontend import import_onnx
 from .frontend.torch_export import DEFAULT_EXPORTER, export_onnx, is_torch_module
 from .ir.c_names import program_name
+from .ir.graph import Graph
 from .ir.loops import Program
 from .limits import check_program_limits
 from .options import CompileOptions
@@ -47,6 +49,19 @@ class Param:
 
 
 @dataclass(frozen=True)
+class CompileRecord:
+    """What --report shows beyond the C: the final program (its memory plan), the graph `lower`
+    received (the graph passes' choices are in its node attributes), the program register-block
+    received (its cost model's input), and the imported model's operators and parameter count."""
+
+    program: Program
+    lowered: Graph | None = None
+    before_register_block: Program | None = None
+    operators: tuple[tuple[str, int], ...] = ()  # (graph IR op as imported, nodes), most frequent first
+    parameters: int = 0
+
+
+@dataclass(frozen=True)
 class CompiledModel:
     name: str
     target: str
@@ -61,6 +76,7 @@ class CompiledModel:
     arena_bytes: int = 0  # NAME_ARENA_BYTES: the planned activation memory
     weights: bytes | None = None  # NAME.weights when the weights live in a file (the caller passes them)
     activation_bytes: int = 0  # all activation buffers side by side, without the plan's reuse
+    record: CompileRecord | None = field(default=None, compare=False, repr=False)  # for --report
 
     @property
     def macs(self) -> int:
@@ -116,8 +132,9 @@ def compile(
         model = export_onnx(model, example_inputs, exporter)
     graph = import_onnx(model, input_shapes)
     manager = PassManager(
-        options.pass_pipeline(backend.target), backend.target, verify=verify_ir, print_ir_after_all=print_ir_after_all
-    )
+        options.pass_pipeline(backend.target), backend.target, verify=verify_ir, print_ir_after_all=print_ir_after_all,
+        keep_inputs=("lower", "register-block"),
+    )  # fmt: skip
     name = program_name(name or _default_name(model, graph.name))
     program = manager.run(_with_name(graph, name))
     if expose_layers:
@@ -126,7 +143,14 @@ def compile(
     if input_shapes:
         options += " input-shape=" + ",".join(f"{capped(k)}={'x'.join(map(str, v))}" for k, v in input_shapes.items())
     compiled = emit(program, target, options, _sha256(model), manager.pipeline, profile)
-    return replace(compiled, layer_macs=tuple(macs_by_layer(graph).items()))
+    record = CompileRecord(
+        program,
+        manager.inputs.get("lower"),
+        manager.inputs.get("register-block"),
+        tuple(Counter(node.op for node in graph.nodes).most_common()),
+        sum(int(array.size) for array in graph.constants.values()),
+    )
+    return replace(compiled, layer_macs=tuple(macs_by_layer(graph).items()), record=record)
 
 
 def emit(
@@ -159,6 +183,7 @@ def emit(
         arena_bytes=program.arena.floats * 4,
         weights=weights_blob(program) if external_weights(program) else None,
         activation_bytes=program.arena.activation_floats * 4,
+        record=CompileRecord(program),
     )
 
 

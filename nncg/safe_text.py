@@ -3,6 +3,8 @@ CMake comment, a terminal line. Every such text goes through one of these functi
 
 from __future__ import annotations
 
+import html
+import re
 import unicodedata
 
 NAME_LIMIT = 80  # characters of an outside name shown in a comment or a message
@@ -68,3 +70,19 @@ def c_comment(text: str) -> str:
 def comment_name(name: object) -> str:
     """An outside name inside a C comment: quoted, safe (see c_comment) and capped."""
     return "'" + capped(c_comment(str(name))) + "'"
+
+
+def html_text(text: object, limit: int = NAME_LIMIT) -> str:
+    """Outside text for an HTML page: one visible line (see terminal_line), capped, with the
+    characters HTML gives meaning (< > & and quotes) as entities."""
+    return html.escape(capped(terminal_line(str(text)), limit))
+
+
+_MARKDOWN_SPECIAL = re.compile(r"([\\`*_\[\]|<>&~])")
+
+
+def markdown_text(text: object, limit: int = NAME_LIMIT) -> str:
+    """Outside text for Markdown (a table cell, a line): printable ASCII (see escaped), capped, every
+    character Markdown or HTML gives meaning backslash-escaped, so no tag, link, emphasis or cell
+    boundary comes through."""
+    return _MARKDOWN_SPECIAL.sub(r"\\\1", capped(escaped(str(text)), limit))

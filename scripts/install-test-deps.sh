@@ -6,7 +6,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 # gcc and clang build generated code on the host; tcc, the cross compilers and qemu run the
-# portability tests (tests/test_cross_targets.py, issue 6); cmake builds the --cmake output.
+# portability tests (tests/test_cross_targets.py, issue 6); cmake builds the --cmake output; chromium
+# renders the --report page headless (tests/test_report.py).
 # Not gcc-multilib: it conflicts with the ARM cross compilers (gcc-i686-linux-gnu builds 32-bit x86).
 # The cross libc's are only recommended by the cross gcc's, and recommends are not installed.
 DEBIAN_PACKAGES=(
@@ -15,6 +16,7 @@ DEBIAN_PACKAGES=(
     libc6-dev-i386-cross libc6-dev-armhf-cross libc6-dev-arm64-cross libc6-dev-riscv64-cross
     gcc-arm-none-eabi libnewlib-arm-none-eabi
     qemu-user qemu-system-arm
+    chromium
 )
 
 missing=()

@@ -100,6 +100,12 @@ def nest(
     return body
 
 
+def layer_names(graph: Graph) -> tuple[Namespace, dict[str, str]]:
+    """The kernels' namespace and each node's layer (kernel) name in it, claimed in graph order."""
+    names = Namespace(layer_name)
+    return names, {node.name: names.claim(node.name) for node in graph.nodes}
+
+
 class LoweringContext:
     """Allocates buffers and remembers where each graph value lives. Buffers and layers have C names
     of their own (nncg/ir/c_names.py); a node's kernel keeps the node's name, which --tune and the
@@ -113,8 +119,7 @@ class LoweringContext:
         self.refs: dict[str, TensorRef] = {}
         self.kernels: list[Kernel] = []
         self._buffer_names = Namespace(lambda name: buffer_name(name, program))
-        self._kernel_names = Namespace(layer_name)
-        self._layers = {node.name: self._kernel_names.claim(node.name) for node in graph.nodes}
+        self._kernel_names, self._layers = layer_names(graph)
         self.pending_copies: list[tuple[str, TensorRef, TensorRef]] = []
         self.halos = conv_halos(graph, blocked_only=halos == "auto") if halos else {}
         self.slabs = concat_slices(graph)  # Concat inputs their producers write in place

@@ -133,7 +133,8 @@ class PassManager:
 
     `target` gives the passes that need hardware facts (vectorize, register-block, ...) their
     Target; `finish` appends the finishing passes a lowering pipeline lacks (off only to inspect the
-    IR part-way, as --tune does)."""
+    IR part-way, as --tune does); `keep_inputs` names passes whose input IR `inputs` keeps (what
+    --report reads the passes' choices from)."""
 
     def __init__(
         self,
@@ -142,11 +143,14 @@ class PassManager:
         verify: bool = True,
         print_ir_after_all: TextIO | None = None,
         finish: bool = True,
+        keep_inputs: tuple[str, ...] = (),
     ):
         specs = parse_pipeline(pipeline) if isinstance(pipeline, str) else tuple(_checked(s) for s in pipeline)
         self.specs = _with_finishing_passes(specs) if finish else _in_order(specs)
         self.target = target
         self.verify = verify
+        self.keep_inputs = keep_inputs
+        self.inputs: dict[str, Graph | Program] = {}
         self.instruments: list[Callable[[PassSpec, object], None]] = []
         if print_ir_after_all is not None:
             self.instruments.append(
@@ -164,6 +168,8 @@ class PassManager:
 
     def run(self, ir: Graph | Program) -> Graph | Program:
         for spec in self.specs:
+            if spec.name in self.keep_inputs:
+                self.inputs[spec.name] = ir
             ir = self._run_one(spec, ir)
             if self.verify:
                 problems = verify_ir(ir)

@@ -55,20 +55,31 @@ def parse_layers(text: str) -> dict[str, tuple[int, int]]:
 
 
 def register_block(program: Program, target: Target, layers: dict[str, tuple[int, int]] | None = None) -> Program:
-    registers = target.registers
     layers = layers or {}
     check_layer_names(program, layers, "register-block")
-    kernels = []
+    blocks = chosen_blocks(program, target, layers)
+    kernels = tuple(
+        replace(k, body=block_body(k.body, *blocks[k.name])) if k.name in blocks else k for k in program.kernels
+    )
+    return replace(program, kernels=kernels)
+
+
+def chosen_blocks(
+    program: Program, target: Target, layers: dict[str, tuple[int, int]] | None = None
+) -> dict[str, tuple[int, int]]:
+    """Layer -> (pixels, channel vectors) the pass blocks it by: `layers`' choice, else the cost model's
+    (one pixel where the layer reads across planes). Also what --report shows."""
+    layers = layers or {}
+    blocks = {}
     for kernel in program.kernels:
         shape = block_shape(kernel.body)
         if shape is None:
-            kernels.append(kernel)
             continue
-        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, registers)
+        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers)
         if kernel.name not in layers and reads_across_planes(kernel.body, planar_tensors(program)):
             pixels = 1
-        kernels.append(replace(kernel, body=block_body(kernel.body, pixels, channels)))
-    return replace(program, kernels=tuple(kernels))
+        blocks[kernel.name] = (pixels, channels)
+    return blocks
 
 
 # ---------------------------------------------------------------------------- structure
