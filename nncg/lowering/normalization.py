@@ -14,11 +14,10 @@ import math
 from collections.abc import Callable
 
 from ..ir.graph import Node, NormAttrs
-from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Stmt, Store
+from ..ir.loops import Affine, Assign, Binary, Call, Const, Expr, Let, Load, LocalRef, Stmt, Store
 from .activation import apply_activation
 from .context import LoweringContext, TensorRef, dim_vars, nest
 from .elementwise import broadcast_load
-from .reduce import power
 
 
 def lower_normalization(ctx: LoweringContext, node: Node) -> None:
@@ -53,7 +52,9 @@ def lower_normalization(ctx: LoweringContext, node: Node) -> None:
 
         add = over(lambda idx: (Assign("s", Binary("+", s, Load(x.buffer, x.at(idx)))),), parallel=False)
         add_squares = over(lambda idx: (Assign("ss", Binary("+", ss, _square(deviation(idx)))),), parallel=False)
-        inv_std = power(Binary("+", Binary("/", ss, count), Const.splat(attrs.epsilon)), -0.5)
+        inv_std = Binary(
+            "/", Const.splat(1.0), Call("sqrt", Binary("+", Binary("/", ss, count), Const.splat(attrs.epsilon)))
+        )
         group_at = [outer_env[v] for v in outer_vars]
         kept = tuple(Store(ref.buffer, ref.at(group_at), value) for ref, value in zip(statistics, (mean, inv)) if ref)
         normalise = Let("inv", inv_std, (*kept, *over(normalised, parallel=True)))

@@ -16,12 +16,6 @@ from ..ir.loops import Affine, Assign, Binary, Call, Const, Expr, Let, Load, Loc
 from .context import LoweringContext, TensorRef, dim_vars, nest
 
 
-def power(value: Expr, exponent: float) -> Expr:
-    """value ** exponent for value >= 0 as exp(log(value) * exponent) (sqrt: 0.5, 1 / sqrt: -0.5):
-    the loop-nest IR's math functions are exp, log, tanh, sigmoid and erf."""
-    return Call("exp", Binary("*", Call("log", value), Const.splat(exponent)))
-
-
 def _add(acc: Expr, x: Expr) -> Expr:
     return Binary("+", acc, x)
 
@@ -47,7 +41,7 @@ REDUCTIONS: dict[str, Reduction] = {
     "ReduceMax": Reduction(float("-inf"), lambda acc, x: Binary("max", acc, x)),
     "ReduceMin": Reduction(float("inf"), lambda acc, x: Binary("min", acc, x)),
     "ReduceL1": Reduction(0.0, lambda acc, x: _add(acc, _abs(x))),
-    "ReduceL2": Reduction(0.0, lambda acc, x: _add(acc, Binary("*", x, x)), lambda acc, count: power(acc, 0.5)),
+    "ReduceL2": Reduction(0.0, lambda acc, x: _add(acc, Binary("*", x, x)), lambda acc, count: Call("sqrt", acc)),
     "ReduceSumSquare": Reduction(0.0, lambda acc, x: _add(acc, Binary("*", x, x))),
     "ReduceLogSum": Reduction(0.0, _add, lambda acc, count: Call("log", acc)),
     "ReduceLogSumExp": Reduction(
