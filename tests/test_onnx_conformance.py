@@ -184,20 +184,30 @@ def test_run_node() -> None:
 # --- parameter inputs: bound as constants at the first run ----------------------------------------
 
 
-def _reshape_clip_model() -> onnx.ModelProto:
-    """y = Clip(Reshape(x, shape), lo, hi): shape (int64) and lo/hi (float32 Clip bounds) are parameters."""
+def _reshape_resize_model() -> onnx.ModelProto:
+    """y = Resize(Reshape(x, shape), scales), nearest: shape (int64) and scales (float32) are parameters."""
     graph = helper.make_graph(
-        [helper.make_node("Reshape", ["x", "shape"], ["r"]), helper.make_node("Clip", ["r", "lo", "hi"], ["y"])],
-        "reshape_clip",
+        [
+            helper.make_node("Reshape", ["x", "shape"], ["r"]),
+            helper.make_node("Resize", ["r", "", "scales"], ["y"], mode="nearest"),
+        ],
+        "reshape_resize",
         [
             helper.make_tensor_value_info("x", TensorProto.FLOAT, [2, 3]),
             helper.make_tensor_value_info("shape", TensorProto.INT64, [2]),
-            helper.make_tensor_value_info("lo", TensorProto.FLOAT, []),
-            helper.make_tensor_value_info("hi", TensorProto.FLOAT, []),
+            helper.make_tensor_value_info("scales", TensorProto.FLOAT, [2]),
         ],
         [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
     )
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+
+def _repeated(x: np.ndarray, shape: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """What the nearest Resize by integer scales (half_pixel, round_prefer_floor) makes of x."""
+    y = x.reshape(shape)
+    for axis, scale in enumerate(scales):
+        y = np.repeat(y, int(scale), axis=axis)
+    return y
 
 
 @pytest.fixture
@@ -215,11 +225,11 @@ def compiles(monkeypatch: pytest.MonkeyPatch) -> list[onnx.ModelProto]:
 
 
 def test_parameter_inputs_are_found_by_slot_and_dtype() -> None:
-    assert [v.name for v in parameter_inputs(_reshape_clip_model().graph)] == ["shape", "lo", "hi"]
+    assert [v.name for v in parameter_inputs(_reshape_resize_model().graph)] == ["shape", "scales"]
     assert parameter_inputs(_add_relu_model().graph) == []
     # A float input read in a data slot anywhere is data, even if a parameter slot also reads it.
     graph = helper.make_graph(
-        [helper.make_node("Clip", ["x", "m"], ["c"]), helper.make_node("Add", ["c", "m"], ["y"])],
+        [helper.make_node("Resize", ["x", "", "m"], ["c"]), helper.make_node("Add", ["c", "m"], ["y"])],
         "g",
         [helper.make_tensor_value_info(n, TensorProto.FLOAT, [2]) for n in ("x", "m")],
         [helper.make_tensor_value_info("y", TensorProto.FLOAT, [2])],
@@ -229,61 +239,61 @@ def test_parameter_inputs_are_found_by_slot_and_dtype() -> None:
 
 @needs_cc
 def test_parameter_inputs_compile_at_first_run_and_cache_by_value(compiles: list) -> None:
-    rep = NncgBackend.prepare(_reshape_clip_model())
+    rep = NncgBackend.prepare(_reshape_resize_model())
     assert compiles == [] and rep.compiled is None and rep.builds == 0
-    assert rep.input_names == ("x", "shape", "lo", "hi") and rep.parameter_names == ("shape", "lo", "hi")
+    assert rep.input_names == ("x", "shape", "scales") and rep.parameter_names == ("shape", "scales")
     rng = np.random.default_rng(1)
-    shape, lo, hi = np.array([3, 2], np.int64), np.float32(-0.5), np.float32(0.5)
+    shape, scales = np.array([3, 2], np.int64), np.array([1, 2], np.float32)
 
-    def run(x, shape, lo, hi):
-        (y,) = rep.run([x, shape, lo, hi])
-        np.testing.assert_array_equal(y, np.clip(x.reshape(shape), lo, hi))
+    def run(x, shape, scales):
+        (y,) = rep.run([x, shape, scales])
+        np.testing.assert_array_equal(y, _repeated(x, shape, scales))
         return y
 
-    # First run: binds shape/lo/hi as initializers (no longer graph inputs), compiles, builds.
-    run(rng.standard_normal((2, 3), np.float32), shape, lo, hi)
+    # First run: binds shape/scales as initializers (no longer graph inputs), compiles, builds.
+    run(rng.standard_normal((2, 3), np.float32), shape, scales)
     assert len(compiles) == 1 and rep.builds == 1
     bound = compiles[0].graph
     assert [v.name for v in bound.input] == ["x"]
-    assert sorted(t.name for t in bound.initializer) == ["hi", "lo", "shape"]
+    assert sorted(t.name for t in bound.initializer) == ["scales", "shape"]
     assert [p.name for p in rep.compiled.inputs] == ["x"]
     # Same parameter values, new data (also by name): the build is reused, x stays a runtime input.
     for _ in range(2):
         x = rng.standard_normal((2, 3), np.float32)
-        run(x, shape.copy(), np.float32(-0.5), hi)
-        (y,) = rep.run({"hi": hi, "x": x, "lo": lo, "shape": shape})
-        np.testing.assert_array_equal(y, np.clip(x.reshape(3, 2), lo, hi))
+        run(x, shape.copy(), scales.copy())
+        (y,) = rep.run({"scales": scales, "x": x, "shape": shape})
+        np.testing.assert_array_equal(y, _repeated(x, shape, scales))
     assert len(compiles) == 1 and rep.builds == 1
     # Other values compile again; each set of values keeps its build.
     x = rng.standard_normal((2, 3), np.float32)
-    assert run(x, np.array([6, 1], np.int64), lo, hi).shape == (6, 1)
-    assert run(x, shape, np.float32(0.0), hi).shape == (3, 2)
+    assert run(x, np.array([6, 1], np.int64), scales).shape == (6, 2)
+    assert run(x, shape, np.array([2, 1], np.float32)).shape == (6, 2)
     assert len(compiles) == 3 and rep.builds == 3
-    run(x, shape, lo, hi)
-    assert len(compiles) == 3 and rep.compiled.outputs[0].shape == (3, 2)
+    run(x, shape, scales)
+    assert len(compiles) == 3 and rep.compiled.outputs[0].shape == (3, 4)
 
 
 @needs_cc
 def test_parameter_inputs_are_checked(compiles: list) -> None:
-    rep = NncgBackend.prepare(_reshape_clip_model())
-    x, lo, hi = np.zeros((2, 3), np.float32), np.float32(0), np.float32(1)
+    rep = NncgBackend.prepare(_reshape_resize_model())
+    x, scales = np.zeros((2, 3), np.float32), np.array([1, 2], np.float32)
     with pytest.raises(BackendError, match="'shape' is int32; the model declares int64"):
-        rep.run([x, np.array([3, 2], np.int32), lo, hi])
+        rep.run([x, np.array([3, 2], np.int32), scales])
     with pytest.raises(BackendError, match=r"'shape' has shape \[3\]"):
-        rep.run([x, np.array([3, 2, 1], np.int64), lo, hi])
-    with pytest.raises(BackendError, match="takes 4 inputs"):
+        rep.run([x, np.array([3, 2, 1], np.int64), scales])
+    with pytest.raises(BackendError, match="takes 3 inputs"):
         rep.run([x])
     assert compiles == []
     with pytest.raises(BackendError, match="float32"):  # data inputs: checked against the build
-        rep.run([x.astype(np.float64), np.array([3, 2], np.int64), lo, hi])
+        rep.run([x.astype(np.float64), np.array([3, 2], np.int64), scales])
 
 
 def test_nncg_compile_still_needs_constant_parameters() -> None:
     graph = helper.make_graph(
-        [helper.make_node("Clip", ["x", "lo", "hi"], ["y"])],
+        [helper.make_node("Resize", ["x", "", "scales"], ["y"])],
         "g",
-        [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in (("x", [2]), ("lo", []), ("hi", []))],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [2])],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in (("x", [2]), ("scales", [1]))],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     with pytest.raises(NncgError, match="computed at runtime"):

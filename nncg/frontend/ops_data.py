@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -301,6 +302,8 @@ def _resize(op: OnnxOp, ctx: Context, attrs: ResizeAttrs, sizes: list[int] | Non
     if min(out) < 1:
         raise op.error(f"resizes {list(in_shape)} to {list(out)}; NNCG cannot compile empty tensors")
     ctx.set_shape(op, op.node.output[0], out)
+    if attrs.mode != "nearest":  # nearest_mode means nothing there: one spelling for equal resizes
+        attrs = replace(attrs, nearest_mode="round_prefer_floor")
     return op.ir_node("Resize", [op.input(0)], attrs)
 
 
