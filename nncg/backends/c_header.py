@@ -8,7 +8,6 @@ from ..ir.loops import Program
 from ..safe_text import comment_name
 from .weights import external_weights, weights_header
 
-
 LAYOUT_NOTES = {
     "nchw": "row-major NCHW (channels first)",
     "nhwc": "row-major NHWC (channels last, as in Keras)",

@@ -84,14 +84,18 @@ def _canonical_constants(graph: onnx.GraphProto) -> None:
         for name in node.input:
             first_use.setdefault(name, len(first_use))
     taken = {n for node in graph.node for n in (*node.input, *node.output)} | {t.name for t in graph.initializer}
-    made = sorted((t for t in graph.initializer if _MADE_CONSTANT.match(t.name)), key=lambda t: first_use.get(t.name, -1))
+    made = sorted(
+        (t for t in graph.initializer if _MADE_CONSTANT.match(t.name)), key=lambda t: first_use.get(t.name, -1)
+    )
     renames = {}
     for k, tensor in enumerate(made, 1):
         new = f"const__{k}"
         if new in taken and new != tensor.name:
             return  # an exporter's own name: leave the model as it is
         renames[tensor.name] = new
-    order = sorted(graph.initializer, key=lambda t: (first_use.get(t.name, len(first_use)), renames.get(t.name, t.name)))
+    order = sorted(
+        graph.initializer, key=lambda t: (first_use.get(t.name, len(first_use)), renames.get(t.name, t.name))
+    )
     for tensor in graph.initializer:
         tensor.name = renames.get(tensor.name, tensor.name)
     for node in graph.node:

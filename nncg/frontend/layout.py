@@ -22,7 +22,9 @@ _PERM = {("nchw", "nhwc"): (0, 2, 3, 1), ("nhwc", "nchw"): (0, 3, 1, 2)}
 
 def check_layout(layout: object) -> None:
     if layout is not None and layout not in LAYOUTS:
-        raise NncgError(f"input_layout must be one of {', '.join(map(repr, LAYOUTS))} or None; got {capped(repr(layout), 60)}")
+        raise NncgError(
+            f"input_layout must be one of {', '.join(map(repr, LAYOUTS))} or None; got {capped(repr(layout), 60)}"
+        )
 
 
 def model_layout(model: onnx.ModelProto) -> str:
