@@ -67,6 +67,7 @@ def digits(tmp_path_factory):
     probabilities = model.predict(x[test], verbose=0)
     accuracy = float(np.mean(probabilities.argmax(1) == y[test]))
     assert accuracy > 0.9, f"the digits CNN did not train: accuracy {accuracy}"
+    print(f"digits accuracy: Keras {accuracy:.4f} on {len(test)} test images")
     return {"model": model, "folder": folder, "x": x[test], "y": y[test], "keras": probabilities}
 
 
@@ -105,7 +106,8 @@ def test_each_format_through_api_and_cli_classifies_as_keras(digits, saved, targ
     assert compiled.name == Path(saved).stem
     assert "row-major NHWC (channels last, as in Keras)" in compiled.header
     accuracy = check_same_classes(compiled, digits, digits["x"], tmp_path / "run")
-    print(f"digits accuracy {saved} {target}: NNCG C {accuracy:.4f}")
+    with capsys.disabled():
+        print(f"digits accuracy {saved} {target}: NNCG C {accuracy:.4f}")
     # the CLI writes the same files, byte for byte: tf2onnx's output is deterministic
     assert main([str(path), "--target", target, "-o", str(tmp_path / "cli")]) == 0
     name = Path(saved).stem
@@ -217,6 +219,17 @@ def test_bad_keras_file_is_one_line_exit_2(tmp_path, capsys):
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
     assert main([str(tmp_path / "missing.h5"), "-o", str(tmp_path / "out")]) == 2
     assert "does not exist" in one_error_line(capsys)
+
+
+def test_model_tensorflow_cannot_trace_is_one_error():
+    """Keras allows names that TensorFlow's tracing rejects: the error names the model and the rule."""
+    model = keras.Sequential([keras.Input((4, 4, 2)), keras.layers.Conv2D(3, 3)], name="my model")
+    with pytest.raises(NncgError) as info:
+        nncg.compile(model)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith("tf2onnx cannot convert the Keras model 'my model': ValueError: ")
+    assert "not a valid root scope name" in message
 
 
 def test_bad_input_layout_argument():

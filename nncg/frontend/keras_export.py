@@ -213,9 +213,12 @@ def _require(package: str):
 
 
 def _root_cause(exc: BaseException) -> str:
+    """The innermost cause in one line: the last line of its message, where TensorFlow's errors (after
+    a traceback of the traced code) say what is wrong."""
     while exc.__cause__ is not None:
         exc = exc.__cause__
-    return f"{type(exc).__name__}: {one_line(exc, 200)}"
+    lines = [line for line in str(exc).splitlines() if line.strip()]
+    return f"{type(exc).__name__}: {one_line(lines[-1] if lines else exc, 200)}"
 
 
 @contextmanager
