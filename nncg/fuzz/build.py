@@ -106,12 +106,14 @@ class ModelBuilder:
         self, opset: int, inputs: dict[str, Shape], max_elements: int = MAX_ELEMENTS, generating: bool = False
     ):
         self.opset = opset
-        self.generating = generating  # the generator's builder: also refuses steps reading `misinferred`
+        self.generating = generating  # the generator's builder: also refuses steps reading a dead end
         self.max_elements = max_elements
         self.inputs: dict[str, Shape] = {}
         self.shapes: dict[str, Shape] = {}
         self.index_values: set[str] = set()  # ArgMax/ArgMin outputs: int64, read by no step
-        self.misinferred: set[str] = set()  # values onnx's shape inference gets wrong
+        # values the generator reads no further: onnx's shape inference gets their shape wrong, or
+        # they hold -FLT_MAX (a MaxPool window wholly in the padding: squared or summed it overflows)
+        self.dead_ends: set[str] = set()
         self.nodes: list[onnx.NodeProto] = []
         self.initializers: list[onnx.TensorProto] = []
         for name, shape in inputs.items():
@@ -136,11 +138,11 @@ class ModelBuilder:
         indices = [v for v in step.inputs if v in self.index_values]
         if indices:
             raise Invalid(f"step {index} ({step.op}) reads int64 indices {indices}")
-        misinferred = [v for v in step.inputs if v in self.misinferred]
-        if misinferred and self.generating:  # a later op may check the wrong shape (onnxruntime refuses)
-            raise Invalid(f"step {index} ({step.op}) reads {misinferred}, whose shape onnx infers wrong")
+        dead_ends = [v for v in step.inputs if v in self.dead_ends]
+        if dead_ends and self.generating:
+            raise Invalid(f"step {index} ({step.op}) reads {dead_ends}, which the generator leaves unread")
         saved = (len(self.nodes), len(self.initializers), dict(self.inputs), dict(self.shapes))
-        sets = (set(self.index_values), set(self.misinferred))
+        sets = (set(self.index_values), set(self.dead_ends))
         try:
             shapes = [tuple(int(d) for d in s) for s in spec.build(StepContext(self, step, index))]
             if len(shapes) != len(step.outputs):
@@ -153,7 +155,7 @@ class ModelBuilder:
         except Invalid:
             del self.nodes[saved[0] :], self.initializers[saved[1] :]
             self.inputs, self.shapes = saved[2], saved[3]
-            self.index_values, self.misinferred = sets
+            self.index_values, self.dead_ends = sets
             raise
         self.shapes.update(zip(step.outputs, shapes))
         return shapes

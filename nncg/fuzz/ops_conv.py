@@ -239,6 +239,23 @@ def propose_conv_transpose(d: Draw, x: str) -> Proposal | None:
 # --- pools ----------------------------------------------------------------------------------------
 
 
+def _window_in_padding(c: StepContext, out: list[int]) -> bool:
+    """Whether some output window of a pool reads padding only."""
+    sizes, kernel, strides, dilations = _spatial(c)
+    auto_pad, pads = c.params.get("auto_pad", "NOTSET"), _pads(c)
+    for i, (n, k, s, dil, o) in enumerate(zip(sizes, kernel, strides, dilations, out)):
+        begin = pads[i]
+        if auto_pad == "VALID":
+            begin = 0
+        elif auto_pad.startswith("SAME"):
+            total = max(0, (o - 1) * s + window_extent(k, dil) - n)
+            begin = total // 2 if auto_pad == "SAME_UPPER" else total - total // 2
+        for j in range(o):
+            if all(not 0 <= j * s - begin + t * dil < n for t in range(k)):
+                return True
+    return False
+
+
 def build_pool(c: StepContext, op: str) -> list[tuple[int, ...]]:
     x, p = c.shape(), c.params
     ceil = bool(p.get("ceil_mode"))
@@ -257,7 +274,7 @@ def build_pool(c: StepContext, op: str) -> list[tuple[int, ...]]:
     if ceil and out != _out_sizes(c, ceil, drop_last=False):
         # onnx's shape inference keeps the window starting in the end pad that onnxruntime drops: the
         # generator reads this value no more (a later op checking the inferred shape fails in onnxruntime)
-        c.builder.misinferred.add(c.output())
+        c.builder.dead_ends.add(c.output())
     if p.get("auto_pad", "").startswith("SAME"):
         sizes, _, strides, dilations = _spatial(c)
         needed = [
@@ -265,6 +282,8 @@ def build_pool(c: StepContext, op: str) -> list[tuple[int, ...]]:
         ]
         if min(needed) < 0:  # onnxruntime refuses the negative padding SAME gives when stride > kernel
             raise c.invalid(f"SAME padding {needed} is negative")
+    if op == "MaxPool" and _window_in_padding(c, out):
+        c.builder.dead_ends.add(c.output())  # it gives -FLT_MAX there: x * x or a sum of two overflows
     attrs = _window_attrs(c)
     attrs["kernel_shape"] = kernel
     if ceil:

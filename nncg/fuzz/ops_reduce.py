@@ -93,8 +93,8 @@ def propose_arg_extreme(d: Draw, x: str) -> Proposal | None:
         params["axis"] = d.axis(d.int(0, rank - 1), rank)
     if d.chance(0.5):
         params["keepdims"] = d.pick((0, 1))
-    if d.opset >= 12 and d.chance(0.4):
-        params["select_last_index"] = d.pick((0, 1))
+    if d.opset >= 12 and d.chance(0.6):
+        params["select_last_index"] = d.pick((0, 1, 1))
     return Proposal([x], params)
 
 
