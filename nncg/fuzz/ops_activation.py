@@ -41,7 +41,7 @@ def build_activation(c: StepContext, op: str) -> list[tuple[int, ...]]:
 def propose_activation(d: Draw, x: str, op: str) -> Proposal:
     params: dict = {}
     if op in POSITIVE_ONLY:
-        params.update(_positive_params(d))
+        params.update(positive_params(d))
     if op == "Exp":
         params["bounded"] = d.chance(0.6)
     if op in ("Selu", "Celu", "ThresholdedRelu") and d.chance(0.6):
@@ -53,7 +53,7 @@ def propose_activation(d: Draw, x: str, op: str) -> Proposal:
     return Proposal([x], params)
 
 
-def _positive_params(d: Draw) -> dict:
+def positive_params(d: Draw) -> dict:
     return {"positive": d.pick(POSITIVE_FORMS), "floor": d.pick((0.1, 0.5, 1.0))}
 
 
@@ -105,13 +105,11 @@ def propose_pow(d: Draw, x: str) -> Proposal:
     params: dict = {}
     if shape and d.chance(0.3):  # an exponent per element (or per broadcast slice)
         exponent_shape = broadcastable_to(d, shape)
-        values = d.rng.choice(POW_EXPONENTS, size=exponent_shape)
-        params["exponents"] = [float(v) for v in values.reshape(-1)]
-        params["exponents"] = np.asarray(params["exponents"]).reshape(exponent_shape).tolist()
-        exponents = values
+        exponents = d.rng.choice(POW_EXPONENTS, size=exponent_shape)
+        params["exponents"] = exponents.tolist()
     else:
         params["exponent"] = float(d.pick(POW_EXPONENTS))
         exponents = np.asarray([params["exponent"]])
     if np.any((exponents != np.round(exponents)) | (exponents < 0)) or d.chance(0.2):
-        params.update(_positive_params(d))
+        params.update(positive_params(d))
     return Proposal([x], params)

@@ -11,7 +11,7 @@ import numpy as np
 
 from .build import StepContext
 from .draw import Draw, Proposal
-from .ops_activation import _positive_params, positive
+from .ops_activation import positive, positive_params
 
 # ReduceSum takes its axes as an input from opset 13, the others from opset 18.
 AXES_INPUT_OPSET = {"ReduceSum": 13}
@@ -61,7 +61,7 @@ def propose_reduce(d: Draw, x: str, op: str) -> Proposal:
     if d.chance(0.6):
         params["keepdims"] = d.pick((0, 1))
     if op == "ReduceLogSum":  # the log of a positive sum
-        params.update(_positive_params(d))
+        params.update(positive_params(d))
     return Proposal([x], params)
 
 
