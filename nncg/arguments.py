@@ -11,6 +11,8 @@ from collections.abc import Mapping
 import onnx
 
 from .errors import NncgError
+from .frontend.keras_export import is_keras_model
+from .frontend.layout import check_layout
 from .frontend.torch_export import check_exporter, is_torch_module
 from .passes.plan_memory import WEIGHTS_MODES
 from .safe_text import capped, shown
@@ -21,7 +23,7 @@ MODEL_TYPES = (str, os.PathLike, bytes, bytearray, memoryview, onnx.ModelProto)
 
 def check_compile_arguments(
     model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights, code_budget,
-    example_inputs, exporter, expose_layers,
+    example_inputs, exporter, expose_layers, input_layout=None,
 ) -> None:  # fmt: skip
     """Raises NncgError for the first argument of nncg.compile that has the wrong type or value."""
     _check_model(model)
@@ -35,6 +37,7 @@ def check_compile_arguments(
     _check_bool("verify_ir", verify_ir)
     _check_bool("profile", profile)
     _check_bool("expose_layers", expose_layers)
+    check_layout(input_layout)
     if weights not in WEIGHTS_MODES:
         raise NncgError(f"weights must be one of {', '.join(WEIGHTS_MODES)}; {_got(weights)}")
     if code_budget is not None and not _whole(code_budget):
@@ -48,8 +51,10 @@ def check_write_arguments(directory, cmake) -> None:
 
 
 def _check_model(model) -> None:
-    if not isinstance(model, MODEL_TYPES) and not is_torch_module(model):
-        raise NncgError(f"model must be a file path, bytes, an onnx.ModelProto or a torch.nn.Module; {_got(model)}")
+    if not isinstance(model, MODEL_TYPES) and not is_torch_module(model) and not is_keras_model(model):
+        raise NncgError(
+            f"model must be a file path, bytes, an onnx.ModelProto, a torch.nn.Module or a keras.Model; {_got(model)}"
+        )
     if isinstance(model, (str, os.PathLike)):
         _check_path("model", model)
 

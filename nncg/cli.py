@@ -60,7 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="nncg-onnx",
         description="Compile an ONNX CNN into one plain C file and header (NAME.c, NAME.h).",
     )
-    p.add_argument("model", nargs="?", help="the .onnx file")
+    p.add_argument(
+        "model", nargs="?", help="the .onnx file, or a Keras .keras/.h5 file or SavedModel folder (needs nncg[keras])"
+    )
     p.add_argument("--target", default="ansi-c", choices=sorted(BACKENDS), help="code to print (default: ansi-c)")
     p.add_argument("-o", "--output-dir", default=".", type=non_empty, help="where NAME.c and NAME.h go (default: .)")
     p.add_argument("--name", type=non_empty, help="C function and file name (default: the model file's stem)")
@@ -100,6 +102,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="embed: weights as static const arrays in the C file; bin: in NAME.weights, which the caller "
         "passes by pointer; auto (default): bin above 4 MiB of weights",
+    )
+    p.add_argument(
+        "--input-layout",
+        choices=("nchw", "nhwc"),
+        help="layout of the C function's 4-D inputs (default: the model's own; Keras models are nhwc): the other "
+        "one inserts a Transpose at the input, which the passes cancel against the model's own",
     )
     p.add_argument("--pipeline", help="run this pass pipeline instead of the default (see --list-passes)")
     p.add_argument(
@@ -204,7 +212,8 @@ def fail(message: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from .backends import get_target
-    from .compiler import compile
+    from .compiler import compile, onnx_model
+    from .frontend.keras_export import is_keras_path
     from .passes import REGISTRY, default_pipeline
 
     if args.list_passes:
@@ -223,10 +232,14 @@ def run(args: argparse.Namespace) -> int:
 
         require_plots()
     options = CompileOptions.of(args.unroll, args.weights, args.code_budget, args.pipeline)
+    if is_keras_path(args.model) or args.input_layout:  # converted once: --verify, --tune, ... use it too
+        args.name = args.name or Path(args.model).stem
+        args.model = onnx_model(args.model, args.input_layout)[0]
     if args.tune or args.tune_runner:
         options = options.with_pipeline(tune_command(args))
     compiled = compile(
         args.model,
+        input_layout=args.input_layout,
         target=args.target,
         name=args.name,
         input_shapes=input_shapes(args),

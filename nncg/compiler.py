@@ -23,6 +23,9 @@ from .bench.macs import macs_by_layer
 from .cmake import CMAKE_LISTS, cmake_file
 from .errors import NncgError
 from .frontend import import_onnx
+from .frontend.keras_export import is_keras_model, is_keras_path, keras_to_onnx
+from .frontend.layout import model_layout, with_input_layout
+from .frontend.load import read_model
 from .frontend.torch_export import DEFAULT_EXPORTER, export_onnx, is_torch_module
 from .ir.c_names import program_name
 from .ir.graph import Graph
@@ -36,6 +39,7 @@ from .passes.unroll import CODE_BUDGET
 from .safe_text import c_comment, capped, shown
 
 if TYPE_CHECKING:
+    import keras
     import torch
 
 
@@ -95,7 +99,7 @@ class CompiledModel:
 
 
 def compile(
-    model: str | os.PathLike | bytes | onnx.ModelProto | torch.nn.Module,
+    model: str | os.PathLike | bytes | onnx.ModelProto | torch.nn.Module | keras.Model,
     target: str = "ansi-c",
     unroll: str | int | None = "auto",
     name: str | None = None,
@@ -109,11 +113,15 @@ def compile(
     example_inputs: torch.Tensor | tuple[torch.Tensor, ...] | None = None,
     exporter: str = DEFAULT_EXPORTER,
     expose_layers: bool = False,
+    input_layout: str | None = None,
 ) -> CompiledModel:
-    """Compiles a model to C for `target`: ONNX (a file path, bytes or an onnx.ModelProto) or a
+    """Compiles a model to C for `target`: ONNX (a file path, bytes or an onnx.ModelProto), a
     torch.nn.Module, exported in eval mode for inputs shaped like `example_inputs` (a float32 tensor or
     a tuple of them) by torch.onnx.export's `exporter`, "dynamo" (torch.export; needs onnxscript) or
-    "torchscript" (see nncg/frontend/torch_export.py). `unroll` is "auto" (small loops unrolled, see the
+    "torchscript" (see nncg/frontend/torch_export.py), or a keras.Model, .keras/.h5 file or SavedModel
+    folder, converted by tf2onnx (needs the keras extra; see nncg/frontend/keras_export.py).
+    `input_layout` ("nchw" or "nhwc"; None: the model's own, NHWC for Keras) is the layout the C
+    function takes its 4-D inputs in (see nncg/frontend/layout.py). `unroll` is "auto" (small loops unrolled, see the
     unroll pass), a level (int: the paper's levels) or None/"none" for no unrolling; `pipeline`
     replaces the default pass pipeline entirely; `profile` adds per-layer timers to the generated
     code (for `--profile`; they need POSIX clock_gettime); `weights` is embed (static const arrays),
@@ -123,26 +131,28 @@ def compile(
     extra output of the function after the model's own (see passes/expose_layers.py)."""
     check_compile_arguments(
         model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights,
-        code_budget, example_inputs, exporter, expose_layers,
+        code_budget, example_inputs, exporter, expose_layers, input_layout,
     )  # fmt: skip
     options = CompileOptions.of(unroll, weights, code_budget, pipeline)
     backend = get_backend(target)
+    source = model
     from_torch = is_torch_module(model)
-    if from_torch:
-        model = export_onnx(model, example_inputs, exporter)
+    model, header_layout = onnx_model(model, input_layout, example_inputs, exporter)
     graph = import_onnx(model, input_shapes)
     manager = PassManager(
         options.pass_pipeline(backend.target), backend.target, verify=verify_ir, print_ir_after_all=print_ir_after_all,
         keep_inputs=("lower", "register-block"),
     )  # fmt: skip
-    name = program_name(name or _default_name(model, graph.name))
+    name = program_name(name or _default_name(source, graph.name))
     program = manager.run(_with_name(graph, name))
     if expose_layers:
         program = with_exposed_layers(program)
     options = f"target={target} pipeline={manager.pipeline}" + (f" torch-exporter={exporter}" if from_torch else "")
+    if input_layout:
+        options += f" input-layout={input_layout}"
     if input_shapes:
         options += " input-shape=" + ",".join(f"{capped(k)}={'x'.join(map(str, v))}" for k, v in input_shapes.items())
-    compiled = emit(program, target, options, _sha256(model), manager.pipeline, profile)
+    compiled = emit(program, target, options, _sha256(model), manager.pipeline, profile, header_layout)
     record = CompileRecord(
         program,
         manager.inputs.get("lower"),
@@ -153,11 +163,35 @@ def compile(
     return replace(compiled, layer_macs=tuple(macs_by_layer(graph).items()), record=record)
 
 
+def onnx_model(model, input_layout: str | None = None, example_inputs=None, exporter: str = DEFAULT_EXPORTER):
+    """What compile() imports: `model` as ONNX (a torch or Keras model exported, a Keras file converted;
+    an ONNX source as it is unless `input_layout` changes it) and the layout its header names for the
+    4-D inputs (None: as in ONNX). Raises NncgError."""
+    if is_torch_module(model):
+        model = export_onnx(model, example_inputs, exporter)
+    elif is_keras_model(model) or is_keras_path(model):
+        model = keras_to_onnx(model)
+    if input_layout is not None:
+        proto = model if isinstance(model, onnx.ModelProto) else read_model(model)
+        if model_layout(proto) != input_layout:
+            model = with_input_layout(proto, input_layout)
+        return model, input_layout
+    tf2onnx = isinstance(model, onnx.ModelProto) and model.producer_name.startswith("tf2onnx")
+    return model, (model_layout(model) if tf2onnx else None)
+
+
 def emit(
-    program: Program, target: str, options: str = "", model_sha256: str = "", pipeline: str = "", profile: bool = False
+    program: Program,
+    target: str,
+    options: str = "",
+    model_sha256: str = "",
+    pipeline: str = "",
+    profile: bool = False,
+    input_layout: str | None = None,
 ) -> CompiledModel:
     """Prints a lowered program (run through a PassManager, which ends it with plan-memory) with the
-    backend of `target`; `profile` adds per-layer timers."""
+    backend of `target`; `profile` adds per-layer timers; `input_layout` is what the header says of
+    the 4-D inputs' layout (None: as in ONNX)."""
     backend = get_backend(target)
     if program.arena is None:
         raise NncgError("the program has no memory plan: run its pipeline through a PassManager (ends in plan-memory)")
@@ -174,7 +208,7 @@ def emit(
         name=program.name,
         target=target,
         source=backend.source(program, first_line, header_name, profile),
-        header=backend.header(program, first_line),
+        header=backend.header(program, first_line, input_layout),
         inputs=param("input"),
         outputs=param("output"),
         cflags=backend.cflags,

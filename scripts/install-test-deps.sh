@@ -34,4 +34,6 @@ if [ ${#missing[@]} -gt 0 ]; then
         DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
     fi
 fi
-python3 -m pip install -q '.[test,bench]'  # bench: torch (CPU) and onnxscript, for the real-size model and torch route tests
+# bench: torch (CPU) and onnxscript, for the real-size model and torch route tests; keras: TensorFlow,
+# tf2onnx and scikit-learn, for the Keras route's tests (tests/test_keras_route.py)
+python3 -m pip install -q '.[test,bench,keras]'

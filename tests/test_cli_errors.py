@@ -264,7 +264,7 @@ def test_unexpected_errors_are_one_escaped_line(monkeypatch, capsys, error, stat
 BAD_ARGUMENTS = {
     "model an int": (
         dict(model=5),
-        "model must be a file path, bytes, an onnx.ModelProto or a torch.nn.Module; got int 5",
+        "model must be a file path, bytes, an onnx.ModelProto, a torch.nn.Module or a keras.Model; got int 5",
     ),
     "model a list": (dict(model=["ball.onnx"]), "model must be"),
     "model path with NUL": (dict(model="ball\0.onnx"), "model must be a non-empty path without NUL"),

@@ -96,9 +96,14 @@ def test_generator_covers_every_operator_and_attribute():
     wanted |= {("Pad", "mode", mode) for mode in ("reflect", "edge", "wrap")}
     wanted |= {("MaxPool", "ceil_mode", 1), ("AveragePool", "count_include_pad", 1)}
     wanted |= {("ConvTranspose", "auto_pad", "SAME_UPPER"), ("Gemm", "transA", 1), ("Gemm", "transB", 1)}
+    wanted |= {("Gelu", "approximate", "tanh")}
     assert wanted <= attrs, f"never generated: {sorted(wanted - attrs)}"
     assert any(op == "ConvTranspose" and name == "output_shape" for op, name, _ in attrs)
     assert any(op in ("MaxPool", "Conv") and name == "dilations" and max(v) > 1 for op, name, v in attrs)
+    assert any(op in ("ArgMax", "ArgMin") and name == "select_last_index" and v == 1 for op, name, v in attrs)
+    assert any(op.startswith("Reduce") and name == "keepdims" and v == 0 for op, name, v in attrs)
+    assert any(op.startswith("Reduce") and name == "noop_with_empty_axes" and v == 1 for op, name, v in attrs)
+    assert any(op == "LayerNormalization" and name == "axis" and v != -1 for op, name, v in attrs)
 
 
 # ---------------------------------------------------------------------------- shrinker

@@ -52,6 +52,6 @@ class Backend:
         program = fuse_multiply_add(program, self.target)
         return c_file.source(self.printer, program, first_line, header_name, profile)
 
-    def header(self, program: Program, first_line: str) -> str:
-        """The .h file."""
-        return c_header.header(program, first_line)
+    def header(self, program: Program, first_line: str, input_layout: str | None = None) -> str:
+        """The .h file; `input_layout` (nchw, nhwc) is what its comments say of the 4-D inputs."""
+        return c_header.header(program, first_line, input_layout)

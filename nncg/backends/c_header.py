@@ -8,8 +8,14 @@ from ..ir.loops import Program
 from ..safe_text import comment_name
 from .weights import external_weights, weights_header
 
+LAYOUT_NOTES = {
+    "nchw": "row-major NCHW (channels first)",
+    "nhwc": "row-major NHWC (channels last, as in Keras)",
+}
 
-def header(program: Program, first_line: str) -> str:
+
+def header(program: Program, first_line: str, input_layout: str | None = None) -> str:
+    """NAME.h; `input_layout` (nchw, nhwc) names the layout of the 4-D inputs (default: as in ONNX)."""
     guard = f"{program.name.upper()}_H"
     macro = program.name.upper()
     arena = program.arena
@@ -25,7 +31,10 @@ def header(program: Program, first_line: str) -> str:
     ]
     for buf in (*program.role(BufferRole.INPUT), *program.role(BufferRole.OUTPUT)):
         shape = ",".join(map(str, buf.shape))
-        lines.append(f"/* {buf.role} {comment_name(buf.onnx_name)}: float32[{shape}], row-major as in ONNX */")
+        layout = "row-major as in ONNX"
+        if input_layout and buf.role == BufferRole.INPUT and len(buf.shape) == 4:
+            layout = LAYOUT_NOTES[input_layout]
+        lines.append(f"/* {buf.role} {comment_name(buf.onnx_name)}: float32[{shape}], {layout} */")
         lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
     lines += [
         "",

@@ -60,6 +60,11 @@ def load_with_shapes(
     return proto, inferred_shapes(proto)
 
 
+def read_model(model: ModelSource) -> onnx.ModelProto:
+    """The parsed model (a private copy), unchecked; raises NncgError when it cannot be read."""
+    return _read(model)[0]
+
+
 def opset_version(model: onnx.ModelProto) -> int:
     """The default-domain opset, which must be one NNCG knows the semantics of."""
     versions = [o.version for o in model.opset_import if o.domain in DEFAULT_DOMAINS]

@@ -102,11 +102,18 @@ class StepContext:
 class ModelBuilder:
     """Builds steps one at a time (the generator adds a step, sees its output shapes, goes on)."""
 
-    def __init__(self, opset: int, inputs: dict[str, Shape], max_elements: int = MAX_ELEMENTS):
+    def __init__(
+        self, opset: int, inputs: dict[str, Shape], max_elements: int = MAX_ELEMENTS, generating: bool = False
+    ):
         self.opset = opset
+        self.generating = generating  # the generator's builder: also refuses steps reading a dead end
         self.max_elements = max_elements
         self.inputs: dict[str, Shape] = {}
         self.shapes: dict[str, Shape] = {}
+        self.index_values: set[str] = set()  # ArgMax/ArgMin outputs: int64, read by no step
+        # values the generator reads no further: onnx's shape inference gets their shape wrong, or
+        # they hold -FLT_MAX (a MaxPool window wholly in the padding: squared or summed it overflows)
+        self.dead_ends: set[str] = set()
         self.nodes: list[onnx.NodeProto] = []
         self.initializers: list[onnx.TensorProto] = []
         for name, shape in inputs.items():
@@ -128,7 +135,14 @@ class ModelBuilder:
         missing = [v for v in step.inputs if v not in self.shapes]
         if missing:
             raise Invalid(f"step {index} ({step.op}) reads undefined {missing}")
+        indices = [v for v in step.inputs if v in self.index_values]
+        if indices:
+            raise Invalid(f"step {index} ({step.op}) reads int64 indices {indices}")
+        dead_ends = [v for v in step.inputs if v in self.dead_ends]
+        if dead_ends and self.generating:
+            raise Invalid(f"step {index} ({step.op}) reads {dead_ends}, which the generator leaves unread")
         saved = (len(self.nodes), len(self.initializers), dict(self.inputs), dict(self.shapes))
+        sets = (set(self.index_values), set(self.dead_ends))
         try:
             shapes = [tuple(int(d) for d in s) for s in spec.build(StepContext(self, step, index))]
             if len(shapes) != len(step.outputs):
@@ -141,6 +155,7 @@ class ModelBuilder:
         except Invalid:
             del self.nodes[saved[0] :], self.initializers[saved[1] :]
             self.inputs, self.shapes = saved[2], saved[3]
+            self.index_values, self.dead_ends = sets
             raise
         self.shapes.update(zip(step.outputs, shapes))
         return shapes
@@ -153,13 +168,16 @@ class ModelBuilder:
             self.nodes,
             name,
             [helper.make_tensor_value_info(n, TensorProto.FLOAT, s) for n, s in self.inputs.items()],
-            [helper.make_tensor_value_info(v, TensorProto.FLOAT, self.shapes[v]) for v in outputs],
+            [helper.make_tensor_value_info(v, self._elem_type(v), self.shapes[v]) for v in outputs],
             self.initializers,
         )
         opsets = [helper.make_opsetid("", self.opset)]
         model = helper.make_model(graph, opset_imports=opsets, producer_name="nncg.fuzz")
         model.ir_version = helper.find_min_ir_version_for(opsets)
         return model
+
+    def _elem_type(self, value: str) -> int:
+        return TensorProto.INT64 if value in self.index_values else TensorProto.FLOAT
 
 
 def build(recipe: Recipe) -> onnx.ModelProto:

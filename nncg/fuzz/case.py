@@ -79,6 +79,8 @@ def size_limit(model: onnx.ModelProto, options: Options) -> int | None:
     """The most C the model should give with these options: code per layer, the weights, and what
     unrolling may add under the code budget. None when nothing caps unrolling (--code-budget 0)."""
     nodes = sum(1 for n in model.graph.node if n.op_type != "Constant")
+    # ArgMax/ArgMin count twice: each register block carries the running extreme and its index
+    nodes += sum(1 for n in model.graph.node if n.op_type in ("ArgMax", "ArgMin"))
     weights = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
     forced = {name for name, on in options.layers.get("winograd", {}).items() if on}
     winograd = sum(1 for n in model.graph.node if n.name in forced or _winograd_shaped(n, weights))

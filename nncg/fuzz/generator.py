@@ -11,14 +11,16 @@ import numpy as np
 from .build import Invalid, ModelBuilder
 from .draw import CHANNELS, SMALL_ELEMENTS, SPATIAL, Draw, broadcastable_to, numel
 from .ops import OPS
+from .ops_activation import ACTIVATIONS
 from .recipe import Recipe, Shape, Step
 
-OPSETS = (9, 11, 13, 17, 18, 19)
-OPSET_WEIGHTS = (0.08, 0.22, 0.3, 0.1, 0.15, 0.15)
+OPSETS = (9, 11, 13, 17, 18, 19, 20, 21)
+OPSET_WEIGHTS = (0.08, 0.22, 0.25, 0.1, 0.1, 0.1, 0.06, 0.09)
 MAX_STEPS = 8
 FOCUS_WEIGHT = 10
 INPUT_ELEMENTS = 4096
-SCALAR_OPS = ("Unary", "Binary", "Variadic", "Unsqueeze", "Reshape", "Identity")  # ops that take rank-0 values
+# ops that take rank-0 values
+SCALAR_OPS = ("Unary", "Binary", "Variadic", "Unsqueeze", "Reshape", "Identity", "Pow", *ACTIVATIONS)
 
 
 def generate(seed: int | Sequence[int], max_steps: int = MAX_STEPS, focus: Sequence[str] = ()) -> Recipe:
@@ -29,7 +31,7 @@ def generate(seed: int | Sequence[int], max_steps: int = MAX_STEPS, focus: Seque
     inputs = {"x": input_shape(d)}
     if d.chance(0.1):
         inputs["y"] = tuple(broadcastable_to(d, inputs["x"])) if d.chance(0.5) else inputs["x"]
-    builder = ModelBuilder(d.opset, inputs, SMALL_ELEMENTS)
+    builder = ModelBuilder(d.opset, inputs, SMALL_ELEMENTS, generating=True)
     d.shapes = dict(inputs)
     steps: list[Step] = []
     wanted = d.int(1, max_steps)
@@ -44,10 +46,10 @@ def generate(seed: int | Sequence[int], max_steps: int = MAX_STEPS, focus: Seque
         except Invalid:
             continue
         steps.append(step)
-        d.shapes.update(zip(step.outputs, shapes))
+        d.shapes.update((v, s) for v, s in zip(step.outputs, shapes) if v not in builder.index_values)
     if not steps:
         steps.append(Step("Identity", ("x",), ("v0",), {}))
-    return Recipe(d.opset, inputs, tuple(steps), _outputs(d, steps))
+    return Recipe(d.opset, inputs, tuple(steps), _outputs(d, steps, builder.index_values))
 
 
 def input_shape(d: Draw) -> Shape:
@@ -82,10 +84,11 @@ def _propose_step(d: Draw, index: int, focus: Sequence[str]) -> Step | None:
     return Step(op, tuple(proposal.inputs), outputs, proposal.params)
 
 
-def _outputs(d: Draw, steps: list[Step]) -> tuple[str, ...]:
-    """The last value, and some of the values nothing reads (multiple outputs)."""
+def _outputs(d: Draw, steps: list[Step], indices: set[str]) -> tuple[str, ...]:
+    """The last value, and some of the values nothing reads (multiple outputs); ArgMax/ArgMin indices
+    (`indices`, which no step reads) all, so none is computed for nothing."""
     read = {v for step in steps for v in step.inputs}
     last = steps[-1].outputs[0]
     leaves = [v for step in steps for v in step.outputs if v not in read and v != last]
-    extra = [v for v in leaves if d.chance(0.5)][:2]
+    extra = [v for v in leaves if v in indices] + [v for v in leaves if v not in indices and d.chance(0.5)][:2]
     return (*extra, last) if d.chance(0.5) else (last, *extra)

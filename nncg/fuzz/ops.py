@@ -7,7 +7,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
-from . import ops_conv, ops_math, ops_rearrange, ops_resize, ops_shape
+from . import ops_activation, ops_conv, ops_math, ops_rearrange, ops_reduce, ops_resize, ops_shape
 from .build import StepContext
 from .draw import Draw, Proposal
 from .recipe import Shape
@@ -21,6 +21,10 @@ class OpSpec:
     min_opset: int = 7
     max_opset: int = 99
 
+
+REDUCTIONS = (
+    "ReduceSum", "ReduceMax", "ReduceMin", "ReduceL1", "ReduceL2", "ReduceSumSquare", "ReduceLogSum", "ReduceLogSumExp",
+)  # fmt: skip
 
 OPS: dict[str, OpSpec] = {
     "Conv": OpSpec(ops_conv.build_conv, ops_conv.propose_conv, 5.0),
@@ -54,12 +58,34 @@ OPS: dict[str, OpSpec] = {
     "Concat": OpSpec(ops_shape.build_concat, ops_shape.propose_concat, 1.2),
     "Resize": OpSpec(ops_resize.build_resize, ops_resize.propose_resize, 2.0, min_opset=10),
     "Upsample": OpSpec(ops_resize.build_upsample, ops_resize.propose_upsample, 1.5, max_opset=9),
-    "DepthToSpace": OpSpec(ops_rearrange.build_depth_to_space, ops_rearrange.propose_depth_to_space, 0.4),
+    "DepthToSpace": OpSpec(ops_rearrange.build_depth_to_space, ops_rearrange.propose_depth_to_space, 0.8),
     "SpaceToDepth": OpSpec(ops_rearrange.build_space_to_depth, ops_rearrange.propose_space_to_depth, 0.4),
     "Tile": OpSpec(ops_rearrange.build_tile, ops_rearrange.propose_tile, 0.4),
     "Expand": OpSpec(ops_rearrange.build_expand, ops_rearrange.propose_expand, 0.4, min_opset=8),
     "Gather": OpSpec(ops_rearrange.build_gather, ops_rearrange.propose_gather, 0.5),
     "Where": OpSpec(ops_rearrange.build_where, ops_rearrange.propose_where, 0.4, min_opset=9),
+    **{
+        op: OpSpec(
+            partial(ops_activation.build_activation, op=op),
+            partial(ops_activation.propose_activation, op=op),
+            ops_activation.WEIGHTS.get(op, 0.15),
+            min_opset=ops_activation.MIN_OPSET.get(op, 7),
+        )
+        for op in ops_activation.ACTIVATIONS
+    },
+    "Pow": OpSpec(ops_activation.build_pow, ops_activation.propose_pow, 0.4),
+    **{
+        op: OpSpec(partial(ops_reduce.build_reduce, op=op), partial(ops_reduce.propose_reduce, op=op), 0.15)
+        for op in REDUCTIONS
+    },
+    **{
+        op: OpSpec(partial(ops_reduce.build_arg_extreme, op=op), ops_reduce.propose_arg_extreme, 0.2)
+        for op in ("ArgMax", "ArgMin")
+    },
+    "InstanceNormalization": OpSpec(ops_reduce.build_instance_norm, ops_reduce.propose_instance_norm, 0.3),
+    # opset 21's GroupNormalization (scale and bias per channel; opsets 18-20 had them per group)
+    "GroupNormalization": OpSpec(ops_reduce.build_group_norm, ops_reduce.propose_group_norm, 1.2, min_opset=21),
+    "LayerNormalization": OpSpec(ops_reduce.build_layer_norm, ops_reduce.propose_layer_norm, 0.4, min_opset=17),
     "Dropout": OpSpec(ops_shape.build_dropout, ops_shape.propose_dropout, 0.3),
     "Identity": OpSpec(ops_shape.build_identity, ops_shape.propose_identity, 0.2),
 }

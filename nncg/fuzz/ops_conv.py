@@ -39,8 +39,11 @@ def _spatial(c: StepContext) -> tuple[list[int], list[int], list[int], list[int]
     return list(x[2:]), _dims(c, "kernel", 1), _dims(c, "strides", 1), _dims(c, "dilations", 1)
 
 
-def window_output(n: int, k: int, s: int, dil: int, begin: int, end: int, auto_pad: str, ceil: bool = False) -> int:
-    """Output size along one axis as onnxruntime computes it (ceil_mode drops a window starting in the end pad)."""
+def window_output(
+    n: int, k: int, s: int, dil: int, begin: int, end: int, auto_pad: str, ceil: bool = False, drop_last: bool = True
+) -> int:
+    """Output size along one axis as onnxruntime computes it (ceil_mode drops a window starting in the
+    end pad; not with `drop_last` False, as onnx's shape inference computes it)."""
     ext = window_extent(k, dil)
     if auto_pad in ("SAME_UPPER", "SAME_LOWER"):
         return -(-n // s)
@@ -52,7 +55,7 @@ def window_output(n: int, k: int, s: int, dil: int, begin: int, end: int, auto_p
     if not ceil:
         return span // s + 1
     out = -(-span // s) + 1
-    return out - 1 if (out - 1) * s >= n + begin else out
+    return out - 1 if drop_last and (out - 1) * s >= n + begin else out
 
 
 def _window_attrs(c: StepContext) -> dict:
@@ -66,12 +69,12 @@ def _window_attrs(c: StepContext) -> dict:
     return attrs
 
 
-def _out_sizes(c: StepContext, ceil: bool = False) -> list[int]:
+def _out_sizes(c: StepContext, ceil: bool = False, drop_last: bool = True) -> list[int]:
     sizes, kernel, strides, dilations = _spatial(c)
     pads, auto_pad = _pads(c), c.params.get("auto_pad", "NOTSET")
     d = len(sizes)
     out = [
-        window_output(n, k, s, dil, pads[i], pads[i + d], auto_pad, ceil)
+        window_output(n, k, s, dil, pads[i], pads[i + d], auto_pad, ceil, drop_last)
         for i, (n, k, s, dil) in enumerate(zip(sizes, kernel, strides, dilations))
     ]
     if min(out) < 1:
@@ -220,7 +223,7 @@ def propose_conv_transpose(d: Draw, x: str) -> Proposal | None:
     params["seed"] = d.seed()
     if d.chance(0.3):
         params["output_padding"] = [d.int(0, s - 1) for s in params.get("strides", [1] * (len(shape) - 2))]
-    if d.chance(0.15) and "auto_pad" not in params:
+    if d.chance(0.25) and "auto_pad" not in params:
         params["output_shape"] = [n * d.int(1, 2) + d.int(0, 1) for n in shape[2:]]
         params.pop("pads", None)
     groups = [g for g in (1, 1, 1, 2, 3, shape[1]) if shape[1] % g == 0]
@@ -234,6 +237,23 @@ def propose_conv_transpose(d: Draw, x: str) -> Proposal | None:
 
 
 # --- pools ----------------------------------------------------------------------------------------
+
+
+def _window_in_padding(c: StepContext, out: list[int]) -> bool:
+    """Whether some output window of a pool reads padding only."""
+    sizes, kernel, strides, dilations = _spatial(c)
+    auto_pad, pads = c.params.get("auto_pad", "NOTSET"), _pads(c)
+    for i, (n, k, s, dil, o) in enumerate(zip(sizes, kernel, strides, dilations, out)):
+        begin = pads[i]
+        if auto_pad == "VALID":
+            begin = 0
+        elif auto_pad.startswith("SAME"):
+            total = max(0, (o - 1) * s + window_extent(k, dil) - n)
+            begin = total // 2 if auto_pad == "SAME_UPPER" else total - total // 2
+        for j in range(o):
+            if all(not 0 <= j * s - begin + t * dil < n for t in range(k)):
+                return True
+    return False
 
 
 def build_pool(c: StepContext, op: str) -> list[tuple[int, ...]]:
@@ -251,6 +271,10 @@ def build_pool(c: StepContext, op: str) -> list[tuple[int, ...]]:
     if any(pads[i] >= kernel[i] or pads[i + d] >= kernel[i] for i in range(d)):
         raise c.invalid("pool pads must be smaller than the kernel")
     out = _out_sizes(c, ceil)
+    if ceil and out != _out_sizes(c, ceil, drop_last=False):
+        # onnx's shape inference keeps the window starting in the end pad that onnxruntime drops: the
+        # generator reads this value no more (a later op checking the inferred shape fails in onnxruntime)
+        c.builder.dead_ends.add(c.output())
     if p.get("auto_pad", "").startswith("SAME"):
         sizes, _, strides, dilations = _spatial(c)
         needed = [
@@ -258,6 +282,8 @@ def build_pool(c: StepContext, op: str) -> list[tuple[int, ...]]:
         ]
         if min(needed) < 0:  # onnxruntime refuses the negative padding SAME gives when stride > kernel
             raise c.invalid(f"SAME padding {needed} is negative")
+    if op == "MaxPool" and _window_in_padding(c, out):
+        c.builder.dead_ends.add(c.output())  # it gives -FLT_MAX there: x * x or a sum of two overflows
     attrs = _window_attrs(c)
     attrs["kernel_shape"] = kernel
     if ceil:
