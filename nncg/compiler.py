@@ -173,7 +173,7 @@ def onnx_model(model, input_layout: str | None = None, example_inputs=None, expo
         model = keras_to_onnx(model)
     if input_layout is not None:
         proto = model if isinstance(model, onnx.ModelProto) else read_model(model)
-        if model_layout(proto) != input_layout:
+        if model_layout(proto) != input_layout:  # else a path stays a path: its name and hash
             model = with_input_layout(proto, input_layout)
         return model, input_layout
     tf2onnx = isinstance(model, onnx.ModelProto) and model.producer_name.startswith("tf2onnx")

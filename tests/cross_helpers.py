@@ -292,3 +292,14 @@ def format_table(rows: dict[str, dict[str, object]], corner: str = "model") -> s
     cells = [[corner, *columns]] + [[name, *(str(row.get(c, "-")) for c in columns)] for name, row in rows.items()]
     widths = [max(len(line[i]) for line in cells) for i in range(len(cells[0]))]
     return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths)).rstrip() for line in cells)
+
+
+def check_on_neon(toolchain: str, model: onnx.ModelProto) -> None:
+    """Compile `model` for neon and compare it with onnxruntime under `toolchain`'s emulator (skipped
+    when the toolchain is missing)."""
+    from test_cross_targets import require  # the skip rule of the cross tests
+
+    tc = TOOLCHAINS[toolchain]
+    require(missing_tools(tc))
+    report = verify_on(tc, model, nncg.compile(model, target="neon", verify_ir=True))
+    assert report.ok, report.format()

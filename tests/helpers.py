@@ -16,6 +16,8 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg
+from nncg.backends.ansi_c import AnsiC
+from nncg.backends.scalar_math import helper_definitions, helper_name
 from nncg.ir.target import Target
 from nncg.verify import VerifyReport, verify
 
@@ -137,3 +139,28 @@ def nncg_onnx(*args: object, umask: int | None = None) -> subprocess.CompletedPr
     preexec = None if umask is None else (lambda: os.umask(umask))
     command = [*NNCG_CLI, *map(str, args)]
     return subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=CLI_TIMEOUT_S, preexec_fn=preexec)
+
+
+def scalar_math_values(fn: str, x: np.ndarray, workdir: Path) -> np.ndarray:
+    """The generated scalar helper of math function `fn` (backends/scalar_math.py) applied to each x,
+    built with the ansi-c target's strict C89 flags."""
+    lines = [
+        "#include <stdio.h>",
+        "#include <math.h>",
+        *helper_definitions({fn}),
+        "",
+        "int main(void)",
+        "{",
+        "    float v;",
+        "    while (fread(&v, sizeof v, 1, stdin) == 1) {",
+        f"        v = {helper_name(fn)}(v);",
+        "        fwrite(&v, sizeof v, 1, stdout);",
+        "    }",
+        "    return 0;",
+        "}",
+    ]
+    source, exe = Path(workdir) / f"{fn}.c", Path(workdir) / fn
+    source.write_text("\n".join(lines) + "\n")
+    subprocess.run(["gcc", "-O2", *AnsiC.strict_cflags, str(source), "-o", str(exe), "-lm"], check=True)
+    out = subprocess.run([str(exe)], input=x.astype(np.float32).tobytes(), capture_output=True, check=True).stdout
+    return np.frombuffer(out, np.float32)

@@ -4,19 +4,16 @@ producer's store. Graph-level Before/Expected and refusals, the scalar erf helpe
 against math.erf, then ONNX models against onnxruntime on every target (NEON under qemu-user)."""
 
 import math
-import subprocess
 
 import numpy as np
 import pytest
-from cross_helpers import NEON_TOOLCHAINS, TOOLCHAINS, missing_tools, verify_on
-from helpers import compile_and_check, kernel_ops, onnx_model, weights
+from cross_helpers import NEON_TOOLCHAINS, check_on_neon
+from helpers import compile_and_check, kernel_ops, onnx_model, scalar_math_values, weights
 from onnx import helper
-from test_cross_targets import require
 from test_vector_math import sweep, ulp_errors
 
 import nncg
-from nncg.backends.ansi_c import AnsiC
-from nncg.backends.scalar_math import ULP_BOUNDS, helper_definitions
+from nncg.backends.scalar_math import ULP_BOUNDS
 from nncg.errors import NncgError
 from nncg.ir.graph import Activation, ConvAttrs, Graph, Node, Value
 from nncg.passes.fuse_activation import fuse_activation
@@ -171,28 +168,8 @@ def test_product_with_another_tensor_is_not_gelu():
 
 
 def scalar_erf(x: np.ndarray, workdir) -> np.ndarray:
-    """The generated scalar erf of each x, built with the ansi-c target's strict C89 flags."""
-    lines = [
-        "#include <stdio.h>",
-        "#include <stdlib.h>",
-        "#include <math.h>",
-        *helper_definitions({"erf"}),
-        "",
-        "int main(void)",
-        "{",
-        "    float v;",
-        "    while (fread(&v, sizeof v, 1, stdin) == 1) {",
-        "        v = nncg_erf(v);",
-        "        fwrite(&v, sizeof v, 1, stdout);",
-        "    }",
-        "    return 0;",
-        "}",
-    ]
-    source, exe = workdir / "erf.c", workdir / "erf"
-    source.write_text("\n".join(lines) + "\n")
-    subprocess.run(["gcc", "-O2", *AnsiC.strict_cflags, str(source), "-o", str(exe), "-lm"], check=True)
-    out = subprocess.run([str(exe)], input=x.astype(np.float32).tobytes(), capture_output=True, check=True).stdout
-    return np.frombuffer(out, np.float32)
+    """The generated scalar erf of each x."""
+    return scalar_math_values("erf", x, workdir)
 
 
 def test_scalar_erf_is_within_its_ulp_bound_of_math_erf(tmp_path):
@@ -319,9 +296,4 @@ NEON_MODELS = {
 @pytest.mark.parametrize("toolchain", NEON_TOOLCHAINS)
 @pytest.mark.parametrize("case", NEON_MODELS)
 def test_neon_matches_onnxruntime(case, toolchain):
-    tc = TOOLCHAINS[toolchain]
-    require(missing_tools(tc))
-    model = NEON_MODELS[case]()
-    compiled = nncg.compile(model, target="neon", verify_ir=True)
-    report = verify_on(tc, model, compiled)
-    assert report.ok, report.format()
+    check_on_neon(toolchain, NEON_MODELS[case]())

@@ -6,10 +6,9 @@ errors for what NNCG refuses. Odd channel counts (13, 7) leave vector tails on e
 
 import numpy as np
 import pytest
-from cross_helpers import NEON_TOOLCHAINS, TOOLCHAINS, missing_tools, verify_on
+from cross_helpers import NEON_TOOLCHAINS, check_on_neon
 from helpers import compile_and_check, kernel_ops, onnx_model, weights
 from onnx import TensorProto, helper
-from test_cross_targets import require
 
 import nncg
 from nncg.errors import NncgError
@@ -368,9 +367,4 @@ NEON_MODELS = {
 @pytest.mark.parametrize("toolchain", NEON_TOOLCHAINS)
 @pytest.mark.parametrize("case", NEON_MODELS)
 def test_neon_matches_onnxruntime(case, toolchain):
-    tc = TOOLCHAINS[toolchain]
-    require(missing_tools(tc))
-    model = NEON_MODELS[case]()
-    compiled = nncg.compile(model, target="neon", verify_ir=True)
-    report = verify_on(tc, model, compiled)
-    assert report.ok, report.format()
+    check_on_neon(toolchain, NEON_MODELS[case]())

@@ -5,19 +5,16 @@ target (NEON under qemu-user), fused into a Conv's store, the special values (ze
 NaN, negative bases) element by element, the scalar softplus helper's accuracy and the refusals."""
 
 import re
-import subprocess
 
 import numpy as np
 import pytest
-from cross_helpers import TOOLCHAINS, missing_tools, verify_on
-from helpers import compile_and_check, kernel_ops, onnx_model, skip_unless_host_runs, weights
+from cross_helpers import check_on_neon
+from helpers import compile_and_check, kernel_ops, onnx_model, scalar_math_values, skip_unless_host_runs, weights
 from onnx import helper, numpy_helper
-from test_cross_targets import require
 from test_vector_math import sweep, ulp_errors
 
 import nncg
-from nncg.backends.ansi_c import AnsiC
-from nncg.backends.scalar_math import ULP_BOUNDS, helper_definitions
+from nncg.backends.scalar_math import ULP_BOUNDS
 from nncg.errors import NncgError
 from nncg.verify import reference_outputs, run_compiled
 
@@ -213,28 +210,9 @@ def test_special_values_to_an_exponent_per_element(target):
 # ---------------------------------------------------------------------------- scalar softplus
 
 
-def scalar_softplus(x, workdir):
-    """The generated scalar softplus of each x, built with the ansi-c target's strict C89 flags."""
-    lines = [
-        "#include <stdio.h>",
-        "#include <math.h>",
-        *helper_definitions({"softplus"}),
-        "",
-        "int main(void)",
-        "{",
-        "    float v;",
-        "    while (fread(&v, sizeof v, 1, stdin) == 1) {",
-        "        v = nncg_softplus(v);",
-        "        fwrite(&v, sizeof v, 1, stdout);",
-        "    }",
-        "    return 0;",
-        "}",
-    ]
-    source, exe = workdir / "softplus.c", workdir / "softplus"
-    source.write_text("\n".join(lines) + "\n")
-    subprocess.run(["gcc", "-O2", *AnsiC.strict_cflags, str(source), "-o", str(exe), "-lm"], check=True)
-    out = subprocess.run([str(exe)], input=x.astype(np.float32).tobytes(), capture_output=True, check=True).stdout
-    return np.frombuffer(out, np.float32)
+def scalar_softplus(x: np.ndarray, workdir) -> np.ndarray:
+    """The generated scalar softplus of each x."""
+    return scalar_math_values("softplus", x, workdir)
 
 
 def test_scalar_softplus_is_within_its_ulp_bound(tmp_path):
@@ -310,17 +288,9 @@ NEON_CASES += [
 
 @pytest.mark.parametrize("case, toolchain", NEON_CASES)
 def test_neon_matches_onnxruntime(case, toolchain):
-    tc = TOOLCHAINS[toolchain]
-    require(missing_tools(tc))
-    model = CASES[case].model()
-    report = verify_on(tc, model, nncg.compile(model, target="neon", verify_ir=True))
-    assert report.ok, report.format()
+    check_on_neon(toolchain, CASES[case].model())
 
 
 @pytest.mark.parametrize("case", ["mish", "pow_5", "sqrt"])
 def test_neon_fused_into_the_conv(case):
-    tc = TOOLCHAINS["aarch64-neon"]
-    require(missing_tools(tc))
-    model = conv_model(case)
-    report = verify_on(tc, model, nncg.compile(model, target="neon", verify_ir=True))
-    assert report.ok, report.format()
+    check_on_neon("aarch64-neon", conv_model(case))

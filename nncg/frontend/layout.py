@@ -12,6 +12,7 @@ import onnx
 from onnx import helper
 
 from nncg.errors import NncgError
+from nncg.ir.names import fresh_name
 from nncg.safe_text import capped
 
 LAYOUTS = ("nchw", "nhwc")
@@ -62,7 +63,8 @@ def with_input_layout(model: onnx.ModelProto, layout: str | None) -> onnx.ModelP
     for value in out.graph.input:
         if value.name not in {v.name for v in inputs}:
             continue
-        inner = _fresh(f"{value.name}_{own}", taken)
+        inner = fresh_name(f"{value.name}_{own}", taken)
+        taken.add(inner)
         for node in out.graph.node:
             node.input[:] = [inner if n == value.name else n for n in node.input]
         for output in out.graph.output:
@@ -82,11 +84,3 @@ def with_input_layout(model: onnx.ModelProto, layout: str | None) -> onnx.ModelP
     out.graph.node.extend(nodes)
     out.producer_name = f"{model.producer_name} (input layout {layout})"
     return out
-
-
-def _fresh(name: str, taken: set[str]) -> str:
-    candidate, i = name, 1
-    while candidate in taken:
-        candidate, i = f"{name}_{i}", i + 1
-    taken.add(candidate)
-    return candidate
