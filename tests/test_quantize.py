@@ -15,7 +15,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-from helpers import ROOT, onnx_model, weights
+from helpers import ROOT, compile_int8_or_skip, onnx_model, weights
 from onnx import helper, numpy_helper
 from test_cli_errors import old_files, snapshot
 
@@ -385,22 +385,11 @@ def test_nncg_onnx_refuses_to_quantise_a_quantised_model(robot_qdq, tmp_path, ca
     assert snapshot(out) == before
 
 
-# --- compiled: needs the int8 compute path --------------------------------------------------------
+# --- compiled: needs the int8 compute path (skipped while NNCG refuses QDQ models) -------------------
 
 
-@pytest.fixture(scope="module")
-def int8_compiles():
-    """Skips while NNCG refuses QDQ models (its message says int8); any other failure is a failure."""
-    try:
-        nncg.compile(nncg.quantize(dense_model(), np.ones((2, 1, 16), np.float32)))
-    except NncgError as exc:
-        if "int8" not in str(exc):
-            raise
-        pytest.skip(f"NNCG does not compile QDQ models yet: {exc}")
-
-
-def test_robot_c_matches_onnxruntime_int8_within_one_step(int8_compiles, robot_qdq, tmp_path):
-    compiled = nncg.compile(robot_qdq, target="ansi-c")
+def test_robot_c_matches_onnxruntime_int8_within_one_step(robot_qdq, tmp_path):
+    compiled = compile_int8_or_skip(robot_qdq, target="ansi-c")
     built = build_model(compiled, tmp_path)
     test = robot_samples(4, RNG_SEED + 1)
     c_out = np.stack([built.run([x])[0] for x in test])
@@ -408,10 +397,11 @@ def test_robot_c_matches_onnxruntime_int8_within_one_step(int8_compiles, robot_q
     assert error.max() <= output_scale(robot_qdq) * (1 + 1e-6), error.max() / output_scale(robot_qdq)
 
 
-def test_nncg_onnx_calibration_writes_the_qdq_model_beside_the_c(int8_compiles, robot_qdq, tmp_path, capsys):
+def test_nncg_onnx_calibration_writes_the_qdq_model_beside_the_c(robot_qdq, tmp_path):
+    compiled = compile_int8_or_skip(robot_qdq, name="robot")
     np.savez(tmp_path / "cal.npz", image=robot_samples(16, RNG_SEED))
     out = tmp_path / "out"
     assert cli.main([str(ROBOT), "--calibration", str(tmp_path / "cal.npz"), "-o", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["robot.c", "robot.h", "robot.qdq.onnx"]
     assert (out / "robot.qdq.onnx").read_bytes() == robot_qdq.SerializeToString(deterministic=True)
-    assert (out / "robot.c").read_text() == nncg.compile(robot_qdq, name="robot").source
+    assert (out / "robot.c").read_text() == compiled.source
