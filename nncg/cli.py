@@ -80,14 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
         "their reduction loops); LEVEL: keep the LEVEL outermost loops of each layer, unroll the rest "
         "(the paper's levels; 0 unrolls everything); none: nothing (default: auto)",
     )
-    p.add_argument(
-        "--input-shape",
-        action="append",
-        type=parse_input_shape,
-        default=[],
-        metavar="NAME=DIMS",
-        help="fix a dynamic input shape, e.g. image=1x3x60x80 (repeatable)",
-    )
+    add_input_shape_option(p)
     p.add_argument(
         "--code-budget",
         type=whole_number,
@@ -163,6 +156,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true", help="show the traceback of an internal error")
     p.add_argument("--version", action="version", version=f"nncg {__version__}")
     return p
+
+
+def add_input_shape_option(p: argparse.ArgumentParser) -> None:
+    """--input-shape NAME=DIMS, repeatable, as input_shapes() reads it."""
+    p.add_argument(
+        "--input-shape",
+        action="append",
+        type=parse_input_shape,
+        default=[],
+        metavar="NAME=DIMS",
+        help="fix a dynamic input shape, e.g. image=1x3x60x80 (repeatable)",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

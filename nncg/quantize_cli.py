@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
-from .cli import Parser, input_shapes, non_empty, parse_input_shape, print_written, run_command
+from .cli import Parser, add_input_shape_option, input_shapes, non_empty, print_written, run_command
 from .errors import NncgError
 from .output_files import check_output_folder, write_files
 from .quantization import ACTIVATIONS, CALIBRATE_METHODS, quantize
@@ -43,14 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--per-tensor", action="store_true", help="one scale per weight tensor instead of one per output channel"
     )
-    p.add_argument(
-        "--input-shape",
-        action="append",
-        type=parse_input_shape,
-        default=[],
-        metavar="NAME=DIMS",
-        help="fix a dynamic input shape, e.g. image=1x3x60x80 (repeatable; a dynamic batch is 1)",
-    )
+    add_input_shape_option(p)
     p.add_argument("--debug", action="store_true", help="show the traceback of an internal error")
     p.add_argument("--version", action="version", version=f"nncg {__version__}")
     return p
