@@ -7,7 +7,8 @@ quantize_static then writes QuantizeLinear/DequantizeLinear pairs around the flo
 activations per tensor (uint8 or int8, asymmetric), weights int8, symmetric, per channel on the
 output-channel axis (Conv: 0, ConvTranspose: 1, Gemm: by transB, MatMul: 1), biases int32. The result is
 what nncg.compile takes; the same model and data give the same bytes (onnxruntime's quantiser is
-deterministic; the opset imports its optimiser adds for domains no node uses are dropped)."""
+deterministic; the opset imports its optimiser adds for domains no node uses are dropped). The
+producer stays the float model's, which says the layout of its inputs."""
 
 from __future__ import annotations
 
@@ -31,7 +32,10 @@ from .frontend.shapes import one_line
 from .safe_text import capped
 
 ACTIVATIONS = ("uint8", "int8")
-CALIBRATE_METHODS = ("minmax", "entropy", "percentile")
+# onnxruntime's CalibrationMethod. Not Entropy: quantize_static runs it with as many histogram bins as
+# quantised bins, so it keeps the whole range and writes the same bytes as MinMax.
+ORT_METHODS = {"minmax": "MinMax", "percentile": "Percentile"}
+CALIBRATE_METHODS = tuple(ORT_METHODS)
 # Operators only a quantised model has (its activations are integers already); QLinear* of any domain too.
 QUANTIZED_OPS = {"QuantizeLinear", "DynamicQuantizeLinear", "ConvInteger", "MatMulInteger"}
 
@@ -49,15 +53,18 @@ def quantize(
     ranges calibrated by onnxruntime on `calibration` (see nncg/calibration.py: an .npz keyed by input
     name with the samples along the first axis, a folder of .npy files, one per sample, or the same as
     arrays). `activations`: "uint8" (what onnxruntime's x86 kernels prefer) or "int8" (TFLite's choice);
-    `per_channel`: one weight scale per output channel; `calibrate_method`: "minmax", "entropy" or
-    "percentile"; `input_shapes` fixes dynamic input dims as in nncg.compile (a dynamic batch is 1).
-    Raises NncgError."""
+    `per_channel`: one weight scale per output channel; `calibrate_method`: "minmax" (the whole range
+    seen) or "percentile" (the 0.001 % of values at either end left out); `input_shapes` fixes dynamic
+    input dims as in nncg.compile (a dynamic batch is 1). Raises NncgError."""
     _check_arguments(activations, per_channel, calibrate_method, input_shapes)
     proto = load_model(model, input_shapes)
     _check_not_quantized(proto)
     samples = calibration_samples(calibration, real_inputs(proto.graph))
     quantized = _quantize_static(proto, samples, activations, per_channel, calibrate_method)
     _drop_unused_domains(quantized)
+    # NNCG reads the inputs' layout from the producer (NHWC for tf2onnx's models, see layout.py), which
+    # the quantiser overwrites: the QDQ model keeps the float model's.
+    quantized.producer_name, quantized.producer_version = proto.producer_name, proto.producer_version
     return quantized
 
 
@@ -105,7 +112,7 @@ def _quantize_static(
                 per_channel=per_channel,
                 activation_type=q.QuantType.QUInt8 if activations == "uint8" else q.QuantType.QInt8,
                 weight_type=q.QuantType.QInt8,
-                calibrate_method=getattr(q.CalibrationMethod, {"minmax": "MinMax"}.get(method, method.title())),
+                calibrate_method=q.CalibrationMethod[ORT_METHODS[method]],
             )
         except Exception as exc:  # onnxruntime raises many kinds; all mean it cannot quantise this model
             raise NncgError(

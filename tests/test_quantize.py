@@ -22,6 +22,7 @@ from test_cli_errors import old_files, snapshot
 import nncg
 from nncg import cli, quantize_cli
 from nncg.errors import NncgError
+from nncg.frontend.layout import model_layout
 from nncg.verify import build_model
 
 ROBOT = ROOT / "examples" / "robot.onnx"
@@ -218,6 +219,22 @@ def test_several_inputs_from_an_npz(tmp_path):
     assert qdq.SerializeToString() == nncg.quantize(model, data).SerializeToString()
 
 
+def test_a_tf2onnx_model_keeps_its_nhwc_layout():
+    model = dense_model()
+    model.producer_name, model.producer_version = "tf2onnx", "1.17.0"
+    qdq = nncg.quantize(model, np.ones((2, 1, 16), np.float32))
+    assert (qdq.producer_name, qdq.producer_version) == ("tf2onnx", "1.17.0")
+    assert model_layout(qdq) == "nhwc"
+
+
+def test_percentile_is_deterministic():
+    model, samples = dense_model(), {"x": np.random.default_rng(3).standard_normal((16, 1, 16)).astype(np.float32)}
+    first, second = (nncg.quantize(model, samples, calibrate_method="percentile") for _ in range(2))
+    assert first.SerializeToString() == second.SerializeToString()
+    minmax = nncg.quantize(model, samples)
+    assert input_scale(first, "x") != input_scale(minmax, "x")  # the method was applied
+
+
 def test_dynamic_batch_is_one(tmp_path):
     model = dense_model()
     model.graph.input[0].type.tensor_type.shape.dim[0].dim_param = "N"
@@ -231,7 +248,7 @@ def test_dynamic_batch_is_one(tmp_path):
 API_MISTAKES = {
     "activations": (dict(activations="int4"), "activations must be one of uint8, int8; got str 'int4'"),
     "per_channel": (dict(per_channel="yes"), "per_channel must be True or False"),
-    "method": (dict(calibrate_method="kl"), "calibrate_method must be one of minmax, entropy, percentile"),
+    "method": (dict(calibrate_method="entropy"), "calibrate_method must be one of minmax, percentile; got str"),
     "input_shapes": (dict(input_shapes={"x": (1, -16)}), "input_shapes['x'] must be a tuple of ints"),
 }
 
