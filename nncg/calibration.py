@@ -88,7 +88,10 @@ def _folder(path: Path, names: list[str]) -> dict[str, np.ndarray]:
             f"calibration folder {where} for a model with {len(names)} inputs ({', '.join(map(shown, names))}): "
             "a folder of .npy files is for one-input models; give an .npz keyed by input name"
         )
-    files = sorted(p for p in path.iterdir() if p.suffix.lower() == ".npy")
+    try:
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() == ".npy")
+    except OSError as exc:
+        raise NncgError(f"cannot list calibration folder {where}: {one_line(exc)} (check its permissions)") from None
     if not files:
         raise NncgError(f"calibration folder {where} has no .npy files; put one sample per .npy file there")
     samples = [_npy(file) for file in files]

@@ -202,17 +202,19 @@ def test_cli_output_is_byte_identical_across_processes(robot_qdq, tmp_path):
     assert outputs[0] == outputs[1] == robot_qdq.SerializeToString(deterministic=True)
 
 
-def test_several_inputs_from_an_npz(tmp_path):
+def two_inputs() -> tuple[onnx.ModelProto, dict[str, np.ndarray]]:
+    """A model with inputs a and b, and six calibration samples of each."""
     model = onnx_model(
         [helper.make_node("Conv", ["a", "w"], ["c"]), helper.make_node("Add", ["c", "b"], ["y"])],
         inputs={"a": [1, 2, 5, 5], "b": [1, 3, 3, 3]},
         initializers={"w": weights(3, 2, 3, 3)},
     )
     rng = np.random.default_rng(2)
-    data = {
-        "a": rng.standard_normal((6, 1, 2, 5, 5), np.float32),
-        "b": rng.standard_normal((6, 1, 3, 3, 3), np.float32),
-    }
+    return model, {name: rng.standard_normal((6, 1, c, n, n), np.float32) for name, c, n in (("a", 2, 5), ("b", 3, 3))}
+
+
+def test_several_inputs_from_an_npz(tmp_path):
+    model, data = two_inputs()
     np.savez(tmp_path / "cal.npz", **data)
     qdq = nncg.quantize(model, tmp_path / "cal.npz")
     assert sorted(n.input[0] for n in qdq.graph.node if n.op_type == "QuantizeLinear")[:2] == ["a", "b"]
@@ -278,6 +280,20 @@ def test_api_calibration_mistakes(calibration, message):
     with pytest.raises(NncgError) as raised:
         nncg.quantize(dense_model(), calibration)
     assert message in str(raised.value)
+
+
+def test_several_inputs_mistakes(tmp_path):
+    model, data = two_inputs()
+    mistakes = {
+        "one calibration array for a model with 2 inputs ('a', 'b'); give a dict of input name to array": data["a"],
+        "a folder of .npy files is for one-input models; give an .npz keyed by input name": tmp_path,
+        "the calibration inputs have different numbers of samples ('a': 6, 'b': 5)": {**data, "b": data["b"][:5]},
+        "calibration must map input names (str) to numpy arrays; got int -> ndarray": {**data, 1: data["a"]},
+    }
+    for message, calibration in mistakes.items():
+        with pytest.raises(NncgError) as raised:
+            nncg.quantize(model, calibration)
+        assert message in str(raised.value)
 
 
 def test_a_quantised_model_is_refused(robot_qdq):
