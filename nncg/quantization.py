@@ -1,7 +1,8 @@
 """nncg.quantize: a float ONNX model and calibration inputs to a QDQ model, written by
 onnxruntime.quantization, whose calibrators set the activation ranges (NNCG has none of its own).
 
-quant_pre_process runs first (ONNX and symbolic shape inference, onnxruntime's basic graph optimisations:
+A model older than opset 13 is converted to 13 first (per-axis QuantizeLinear/DequantizeLinear); then
+quant_pre_process runs (ONNX and symbolic shape inference, onnxruntime's basic graph optimisations:
 BatchNormalization folded into Conv, constants folded), so that folded layers get one weight scale;
 quantize_static then writes QuantizeLinear/DequantizeLinear pairs around the float operators (QDQ format):
 activations per tensor (uint8 or int8, asymmetric), weights int8, symmetric, per channel on the
@@ -23,11 +24,12 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+import onnx.version_converter
 
 from .arguments import check_input_shapes
 from .calibration import calibration_samples
 from .errors import NncgError
-from .frontend.load import DEFAULT_DOMAINS, ModelSource, load_model, real_inputs
+from .frontend.load import DEFAULT_DOMAINS, ModelSource, load_model, opset_version, real_inputs
 from .frontend.shapes import one_line
 from .safe_text import capped
 
@@ -38,6 +40,7 @@ ORT_METHODS = {"minmax": "MinMax", "percentile": "Percentile"}
 CALIBRATE_METHODS = tuple(ORT_METHODS)
 # Operators only a quantised model has (its activations are integers already); QLinear* of any domain too.
 QUANTIZED_OPS = {"QuantizeLinear", "DynamicQuantizeLinear", "ConvInteger", "MatMulInteger"}
+QDQ_OPSET = 13  # per-axis (per-channel) QuantizeLinear/DequantizeLinear
 
 
 def quantize(
@@ -57,7 +60,7 @@ def quantize(
     seen) or "percentile" (the 0.001 % of values at either end left out); `input_shapes` fixes dynamic
     input dims as in nncg.compile (a dynamic batch is 1). Raises NncgError."""
     _check_arguments(activations, per_channel, calibrate_method, input_shapes)
-    proto = load_model(model, input_shapes)
+    proto = _at_least_opset_13(load_model(model, input_shapes))
     _check_not_quantized(proto)
     samples = calibration_samples(calibration, real_inputs(proto.graph))
     quantized = _quantize_static(proto, samples, activations, per_channel, calibrate_method)
@@ -82,6 +85,21 @@ def _check_arguments(activations, per_channel, calibrate_method, input_shapes) -
 
 def _shown_value(value: object) -> str:
     return f"{type(value).__name__} {capped(repr(value), 60)}"
+
+
+def _at_least_opset_13(model: onnx.ModelProto) -> onnx.ModelProto:
+    """Per-axis QuantizeLinear/DequantizeLinear came with opset 13; onnxruntime raises older models only to
+    11 and then writes per-channel scales that opset 11 does not have (an invalid model)."""
+    if opset_version(model) >= QDQ_OPSET:
+        return model
+    try:
+        return onnx.version_converter.convert_version(model, QDQ_OPSET)
+    except Exception as exc:  # the converter's errors come as several kinds
+        raise NncgError(
+            f"the model uses ONNX opset {opset_version(model)}, and onnx.version_converter cannot raise it to the "
+            f"{QDQ_OPSET} that per-channel quantisation needs ({one_line(exc, 200)}): re-export it with opset "
+            f"{QDQ_OPSET} or newer"
+        ) from None
 
 
 def _check_not_quantized(model: onnx.ModelProto) -> None:

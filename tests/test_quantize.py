@@ -237,6 +237,20 @@ def test_percentile_is_deterministic():
     assert input_scale(first, "x") != input_scale(minmax, "x")  # the method was applied
 
 
+@pytest.mark.parametrize("opset", [7, 11])
+def test_an_older_opset_is_raised_to_13(opset):
+    """Per-channel DequantizeLinear needs opset 13 (onnxruntime alone would write an invalid opset-11 model)."""
+    model = onnx_model(
+        [helper.make_node("Conv", ["x", "w", "b"], ["y"])],
+        inputs={"x": [1, 2, 5, 5]},
+        initializers={"w": weights(3, 2, 3, 3), "b": weights(3)},
+        opset=opset,
+    )
+    qdq = nncg.quantize(model, np.random.default_rng(0).random((4, 1, 2, 5, 5), dtype=np.float32))
+    onnx.checker.check_model(qdq, full_check=True)
+    assert [(o.domain, o.version) for o in qdq.opset_import] == [("", 13)]
+
+
 def test_dynamic_batch_is_one(tmp_path):
     model = dense_model()
     model.graph.input[0].type.tensor_type.shape.dim[0].dim_param = "N"
