@@ -128,6 +128,31 @@ def test_weights_per_channel_on_the_output_channel_axis(activations, dtype):
     assert {o.domain for o in qdq.opset_import} == {""}  # the optimiser's unused imports dropped
 
 
+SHIPPED = [ROOT / "examples" / f"{n}.onnx" for n in ("ball", "pedestrian", "robot")] + sorted(
+    (ROOT / "benchmarks" / "models").glob("*.onnx")
+)
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
+def test_every_shipped_model_quantises(path):
+    """The paper's networks and the MLPerf-Tiny-shaped ones (what the int8 compute path is checked on):
+    a valid QDQ model, every Conv and Gemm weight with one scale per output channel (axis 0: their Gemms
+    have transB=1), run by onnxruntime."""
+    model = nncg.load_model(path)
+    (image,) = model.graph.input
+    shape = tuple(d.dim_value for d in image.type.tensor_type.shape.dim)
+    samples = np.random.default_rng(0).random((4, *shape), dtype=np.float32)
+    qdq = nncg.quantize(path, {image.name: samples})
+    onnx.checker.check_model(qdq, full_check=True)
+    values, dequantizers = initializers(qdq), weight_dequantizers(qdq)
+    layers = [n for n in qdq.graph.node if n.op_type in ("Conv", "Gemm")]
+    assert layers
+    for node in layers:
+        (weight,) = [w for w, dq in dequantizers.items() if dq.output[0] == node.input[1]]
+        assert values[dequantizers[weight].input[1]].shape == (values[dequantizers[weight].input[0]].shape[0],)
+    assert np.isfinite(run_all(qdq, image.name, samples)).all()
+
+
 def test_per_tensor_weights_have_one_scale():
     samples = np.random.default_rng(0).standard_normal((8, 1, 2, 4, 4)).astype(np.float32)
     qdq = nncg.quantize(layers_model(), {"x": samples}, per_channel=False)
