@@ -9,6 +9,7 @@ from __future__ import annotations
 from ..errors import NncgError
 from ..ir.target import Target
 from ..lowering import lower
+from ..lowering.band_plan import parse_memory
 from .cache_block import cache_block
 from .cache_block import format_choice as format_cache_block
 from .cache_block import parse_layers as parse_cache_block_layers
@@ -38,6 +39,14 @@ from .winograd import winograd
 def parse_halos(text: str) -> bool | str:
     """lower's halos: auto (for cache-blocked Convs' inputs), true or false."""
     return "auto" if text == "auto" else parse_bool(text)
+
+
+def parse_budget(text: str) -> int:
+    """lower's RAM budget in bytes: an integer >= 1 (0: none)."""
+    budget = int(text)
+    if budget < 0:
+        raise ValueError("the budget is a number of bytes >= 0")
+    return budget
 
 
 def parse_unroll_level(text: str) -> int | None:
@@ -75,7 +84,7 @@ register(
     "cache-block", "graph", cache_block, target=True,
     tunable=Tunable(cache_block_choices, format_cache_block), layers=parse_cache_block_layers,
 )  # fmt: skip
-register("lower", "lower", lower, halos=parse_halos)
+register("lower", "lower", lower, halos=parse_halos, memory=parse_memory, budget=parse_budget)
 register("vectorize", "loop", vectorize, target=True)
 register(
     "register-block",

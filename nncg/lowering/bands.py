@@ -1,0 +1,142 @@
+"""Band geometry: a chain of layers run over bands of rows, so the tensors inside the chain are line
+buffers (the last few rows) instead of whole tensors.
+
+A group is a run of Conv and pooling layers, consecutive in graph order, whose tensors other than the
+last layer's output are read only inside the group. Each band, the last layer produces `rows` more
+output rows and every other layer the rows its readers need next: tensor t advances `step` rows per
+band (`rows` times the strides between it and the output) and is complete up to row
+step * band + ahead, `ahead` being what its readers' windows reach beyond their own rows. A line
+buffer keeps the `lines` newest rows: from the lowest row a reader's window starts at to the newest.
+The first bands (band < 0, before the output's first row) fill the line buffers; rows outside a
+tensor are skipped, so the same loop body serves every band, and each band computes only rows no
+earlier band computed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..ir.graph import Graph, Node
+from ..ir.loops import Affine
+from .conv import conv_extras
+
+STREAMABLE = ("Conv", "MaxPool", "AveragePool")
+
+
+@dataclass(frozen=True)
+class BandGroup:
+    """Layers (node names, consecutive in graph order) run together, `rows` output rows per band."""
+
+    nodes: tuple[str, ...]
+    rows: int
+
+    def __str__(self) -> str:
+        return f"{self.nodes[0]}..{self.nodes[-1]}:{self.rows}"
+
+
+@dataclass(frozen=True)
+class Rows:
+    """How a tensor of a group advances: `step` rows per band, complete up to step * band + ahead
+    (unclamped), its line buffer `lines` rows high (tensors kept whole: 0)."""
+
+    step: int
+    ahead: int
+    lines: int = 0
+
+    def first(self, band: Affine | int) -> Affine | int:
+        """The first row a band computes (band: an int or an Affine)."""
+        return band * self.step + (self.ahead - self.step)
+
+    def origin(self, band: Affine | int) -> Affine | int:
+        """The tensor row in the first line of the line buffer after `band`."""
+        return band * self.step + (self.ahead - self.lines)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Rows of every tensor the group produces, the bands to run (from `first_band` <= 0) and the
+    tensors that become line buffers."""
+
+    rows: dict[str, Rows]
+    first_band: int
+    bands: int
+    internal: tuple[str, ...]
+    output: str
+
+
+def streamable(graph: Graph, node: Node) -> bool:
+    """A 2-D Conv (constant weights) or pooling over a batch of one, at least two output rows."""
+    if node.op not in STREAMABLE or len(node.attrs.kernel) != 2 or len(node.outputs) != 1:
+        return False
+    shape = graph.shape(node.outputs[0])
+    if shape[0] != 1 or shape[2] < 2:
+        return False
+    return node.op != "Conv" or all(graph.is_constant(v) for v in (node.inputs[1], conv_extras(node)[0]) if v)
+
+
+def row_window(node: Node, index: int) -> tuple[int, int, int, int]:
+    """(kernel, stride, dilation, padding before) along the rows, as `node` reads its input `index`;
+    a fused residual is read at the output's own rows."""
+    if index > 0:
+        return 1, 1, 1, 0
+    attrs = node.attrs
+    return attrs.kernel[0], attrs.strides[0], attrs.dilations[0], attrs.pads_begin[0]
+
+
+def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
+    """The group's geometry, or None when it cannot run in bands."""
+    by_name = {node.name: node for node in graph.nodes}
+    nodes = [by_name.get(name) for name in group.nodes]
+    if group.rows < 1 or None in nodes or not all(streamable(graph, n) for n in nodes):
+        return None
+    if not _consecutive(graph, nodes):
+        return None
+    output = nodes[-1].outputs[0]
+    internal = tuple(n.outputs[0] for n in nodes[:-1])
+    members = set(group.nodes)
+    if any(graph.is_graph_output(v) or any(c.name not in members for c in graph.consumers(v)) for v in internal):
+        return None
+    if any(c.name in members for c in graph.consumers(output)):
+        return None
+    rows = _rows(graph, nodes, group.rows)
+    if rows is None:
+        return None
+    first_band = min((r.step - r.ahead) // r.step for r in rows.values())
+    bands = -(-graph.shape(output)[2] // group.rows) - first_band
+    return Geometry(rows, first_band, bands, internal, output)
+
+
+def _consecutive(graph: Graph, nodes: list[Node]) -> bool:
+    index = {node.name: i for i, node in enumerate(graph.nodes)}
+    first = index[nodes[0].name]
+    return [index[n.name] for n in nodes] == list(range(first, first + len(nodes)))
+
+
+def _rows(graph: Graph, nodes: list[Node], rows: int) -> dict[str, Rows] | None:
+    """Per tensor the group produces, from the output back: what its readers need of it."""
+    produced = {n.outputs[0] for n in nodes}
+    out: dict[str, Rows] = {nodes[-1].outputs[0]: Rows(rows, rows)}
+    lowest: dict[str, int] = {}
+    for node in reversed(nodes):
+        y = out.get(node.outputs[0])
+        if y is None:  # read by nobody in the group
+            return None
+        for index, x in enumerate(node.inputs):
+            if x not in produced:
+                continue
+            kernel, stride, dilation, pad = row_window(node, index)
+            step, ahead = y.step * stride, y.ahead * stride + (kernel - 1) * dilation - pad - stride + 1
+            low = (y.ahead - y.step) * stride - pad
+            if x in out:
+                if out[x].step != step:
+                    return None
+                ahead, low = max(ahead, out[x].ahead), min(low, lowest[x])
+            out[x], lowest[x] = Rows(step, ahead), low
+    return {
+        v: r if v not in lowest else Rows(r.step, r.ahead, max(r.step, r.ahead - lowest[v])) for v, r in out.items()
+    }
+
+
+def row_floats(graph: Graph, value: str) -> int:
+    """Floats in one row of a (1, C, H, W) tensor."""
+    shape = graph.shape(value)
+    return shape[1] * shape[3]
