@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm, VectorAxis
-from .bands import BandGroup, geometry, row_floats, streamable
+from .bands import STREAMABLE, BandGroup, geometry, row_floats, streamable
 from .winograd import scratch_floats
 
 MEMORY_MODES = ("speed", "balanced", "min")
@@ -68,11 +68,22 @@ def layer_bound_floats(graph: Graph) -> int:
     return max((s.floats for s in candidate_steps(graph, bands=False)), default=0)
 
 
+def whole_activation_floats(graph: Graph) -> int:
+    """Every activation of the arena computed whole, side by side (no reuse, no bands)."""
+    return sum(size for _, _, _, size in _Liveness(graph).tensors)
+
+
+def describe_plan(groups: tuple[BandGroup, ...]) -> str:
+    if not groups:
+        return "every layer computed whole"
+    return "; ".join(f"{g.nodes[0]}..{g.nodes[-1]} in bands of {g.rows} output row(s)" for g in groups)
+
+
 def candidate_steps(graph: Graph, bands: bool = True) -> list[Step]:
     """Every layer run whole, and (with `bands`) every group that can run in bands at each height."""
     live = _Liveness(graph)
     steps = [
-        Step(i, i + 1, None, live.floats(i, i + 1, ()) + _scratch(graph, node), 0.0)
+        Step(i, i + 1, None, live.floats(i, i + 1, ()) + _scratch(graph, node) + _output_copy(graph, node), 0.0)
         for i, node in enumerate(graph.nodes)
     ]
     if not bands:
@@ -106,6 +117,13 @@ def _band_step(graph: Graph, live: _Liveness, i: int, j: int, rows: int) -> Step
 def _scratch(graph: Graph, node: Node) -> int:
     winograd = node.op == "Conv" and node.attrs.algorithm == ConvAlgorithm.WINOGRAD
     return scratch_floats(graph, node) if winograd else 0
+
+
+def _output_copy(graph: Graph, node: Node) -> int:
+    """A graph output a Conv or pooling layer run whole writes channels last, then copies out."""
+    shape = graph.shape(node.outputs[0])
+    copied = node.op in STREAMABLE and graph.is_graph_output(node.outputs[0]) and shape[1] > 1
+    return math.prod(shape) if copied and math.prod(shape[2:]) > 1 else 0
 
 
 def _lost(graph: Graph, node: Node) -> float:

@@ -31,7 +31,7 @@ def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
     """Emits the group's kernel (after the zero halo of its output, if that has one)."""
     geo = geometry(ctx.graph, group)
     if geo is None:
-        raise NncgError(f"layers {group} cannot run in bands")
+        raise NncgError("the band plan names layers that cannot run in bands")
     by_name = {node.name: node for node in ctx.graph.nodes}
     ctx.written_as_is.add(geo.output)
     stages, helpers = [], []

@@ -105,11 +105,17 @@ GRAPH_PIPELINE = "drop-identity,cancel-transposes,fold-batchnorm,fuse-bias,fuse-
 
 
 def default_pipeline(
-    target: Target, unroll_level: str = "auto", weights: str = "auto", budget: int | None = None
+    target: Target,
+    unroll_level: str = "auto",
+    weights: str = "auto",
+    budget: int | None = None,
+    memory: str = "speed",
+    ram_budget: int | None = None,
 ) -> str:
     """The pipeline `nncg-onnx` runs for `target` at an unroll level; `weights` (auto, embed, bin) says
     where plan-memory puts the weights; `budget` caps the statements of the unrolled program (None: no
-    cap). Vector widths and registers are the target's, not the text's."""
+    cap); `memory` (speed, balanced, min) or `ram_budget` (bytes) choose the layers lower runs in bands.
+    Vector widths and registers are the target's, not the text's."""
     try:
         parse_unroll_level(unroll_level)
     except ValueError:
@@ -123,7 +129,8 @@ def default_pipeline(
     graph = f"{GRAPH_PIPELINE},winograd" + (",vectorize-pixels,cache-block" if vectors else "")
     loops = ",vectorize" if vectors else ""
     loops += f",register-block,unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
-    return f"{graph},lower{loops}"
+    lower_params = f"{{budget={ram_budget}}}" if ram_budget else "" if memory == "speed" else f"{{memory={memory}}}"
+    return f"{graph},lower{lower_params}{loops}"
 
 
 __all__ = [
