@@ -64,8 +64,10 @@ def plan_bands(graph: Graph, memory: str = "speed", budget: int = 0) -> tuple[Ba
 
 
 def layer_bound_floats(graph: Graph) -> int:
-    """The activation floats the largest layer run whole needs: the layer-by-layer bound."""
-    return max((s.floats for s in candidate_steps(graph, bands=False)), default=0)
+    """The layer-by-layer bound: the most activation floats live at one layer computed whole (its
+    input and output, and tensors passing over it), scratch buffers left out."""
+    live = _Liveness(graph)
+    return max((live.floats(i, i + 1, ()) for i in range(len(graph.nodes))), default=0)
 
 
 def whole_activation_floats(graph: Graph) -> int:
@@ -79,15 +81,13 @@ def describe_plan(groups: tuple[BandGroup, ...]) -> str:
     return "; ".join(f"{g.nodes[0]}..{g.nodes[-1]} in bands of {g.rows} output row(s)" for g in groups)
 
 
-def candidate_steps(graph: Graph, bands: bool = True) -> list[Step]:
-    """Every layer run whole, and (with `bands`) every group that can run in bands at each height."""
+def candidate_steps(graph: Graph) -> list[Step]:
+    """Every layer run whole, and every group that can run in bands at each height."""
     live = _Liveness(graph)
     steps = [
         Step(i, i + 1, None, live.floats(i, i + 1, ()) + _scratch(graph, node) + _output_copy(graph, node), 0.0)
         for i, node in enumerate(graph.nodes)
     ]
-    if not bands:
-        return steps
     nodes = graph.nodes
     for i in range(len(nodes)):
         stop = i
