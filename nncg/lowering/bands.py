@@ -9,11 +9,18 @@ step * band + ahead, `ahead` being what its readers' windows reach beyond their 
 buffer keeps the `lines` newest rows: from the lowest row a reader's window starts at to the newest.
 The first bands (band < 0, before the output's first row) fill the line buffers; rows outside a
 tensor are skipped, so the same loop body serves every band, and each band computes only rows no
-earlier band computed."""
+earlier band computed.
+
+Layers before a stride advance faster: where the steps fall along the chain (4, 4, 2, 2, 1), the
+faster layers run in nested loops (level 1 twice per band, level 2 twice per level-1 run), each run
+computing `rows` rows, so a line buffer between two layers of one level holds only what one run
+needs (a 3x3 window: 3 rows, not step + 2). A tensor's step and ahead count runs of its producer's
+level; a reader at an outer level reads it after the last of the runs nested in its own."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
 from ..ir.loops import Affine
@@ -35,32 +42,41 @@ class BandGroup:
 
 @dataclass(frozen=True)
 class Rows:
-    """How a tensor of a group advances: `step` rows per band, complete up to step * band + ahead
-    (unclamped), its line buffer `lines` rows high (tensors kept whole: 0)."""
+    """How a tensor of a group advances: `step` rows per run of its producer's `level`, complete up
+    to step * run + ahead (unclamped) after run `run`, its line buffer `lines` rows high (tensors
+    kept whole: 0)."""
 
     step: int
     ahead: int
     lines: int = 0
+    level: int = 0
 
-    def first(self, band: Affine | int) -> Affine | int:
-        """The first row a band computes (band: an int or an Affine)."""
-        return band * self.step + (self.ahead - self.step)
+    def first(self, run: Affine) -> Affine:
+        """The first row a run computes."""
+        return run * self.step + (self.ahead - self.step)
 
-    def origin(self, band: Affine | int) -> Affine | int:
-        """The tensor row in the first line of the line buffer after `band`."""
-        return band * self.step + (self.ahead - self.lines)
+    def origin(self, run: Affine, runs: int = 1) -> Affine:
+        """The tensor row in the first line of the line buffer when a reader whose one run spans
+        `runs` runs of the producer's level reads it in its run `run`."""
+        return (run * runs + (runs - 1)) * self.step + (self.ahead - self.lines)
 
 
 @dataclass(frozen=True)
 class Geometry:
-    """Rows of every tensor the group produces, the bands to run (from `first_band` <= 0) and the
-    tensors that become line buffers."""
+    """Rows of every tensor the group produces, the runs of each level per run of the level
+    outside it (`reps[0]` is 1: level 0 is the band loop), the bands to run (from `first_band` <= 0)
+    and the tensors that become line buffers."""
 
     rows: dict[str, Rows]
-    first_band: int
+    reps: tuple[int, ...]
     bands: int
     internal: tuple[str, ...]
     output: str
+    first_band: int = 0
+
+    def runs(self, outer: int, inner: int) -> int:
+        """Runs of level `inner` per run of level `outer` (<= inner)."""
+        return math.prod(self.reps[outer + 1 : inner + 1])
 
 
 def streamable(graph: Graph, node: Node) -> bool:
@@ -97,12 +113,16 @@ def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
         return None
     if any(c.name in members for c in graph.consumers(output)):
         return None
-    rows = _rows(graph, nodes, group.rows)
-    if rows is None:
+    flat = _rows(nodes, group.rows, {}, (1,))
+    if flat is None:
         return None
-    first_band = min((r.step - r.ahead) // r.step for r in rows.values())
+    levels, reps = _levels(nodes, flat)
+    rows = _rows(nodes, group.rows, levels, reps)
+    if rows is None:
+        rows, reps = flat, (1,)
+    first_band = min((r.step - r.ahead) // (r.step * math.prod(reps[1 : r.level + 1])) for r in rows.values())
     bands = -(-graph.shape(output)[2] // group.rows) - first_band
-    return Geometry(rows, first_band, bands, internal, output)
+    return Geometry(rows, reps, bands, internal, output, first_band)
 
 
 def _consecutive(graph: Graph, nodes: list[Node]) -> bool:
@@ -111,8 +131,20 @@ def _consecutive(graph: Graph, nodes: list[Node]) -> bool:
     return [index[n.name] for n in nodes] == list(range(first, first + len(nodes)))
 
 
-def _rows(graph: Graph, nodes: list[Node], rows: int) -> dict[str, Rows] | None:
-    """Per tensor the group produces, from the output back: what its readers need of it."""
+def _levels(nodes: list[Node], flat: dict[str, Rows]) -> tuple[dict[str, int], tuple[int, ...]]:
+    """Each tensor's level, from its step in one loop over bands, and the runs per level: one level
+    per distinct step, when the steps fall along the chain, each a multiple of the next."""
+    steps = [flat[node.outputs[0]].step for node in nodes]
+    distinct = sorted(set(steps))
+    ratios = [b // a for a, b in zip(distinct, distinct[1:]) if b % a == 0]
+    if steps != sorted(steps, reverse=True) or len(ratios) != len(distinct) - 1:
+        return {}, (1,)
+    return {v: distinct.index(r.step) for v, r in flat.items()}, (1, *ratios)
+
+
+def _rows(nodes: list[Node], rows: int, levels: dict[str, int], reps: tuple[int, ...]) -> dict[str, Rows] | None:
+    """Per tensor the group produces, from the output back: what its readers need of it, counted in
+    runs of its level (`levels`; absent: 0)."""
     produced = {n.outputs[0] for n in nodes}
     out: dict[str, Rows] = {nodes[-1].outputs[0]: Rows(rows, rows)}
     lowest: dict[str, int] = {}
@@ -124,16 +156,20 @@ def _rows(graph: Graph, nodes: list[Node], rows: int) -> dict[str, Rows] | None:
             if x not in produced:
                 continue
             kernel, stride, dilation, pad = row_window(node, index)
-            step, ahead = y.step * stride, y.ahead * stride + (kernel - 1) * dilation - pad - stride + 1
-            low = (y.ahead - y.step) * stride - pad
+            level = levels.get(x, 0)
+            runs = math.prod(reps[y.level + 1 : level + 1])  # of x's producer per run of this reader
+            if level < y.level or (y.step * stride) % runs:
+                return None
+            step = y.step * stride // runs
+            late = step * (runs - 1)  # rows x's producer makes after the reader's first needed ones
+            ahead = y.ahead * stride + (kernel - 1) * dilation - pad - stride + 1 - late
+            low = (y.ahead - y.step) * stride - pad - late
             if x in out:
                 if out[x].step != step:
                     return None
                 ahead, low = max(ahead, out[x].ahead), min(low, lowest[x])
-            out[x], lowest[x] = Rows(step, ahead), low
-    return {
-        v: r if v not in lowest else Rows(r.step, r.ahead, max(r.step, r.ahead - lowest[v])) for v, r in out.items()
-    }
+            out[x], lowest[x] = Rows(step, ahead, 0, level), low
+    return {v: r if v not in lowest else replace(r, lines=max(r.step, r.ahead - lowest[v])) for v, r in out.items()}
 
 
 def row_floats(graph: Graph, value: str) -> int:

@@ -23,7 +23,7 @@ from .context import LoweringContext
 from .conv import lower_conv
 from .pool import lower_averagepool, lower_maxpool
 
-BAND, ROW, SHIFT = "band", "row", "shift"
+BAND, SUB, ROW, SHIFT = "band", "sub", "row", "shift"
 LOWERINGS = {"Conv": lower_conv, "MaxPool": lower_maxpool, "AveragePool": lower_averagepool}
 
 
@@ -44,13 +44,38 @@ def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
         helpers += helpers_now
         y = node.outputs[0]
         stages.append((y, _banded(stage.body, geo.rows[y], geo, ctx.graph.shape(y)[2])))
-    moves = _line_buffers(ctx, geo)
-    body: list[Stmt] = []
+    strides = _line_buffers(ctx, geo)
+    levels = []
     for y, stage in stages:
-        body += _shift(ctx, y, geo.rows[y]) if y in geo.internal else ()
-        body += _moved(stage, moves)
+        level = geo.rows[y].level
+        shift = _shift(ctx, y, geo.rows[y]) if y in geo.internal else ()
+        levels.append((level, shift + _moved(stage, _moves(geo, level, strides))))
     ctx.kernels += helpers
-    ctx.emit(group.nodes[0], "Band", (Loop(BAND, geo.bands, tuple(body)),))
+    ctx.emit(group.nodes[0], "Band", (Loop(BAND, geo.bands, _nested(levels, geo.reps)),))
+
+
+def _run(geo: Geometry, level: int) -> Affine:
+    """The index of the current run of `level` (level 0: the band, from first_band)."""
+    run = Affine.of(BAND) + geo.first_band
+    for inner in range(1, level + 1):
+        run = run * geo.reps[inner] + Affine.of(f"{SUB}{inner}")
+    return run
+
+
+def _nested(levels: list[tuple[int, tuple[Stmt, ...]]], reps: tuple[int, ...], level: int = 0) -> tuple[Stmt, ...]:
+    """The stages' code, each run of a deeper level a loop inside the level outside it."""
+    out: list[Stmt] = []
+    i = 0
+    while i < len(levels):
+        j = i + 1
+        if levels[i][0] == level:
+            out += levels[i][1]
+        else:
+            while j < len(levels) and levels[j][0] > level:
+                j += 1
+            out.append(Loop(f"{SUB}{level + 1}", reps[level + 1], _nested(levels[i:j], reps, level + 1)))
+        i = j
+    return tuple(out)
 
 
 def _direct(node: Node) -> Node:
@@ -66,8 +91,9 @@ def _banded(stage: tuple[Stmt, ...], rows: Rows, geo: Geometry, height: int) -> 
     """The layer's nest over one band: its output-row loop `oh` becomes the band's rows."""
     if len(stage) != 1 or not isinstance(stage[0], Loop) or stage[0].var != "oh":
         raise NncgError("a banded layer's nest must start with its output-row loop")
-    row = Affine.of(BAND) * rows.step + rows.first(geo.first_band) + (Affine.of(ROW) if rows.step > 1 else 0)
-    lo, hi = row.bounds({BAND: geo.bands, ROW: rows.step})
+    row = rows.first(_run(geo, rows.level)) + (Affine.of(ROW) if rows.step > 1 else 0)
+    extents = {BAND: geo.bands, ROW: rows.step} | {f"{SUB}{i}": n for i, n in enumerate(geo.reps) if i}
+    lo, hi = row.bounds(extents)
     bound = Bound(row, 0 if lo < 0 else None, height if hi >= height else None)
     body = substitute_body(stage[0].body, {"oh": row})
     if bound.lo is not None or bound.hi is not None:
@@ -87,17 +113,27 @@ def _shift(ctx: LoweringContext, value: str, rows: Rows) -> tuple[Stmt, ...]:
     return (Loop(SHIFT, kept, (moved,), parallel=True),)
 
 
-def _line_buffers(ctx: LoweringContext, geo: Geometry) -> dict[str, Affine]:
-    """Shrinks the buffers of the group's inner tensors to their lines; buffer -> what moves an
-    index of the whole tensor into the line buffer."""
-    moves: dict[str, Affine] = {}
+def _line_buffers(ctx: LoweringContext, geo: Geometry) -> dict[str, tuple[str, int]]:
+    """Shrinks the buffers of the group's inner tensors to their lines; tensor -> (buffer, floats
+    per row)."""
+    strides = {}
     for value in geo.internal:
-        ref, rows = ctx.refs[value], geo.rows[value]
+        ref = ctx.refs[value]
         if ref.halo or ref.order != (0, 2, 3, 1):
-            raise NncgError(f"tensor {value} of a banded group is not stored channels last without a halo")
-        origin = Affine.of(BAND) * rows.step + rows.origin(geo.first_band)
-        moves[ref.buffer] = origin * -ref.strides[2]
-        _shrink(ctx, ref.buffer, rows.lines)
+            raise NncgError("a tensor inside a band group is not stored channels last without a halo")
+        strides[value] = (ref.buffer, ref.strides[2])
+        _shrink(ctx, ref.buffer, geo.rows[value].lines)
+    return strides
+
+
+def _moves(geo: Geometry, level: int, strides: dict[str, tuple[str, int]]) -> dict[str, Affine]:
+    """Buffer -> what moves an index of the whole tensor into its line buffer, for a stage of
+    `level` (it reads a deeper level's tensor after that level's last run nested in its own)."""
+    moves = {}
+    for value, (buffer, stride) in strides.items():
+        rows = geo.rows[value]
+        if rows.level >= level:
+            moves[buffer] = rows.origin(_run(geo, level), geo.runs(level, rows.level)) * -stride
     return moves
 
 
