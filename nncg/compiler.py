@@ -31,10 +31,12 @@ from .ir.c_names import program_name
 from .ir.graph import Graph
 from .ir.loops import Program
 from .limits import check_program_limits
+from .lowering.band_plan import describe_plan, layer_bound_floats, plan_bands, whole_activation_floats
 from .options import CompileOptions
 from .output_files import write_files
-from .passes import PassManager
+from .passes import PassManager, parse_pipeline
 from .passes.expose_layers import with_exposed_layers
+from .passes.plan_memory import FLOAT_BYTES
 from .passes.unroll import CODE_BUDGET
 from .safe_text import c_comment, capped, shown
 
@@ -186,6 +188,28 @@ def compile(
         f"the RAM budget of {ram_budget} bytes cannot be met: the smallest activation arena is "
         f"{compiled.arena_bytes} bytes (--memory min)"
     )
+
+
+@dataclass(frozen=True)
+class MemoryFigures:
+    """The arena's yardsticks, from the graph lower received: the layer-by-layer bound (the most a
+    layer computed whole needs), all activations side by side, and the band plan lower chose."""
+
+    layer_bound_bytes: int
+    all_activation_bytes: int
+    plan: str
+
+
+def memory_figures(compiled: CompiledModel) -> MemoryFigures | None:
+    """None when the compile record has no graph (a program printed by emit alone)."""
+    graph = compiled.record.lowered if compiled.record else None
+    if graph is None:
+        return None
+    lower = next(spec for spec in parse_pipeline(compiled.pipeline) if spec.name == "lower")
+    params = dict(lower.params)
+    groups = plan_bands(graph, params.get("memory", "speed"), int(params.get("budget", 0)))
+    bound, whole = layer_bound_floats(graph), whole_activation_floats(graph)
+    return MemoryFigures(bound * FLOAT_BYTES, whole * FLOAT_BYTES, describe_plan(groups))
 
 
 def onnx_model(model, input_layout: str | None = None, example_inputs=None, exporter: str = DEFAULT_EXPORTER):

@@ -18,12 +18,11 @@ from pathlib import Path
 
 from .bench.harness import ObjectSizes, object_sizes
 from .bench.macs import node_macs
-from .compiler import CompiledModel, CompileRecord
+from .compiler import CompiledModel, CompileRecord, memory_figures
 from .errors import NncgError
 from .ir.graph import ConvAttrs, DenseAttrs, Graph, Node
 from .ir.kinds import BufferRole, ConvAlgorithm, VectorAxis
 from .ir.loops import Kernel, Loop, Program, Store, walk_stmts
-from .lowering.band_plan import describe_plan, layer_bound_floats, plan_bands, whole_activation_floats
 from .lowering.context import layer_names
 from .output_files import write_files
 from .passes import REGISTRY, parse_pipeline
@@ -266,17 +265,14 @@ def model_facts(compiled: CompiledModel) -> list[tuple[str, str]]:
 
 
 def memory_facts(compiled: CompiledModel) -> list[tuple[str, str]]:
-    """The arena's yardsticks (from the graph lower received) and the band plan lower chose."""
-    graph = compiled.record.lowered
-    if graph is None:
+    """The arena's yardsticks and the band plan (nncg.compiler.memory_figures)."""
+    figures = memory_figures(compiled)
+    if figures is None:
         return []
-    lower = next(spec for spec in parse_pipeline(compiled.pipeline) if spec.name == "lower")
-    params = dict(lower.params)
-    groups = plan_bands(graph, params.get("memory", "speed"), int(params.get("budget", 0)))
     return [
-        ("layer-by-layer bound (largest layer computed whole)", f"{layer_bound_floats(graph) * FLOAT_BYTES:,} bytes"),
-        ("all activations side by side", f"{whole_activation_floats(graph) * FLOAT_BYTES:,} bytes"),
-        ("memory plan", describe_plan(groups)),
+        ("layer-by-layer bound (largest layer computed whole)", f"{figures.layer_bound_bytes:,} bytes"),
+        ("all activations side by side", f"{figures.all_activation_bytes:,} bytes"),
+        ("memory plan", figures.plan),
     ]
 
 

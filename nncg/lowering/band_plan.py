@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm, VectorAxis
+from ..safe_text import shown
 from .bands import STREAMABLE, BandGroup, geometry, row_floats, streamable
 from .winograd import scratch_floats
 
@@ -76,9 +77,10 @@ def whole_activation_floats(graph: Graph) -> int:
 
 
 def describe_plan(groups: tuple[BandGroup, ...]) -> str:
+    """The plan in words, the layers' names escaped (they come from the model)."""
     if not groups:
         return "every layer computed whole"
-    return "; ".join(f"{g.nodes[0]}..{g.nodes[-1]} in bands of {g.rows} output row(s)" for g in groups)
+    return "; ".join(f"{shown(g.nodes[0])}..{shown(g.nodes[-1])} in bands of {g.rows} output row(s)" for g in groups)
 
 
 def candidate_steps(graph: Graph) -> list[Step]:
