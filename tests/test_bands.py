@@ -5,7 +5,7 @@ from pathlib import Path
 
 import onnx
 import pytest
-from helpers import check_against_onnxruntime, onnx_model, weights
+from helpers import check_against_onnxruntime, nncg_onnx, onnx_model, weights
 from onnx import helper
 
 import nncg
@@ -181,3 +181,18 @@ def test_banded_output_is_deterministic():
 def test_bad_memory_arguments_are_refused(bad):
     with pytest.raises(nncg.NncgError):
         nncg.compile(ROBOT, **bad)
+
+
+def test_cli_refuses_an_unmet_budget_in_one_line_and_leaves_the_folder(tmp_path):
+    (tmp_path / "keep.txt").write_text("kept")
+    result = nncg_onnx(ROBOT, "--target", "ansi-c", "-o", tmp_path, "--ram-budget", "1000")
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and "smallest activation arena is" in result.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
+
+
+def test_cli_memory_min_writes_the_smaller_arena_in_the_header(tmp_path):
+    result = nncg_onnx(ROBOT, "--target", "ansi-c", "-o", tmp_path, "--memory", "min")
+    assert result.returncode == 0, result.stderr
+    arena = nncg.compile(ROBOT, target="ansi-c", memory="min").arena_bytes
+    assert f"#define ROBOT_ARENA_BYTES {arena}\n" in (tmp_path / "robot.h").read_text()

@@ -111,8 +111,12 @@ def _band_step(graph: Graph, live: _Liveness, i: int, j: int, rows: int) -> Step
     if geo is None:
         return None
     lines = {v: geo.rows[v].lines * row_floats(graph, v) for v in geo.internal}
-    shifted = sum((geo.rows[v].lines - geo.rows[v].step) * row_floats(graph, v) for v in geo.internal)
-    cost = sum(_lost(graph, n) for n in graph.nodes[i:j]) + geo.bands * (PER_BAND * (j - i) + shifted)
+    shifted = sum(
+        (geo.rows[v].lines - geo.rows[v].step) * row_floats(graph, v) * geo.runs(0, geo.rows[v].level)
+        for v in geo.internal
+    )
+    runs = sum(geo.runs(0, geo.rows[n.outputs[0]].level) for n in graph.nodes[i:j])  # of the layers per band
+    cost = sum(_lost(graph, n) for n in graph.nodes[i:j]) + geo.bands * (PER_BAND * runs + shifted)
     return Step(i, j, group, live.floats(i, j, geo.internal) + sum(lines.values()), cost)
 
 
