@@ -82,6 +82,15 @@ def test_model_matches_onnxruntime_on_cortex_m4(model, compiled_model, tmp_path)
     assert 0 < result.stack_bytes < result.image_sizes["stack"]
 
 
+@pytest.mark.parametrize("toolchain", ["aarch64-neon", "armhf-neon"])
+@pytest.mark.parametrize("model", ["robot", "mobilenet_v1_025"])
+def test_neon_at_min_memory_matches_onnxruntime(toolchain, model):
+    tc = TOOLCHAINS[toolchain]
+    require(missing_tools(tc))
+    report = verify_on(tc, model, nncg.compile(MODELS[model], target="neon", memory="min"))
+    assert report.ok, report.format()
+
+
 RAM_MARGIN = 512  # bytes beyond what the first build measured (section alignment)
 
 
