@@ -3,6 +3,7 @@ with line buffers, the memory settings and the RAM budget, checked against onnxr
 
 from pathlib import Path
 
+import numpy as np
 import onnx
 import pytest
 from helpers import check_against_onnxruntime, nncg_onnx, onnx_model, weights
@@ -78,6 +79,58 @@ def test_every_band_height_gives_the_same_outputs(rows, monkeypatch):
     assert {group.rows for group in plan_bands(graph, "min")} == {rows}
     compiled = nncg.compile(model, target="ansi-c", memory="min")
     check_against_onnxruntime(model, compiled, sanitize=rows == 3)
+
+
+def random_chain(seed: int) -> onnx.ModelProto | None:
+    """2 to 5 layers drawn from Conv (kernel 1-4, stride 1-2, dilation 1-2, asymmetric padding),
+    depthwise Conv, a 3x3 Conv with a residual Add, Relu, MaxPool (dilated) and AveragePool (padding
+    counted or not); None when the image shrinks below two rows."""
+    rng = np.random.default_rng(seed)
+    shape = [1, int(rng.integers(1, 6)), int(rng.integers(12, 40)), int(rng.integers(5, 20))]
+    image = list(shape)
+    nodes, init, x = [], {}, "x"
+    for i in range(int(rng.integers(2, 6))):
+        kind = str(rng.choice(["conv", "conv", "depthwise", "max", "average", "residual"]))
+        k, s = int(rng.integers(1, 5)), int(rng.integers(1, 3))
+        d = int(rng.integers(1, 3)) if k > 1 else 1
+        pads = [int(rng.integers(0, k)) for _ in range(4)]
+        y, channels = f"t{i}", shape[1]
+        if kind == "residual":
+            k, s, d, pads = 3, 1, 1, [1, 1, 1, 1]
+        if kind in ("conv", "depthwise", "residual"):
+            channels = int(rng.integers(1, 9)) if kind == "conv" else shape[1]
+            group = shape[1] if kind == "depthwise" else 1
+            init[f"w{i}"] = weights(channels, shape[1] // group, k, k)
+            conv = dict(group=group, strides=[s, s], dilations=[d, d], pads=pads)
+            nodes.append(helper.make_node("Conv", [x, f"w{i}"], [y], **conv))
+            if kind == "residual":
+                nodes.append(helper.make_node("Add", [y, x], [y + "_add"]))
+                y += "_add"
+            if rng.random() < 0.5:
+                nodes.append(helper.make_node("Relu", [y], [y + "_relu"]))
+                y += "_relu"
+        else:
+            pads = [min(p, k - 1) for p in pads]
+            pool = dict(kernel_shape=[k, k], strides=[s, s], pads=pads)
+            if kind == "average":
+                pool["count_include_pad"] = int(rng.integers(0, 2))
+            else:
+                pool["dilations"] = [d, d]
+            nodes.append(helper.make_node("MaxPool" if kind == "max" else "AveragePool", [x], [y], **pool))
+        span = (k - 1) * d + 1
+        shape = [1, channels, *((shape[2 + a] + pads[a] + pads[2 + a] - span) // s + 1 for a in (0, 1))]
+        if shape[2] < 2 or shape[3] < 1:
+            return None
+        x = y
+    return onnx_model(nodes, inputs={"x": image}, outputs=[x], initializers=init)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 5, 7, 8, 9, 10, 12])
+def test_random_chains_run_in_bands_and_match_onnxruntime(seed):
+    model = random_chain(seed)
+    compiled = nncg.compile(model, target="ansi-c", memory="min", verify_ir=True)
+    assert band_kernels(compiled) >= 1
+    check_against_onnxruntime(model, compiled, sanitize=seed < 2)
 
 
 def test_geometry_refuses_a_tensor_read_outside_the_group():
