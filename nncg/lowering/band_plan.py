@@ -35,13 +35,15 @@ BALANCED_EXTRA = 0.3
 
 @dataclass(frozen=True)
 class Step:
-    """Nodes [start, stop) run whole (group None) or in bands; `floats` live while it runs."""
+    """Nodes [start, stop) run whole (group None) or in bands; `floats` live while it runs, `lines`
+    of them in line buffers."""
 
     start: int
     stop: int
     group: BandGroup | None
     floats: int
     cost: float
+    lines: int = 0
 
 
 def parse_memory(text: str) -> str:
@@ -90,14 +92,17 @@ def candidate_steps(graph: Graph) -> list[Step]:
         Step(i, i + 1, None, live.floats(i, i + 1, ()) + _scratch(graph, node) + _output_copy(graph, node), 0.0)
         for i, node in enumerate(graph.nodes)
     ]
+    ceiling = max((s.floats for s in steps), default=0)  # what a plan of whole layers needs
     nodes = graph.nodes
     for i in range(len(nodes)):
         stop = i
         while stop < len(nodes) and streamable(graph, nodes[stop]):
             stop += 1
-        for j in range(i + 1, stop + 1):  # one layer alone: run direct, without a Winograd scratch
-            for rows in BAND_ROWS:
+        for rows in BAND_ROWS:
+            for j in range(i + 1, stop + 1):  # one layer alone: run direct, without a Winograd scratch
                 step = _band_step(graph, live, i, j, rows)
+                if step is not None and step.lines > ceiling:
+                    break  # a longer group only adds line buffers
                 if step is not None:
                     steps.append(step)
     return steps
@@ -110,14 +115,14 @@ def _band_step(graph: Graph, live: _Liveness, i: int, j: int, rows: int) -> Step
     geo = geometry(graph, group)
     if geo is None:
         return None
-    lines = {v: geo.rows[v].lines * row_floats(graph, v) for v in geo.internal}
+    lines = sum(geo.rows[v].lines * row_floats(graph, v) for v in geo.internal)
     shifted = sum(
         (geo.rows[v].lines - geo.rows[v].step) * row_floats(graph, v) * geo.runs(0, geo.rows[v].level)
         for v in geo.internal
     )
     runs = sum(geo.runs(0, geo.rows[n.outputs[0]].level) for n in graph.nodes[i:j])  # of the layers per band
     cost = sum(_lost(graph, n) for n in graph.nodes[i:j]) + geo.bands * (PER_BAND * runs + shifted)
-    return Step(i, j, group, live.floats(i, j, geo.internal) + sum(lines.values()), cost)
+    return Step(i, j, group, live.floats(i, j, geo.internal) + lines, cost, lines)
 
 
 def _scratch(graph: Graph, node: Node) -> int:

@@ -108,10 +108,7 @@ def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
         return None
     output = nodes[-1].outputs[0]
     internal = tuple(n.outputs[0] for n in nodes[:-1])
-    members = set(group.nodes)
-    if any(graph.is_graph_output(v) or any(c.name not in members for c in graph.consumers(v)) for v in internal):
-        return None
-    if any(c.name in members for c in graph.consumers(output)):
+    if any(graph.is_graph_output(v) for v in internal) or not _kept_inside(graph, group, internal, output):
         return None
     flat = _rows(nodes, group.rows, {}, (1,))
     if flat is None:
@@ -123,6 +120,16 @@ def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
     first_band = min((r.step - r.ahead) // (r.step * math.prod(reps[1 : r.level + 1])) for r in rows.values())
     bands = -(-graph.shape(output)[2] // group.rows) - first_band
     return Geometry(rows, reps, bands, internal, output, first_band)
+
+
+def _kept_inside(graph: Graph, group: BandGroup, internal: tuple[str, ...], output: str) -> bool:
+    """The group's inner tensors are read only inside it, its output only outside."""
+    members, inner = set(group.nodes), set(internal)
+    for node in graph.nodes:
+        inside = node.name in members
+        if any((v in inner and not inside) or (v == output and inside) for v in node.inputs):
+            return False
+    return True
 
 
 def _consecutive(graph: Graph, nodes: list[Node]) -> bool:
