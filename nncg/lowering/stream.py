@@ -24,7 +24,7 @@ from .conv import lower_conv
 from .pool import lower_averagepool, lower_maxpool
 
 BAND, SUB, ROW, SHIFT = "band", "sub", "row", "shift"
-LOWERINGS = {"Conv": lower_conv, "MaxPool": lower_maxpool, "AveragePool": lower_averagepool}
+STAGE_LOWERINGS = {"Conv": lower_conv, "MaxPool": lower_maxpool, "AveragePool": lower_averagepool}
 
 
 def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
@@ -38,7 +38,7 @@ def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
     for name in group.nodes:
         node = by_name[name]
         start = len(ctx.kernels)
-        LOWERINGS[node.op](ctx, _direct(node))
+        STAGE_LOWERINGS[node.op](ctx, _direct(node))
         *helpers_now, stage = ctx.kernels[start:]
         del ctx.kernels[start:]
         helpers += helpers_now
@@ -102,8 +102,8 @@ def _banded(stage: tuple[Stmt, ...], rows: Rows, geo: Geometry, height: int) -> 
 
 
 def _shift(ctx: LoweringContext, value: str, rows: Rows) -> tuple[Stmt, ...]:
-    """Moves the line buffer's rows up by `step`, dropping the oldest (an ascending copy: each
-    element is read before the copy reaches it)."""
+    """Moves the line buffer's rows up by `step`, dropping the oldest: an ascending copy, each element
+    read before the copy reaches it, in scalars or vectors alike (so vectorize may take the loop)."""
     ref = ctx.refs[value]
     kept = (rows.lines - rows.step) * ref.strides[2]
     if not kept:
