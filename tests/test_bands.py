@@ -216,6 +216,11 @@ def test_budget_is_met_at_least_work():
         check_against_onnxruntime(onnx.load(ROBOT), compiled)
 
 
+def test_budget_of_exactly_the_minimum_is_met():
+    smallest = nncg.compile(PEDESTRIAN, target="ansi-c", memory="min").arena_bytes
+    assert nncg.compile(PEDESTRIAN, target="ansi-c", ram_budget=smallest).arena_bytes == smallest
+
+
 def test_budget_below_the_minimum_is_refused_with_the_smallest_figure():
     smallest = nncg.compile(PEDESTRIAN, target="ansi-c", memory="min").arena_bytes
     with pytest.raises(nncg.NncgError, match=f"smallest activation arena is {smallest} bytes") as error:
