@@ -14,6 +14,7 @@ from .errors import NncgError
 from .frontend.keras_export import is_keras_model
 from .frontend.layout import check_layout
 from .frontend.torch_export import check_exporter, is_torch_module
+from .lowering.band_plan import MEMORY_MODES
 from .passes.plan_memory import WEIGHTS_MODES
 from .safe_text import capped, shown
 
@@ -23,7 +24,7 @@ MODEL_TYPES = (str, os.PathLike, bytes, bytearray, memoryview, onnx.ModelProto)
 
 def check_compile_arguments(
     model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights, code_budget,
-    example_inputs, exporter, expose_layers, input_layout=None,
+    example_inputs, exporter, expose_layers, input_layout=None, memory="speed", ram_budget=None,
 ) -> None:  # fmt: skip
     """Raises NncgError for the first argument of nncg.compile that has the wrong type or value."""
     _check_model(model)
@@ -42,6 +43,10 @@ def check_compile_arguments(
         raise NncgError(f"weights must be one of {', '.join(WEIGHTS_MODES)}; {_got(weights)}")
     if code_budget is not None and not _whole(code_budget):
         raise NncgError(f"code_budget must be an int >= 0 (0: no cap) or None; {_got(code_budget)}")
+    if memory not in MEMORY_MODES:
+        raise NncgError(f"memory must be one of {', '.join(MEMORY_MODES)}; {_got(memory)}")
+    if ram_budget is not None and not (_whole(ram_budget) and ram_budget > 0):
+        raise NncgError(f"ram_budget must be an int >= 1 (bytes) or None; {_got(ram_budget)}")
 
 
 def check_write_arguments(directory, cmake) -> None:

@@ -16,6 +16,7 @@ from . import __version__
 from .arguments import DIM_MAX
 from .backends import BACKENDS
 from .errors import NncgError, NncgWarning
+from .lowering.band_plan import MEMORY_MODES
 from .options import CompileOptions
 from .output_files import check_output_folder, write_files
 from .passes.unroll import CODE_BUDGET
@@ -46,6 +47,13 @@ def whole_number(text: str) -> int:
     """An int >= 0 (a code budget, a core number)."""
     if not re.fullmatch(r"[0-9]+", text):
         raise argparse.ArgumentTypeError(f"{shown(text)} is not a whole number >= 0")
+    return int(text)
+
+
+def positive_number(text: str) -> int:
+    """An int >= 1 (a byte count)."""
+    if not re.fullmatch(r"[0-9]+", text) or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"{shown(text)} is not a whole number >= 1")
     return int(text)
 
 
@@ -88,6 +96,20 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help=f"statements of unrolled code in the whole model: loops whose unrolling would exceed it stay loops "
         f"(default {CODE_BUDGET}; 0: no cap, the paper's levels exactly)",
+    )
+    p.add_argument(
+        "--memory",
+        choices=MEMORY_MODES,
+        default="speed",
+        help="speed (default): every layer computed whole; min: the smallest activation arena, chains of "
+        "layers run in bands of rows with line buffers; balanced: the smallest at little extra work",
+    )
+    p.add_argument(
+        "--ram-budget",
+        type=positive_number,
+        metavar="BYTES",
+        help="the fastest plan whose activation arena fits BYTES; refused (exit 2) with the smallest arena "
+        "when none does",
     )
     p.add_argument(
         "--weights",
@@ -253,7 +275,9 @@ def run(args: argparse.Namespace) -> int:
         from .report import require_plots
 
         require_plots()
-    options = CompileOptions.of(args.unroll, args.weights, args.code_budget, args.pipeline)
+    options = CompileOptions.of(
+        args.unroll, args.weights, args.code_budget, args.pipeline, args.memory, args.ram_budget
+    )
     if is_keras_path(args.model) or args.input_layout:  # converted once: --verify, --tune, ... use it too
         args.name = args.name or Path(args.model).stem
         args.model = onnx_model(args.model, args.input_layout)[0]
@@ -305,6 +329,8 @@ def tune_command(args: argparse.Namespace) -> str:
         raise NncgError("--tune builds its own pipeline: give --tune or --pipeline, not both")
     if args.unroll != "auto":
         raise NncgError("--tune chooses unroll budgets per layer: leave --unroll at auto")
+    if args.memory != "speed" or args.ram_budget:
+        raise NncgError("--tune times the layers computed whole: give --tune or --memory/--ram-budget, not both")
     return tune(
         args.model, args.target, cc=args.cc, runner=shlex.split(args.tune_runner or ""),
         input_shapes=input_shapes(args), weights=args.weights, code_budget=args.code_budget or None,

@@ -31,10 +31,12 @@ from .ir.c_names import program_name
 from .ir.graph import Graph
 from .ir.loops import Program
 from .limits import check_program_limits
+from .lowering.band_plan import describe_plan, layer_bound_floats, plan_bands, whole_activation_floats
 from .options import CompileOptions
 from .output_files import write_files
-from .passes import PassManager
+from .passes import PassManager, parse_pipeline
 from .passes.expose_layers import with_exposed_layers
+from .passes.plan_memory import FLOAT_BYTES
 from .passes.unroll import CODE_BUDGET
 from .safe_text import c_comment, capped, shown
 
@@ -118,6 +120,8 @@ def compile(
     exporter: str = DEFAULT_EXPORTER,
     expose_layers: bool = False,
     input_layout: str | None = None,
+    memory: str = "speed",
+    ram_budget: int | None = None,
 ) -> CompiledModel:
     """Compiles a model to C for `target`: ONNX (a file path, bytes or an onnx.ModelProto), a
     torch.nn.Module, exported in eval mode for inputs shaped like `example_inputs` (a float32 tensor or
@@ -132,39 +136,84 @@ def compile(
     bin (NAME.weights, passed by pointer) or auto (bin when large); `code_budget` caps the
     statements of the unrolled program (None: the paper's levels exactly); `expose_layers` makes the
     debug build of verify_per_layer: every layer's output, as a graph value after the passes, is an
-    extra output of the function after the model's own (see passes/expose_layers.py)."""
+    extra output of the function after the model's own (see passes/expose_layers.py). `memory` (speed,
+    balanced, min) trades speed for activation memory, running chains of layers in bands of rows;
+    `ram_budget` (bytes) asks for the fastest plan whose arena fits, and is refused with the
+    smallest arena any plan reaches when none does (see nncg/lowering/band_plan.py)."""
     check_compile_arguments(
         model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights,
-        code_budget, example_inputs, exporter, expose_layers, input_layout,
+        code_budget, example_inputs, exporter, expose_layers, input_layout, memory, ram_budget,
     )  # fmt: skip
-    options = CompileOptions.of(unroll, weights, code_budget, pipeline)
+    options = CompileOptions.of(unroll, weights, code_budget, pipeline, memory, ram_budget)
     backend = get_backend(target)
     source = model
     from_torch = is_torch_module(model)
     model, header_layout = onnx_model(model, input_layout, example_inputs, exporter)
     graph = import_onnx(model, input_shapes)
-    manager = PassManager(
-        options.pass_pipeline(backend.target), backend.target, verify=verify_ir, print_ir_after_all=print_ir_after_all,
-        keep_inputs=("lower", "register-block"),
-    )  # fmt: skip
-    name = program_name(name or _default_name(source, graph.name))
-    program = manager.run(_with_name(graph, name))
-    if expose_layers:
-        program = with_exposed_layers(program)
-    options = f"target={target} pipeline={manager.pipeline}" + (f" torch-exporter={exporter}" if from_torch else "")
-    if input_layout:
-        options += f" input-layout={input_layout}"
-    if input_shapes:
-        options += " input-shape=" + ",".join(f"{capped(k)}={'x'.join(map(str, v))}" for k, v in input_shapes.items())
-    compiled = emit(program, target, options, _sha256(model), manager.pipeline, profile, header_layout)
-    record = CompileRecord(
-        program,
-        manager.inputs.get("lower"),
-        manager.inputs.get("register-block"),
-        tuple(Counter(node.op for node in graph.nodes).most_common()),
-        sum(int(array.size) for array in graph.constants.values()),
+
+    def build(options: CompileOptions) -> CompiledModel:
+        manager = PassManager(
+            options.pass_pipeline(backend.target), backend.target, verify=verify_ir,
+            print_ir_after_all=print_ir_after_all, keep_inputs=("lower", "register-block"),
+        )  # fmt: skip
+        program = manager.run(_with_name(graph, c_name))
+        if expose_layers:
+            program = with_exposed_layers(program)
+        described = f"target={target} pipeline={manager.pipeline}" + (
+            f" torch-exporter={exporter}" if from_torch else ""
+        )
+        if input_layout:
+            described += f" input-layout={input_layout}"
+        if input_shapes:
+            shapes = ",".join(f"{capped(k)}={'x'.join(map(str, v))}" for k, v in input_shapes.items())
+            described += " input-shape=" + shapes
+        compiled = emit(program, target, described, _sha256(model), manager.pipeline, profile, header_layout)
+        record = CompileRecord(
+            program,
+            manager.inputs.get("lower"),
+            manager.inputs.get("register-block"),
+            tuple(Counter(node.op for node in graph.nodes).most_common()),
+            sum(int(array.size) for array in graph.constants.values()),
+        )
+        return replace(compiled, layer_macs=tuple(macs_by_layer(graph).items()), record=record)
+
+    c_name = program_name(name or _default_name(source, graph.name))
+    compiled = build(options)
+    if ram_budget is None or compiled.arena_bytes <= ram_budget:
+        return compiled
+    # The planner's estimate fell short (alignment, fragmentation): aim lower once, then at the minimum.
+    tighter = 2 * ram_budget - compiled.arena_bytes
+    retries = (replace(options, ram_budget=tighter),) if tighter > 0 else ()
+    for retry in (*retries, replace(options, memory="min", ram_budget=None)):
+        compiled = build(retry)
+        if compiled.arena_bytes <= ram_budget:
+            return compiled
+    raise NncgError(
+        f"the RAM budget of {ram_budget} bytes cannot be met: the smallest activation arena is "
+        f"{compiled.arena_bytes} bytes (--memory min)"
     )
-    return replace(compiled, layer_macs=tuple(macs_by_layer(graph).items()), record=record)
+
+
+@dataclass(frozen=True)
+class MemoryFigures:
+    """The arena's yardsticks, from the graph lower received: the layer-by-layer bound (the most a
+    layer computed whole needs), all activations side by side, and the band plan lower chose."""
+
+    layer_bound_bytes: int
+    all_activation_bytes: int
+    plan: str
+
+
+def memory_figures(compiled: CompiledModel) -> MemoryFigures | None:
+    """None when the compile record has no graph (a program printed by emit alone)."""
+    graph = compiled.record.lowered if compiled.record else None
+    if graph is None:
+        return None
+    lower = next(spec for spec in parse_pipeline(compiled.pipeline) if spec.name == "lower")
+    params = dict(lower.params)
+    groups = plan_bands(graph, params.get("memory", "speed"), int(params.get("budget", 0)))
+    bound, whole = layer_bound_floats(graph), whole_activation_floats(graph)
+    return MemoryFigures(bound * FLOAT_BYTES, whole * FLOAT_BYTES, describe_plan(groups))
 
 
 def onnx_model(model, input_layout: str | None = None, example_inputs=None, exporter: str = DEFAULT_EXPORTER):

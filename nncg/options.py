@@ -15,13 +15,17 @@ from .passes.unroll import CODE_BUDGET
 @dataclass(frozen=True)
 class CompileOptions:
     """`unroll`: auto, a depth (the paper's levels) or none; `weights`: auto, embed or bin;
-    `code_budget`: statements of unrolled code in the whole model (None: no cap); `pipeline`: a custom
-    pass pipeline instead of the one these options give."""
+    `code_budget`: statements of unrolled code in the whole model (None: no cap); `memory`: speed,
+    balanced or min, and `ram_budget`: bytes of activation memory (None: none), the layers run in bands
+    (see nncg/lowering/band_plan.py); `pipeline`: a custom pass pipeline instead of the one these
+    options give."""
 
     unroll: str = "auto"
     weights: str = "auto"
     code_budget: int | None = CODE_BUDGET
     pipeline: str | None = None
+    memory: str = "speed"
+    ram_budget: int | None = None
 
     def __post_init__(self) -> None:
         if self.pipeline is None:
@@ -34,9 +38,18 @@ class CompileOptions:
             )
 
     @classmethod
-    def of(cls, unroll: str | int | None, weights: str, code_budget: int | None, pipeline: str | None):
+    def of(
+        cls,
+        unroll: str | int | None,
+        weights: str,
+        code_budget: int | None,
+        pipeline: str | None,
+        memory: str = "speed",
+        ram_budget: int | None = None,
+    ):
         """From nncg.compile's arguments: unroll None means none, code_budget 0 means no cap."""
-        return cls("none" if unroll is None else str(unroll), weights, code_budget or None, pipeline)
+        unroll = "none" if unroll is None else str(unroll)
+        return cls(unroll, weights, code_budget or None, pipeline, memory, ram_budget)
 
     def with_pipeline(self, pipeline: str) -> CompileOptions:
         """These options replaced by a pipeline that records them (what --tune returns)."""
@@ -50,4 +63,4 @@ class CompileOptions:
         """The one place options become the pass pipeline for `target`."""
         if self.pipeline is not None:
             return self.pipeline
-        return default_pipeline(target, self.unroll, self.weights, self.code_budget)
+        return default_pipeline(target, self.unroll, self.weights, self.code_budget, self.memory, self.ram_budget)

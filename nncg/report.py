@@ -18,7 +18,7 @@ from pathlib import Path
 
 from .bench.harness import ObjectSizes, object_sizes
 from .bench.macs import node_macs
-from .compiler import CompiledModel, CompileRecord
+from .compiler import CompiledModel, CompileRecord, memory_figures
 from .errors import NncgError
 from .ir.graph import ConvAttrs, DenseAttrs, Graph, Node
 from .ir.kinds import BufferRole, ConvAlgorithm, VectorAxis
@@ -259,7 +259,20 @@ def model_facts(compiled: CompiledModel) -> list[tuple[str, str]]:
         ("MACs per inference", f"{compiled.macs:,}"),
         ("arena (planned activation memory)", f"{compiled.arena_bytes:,} bytes"),
         ("activations without reuse", f"{compiled.activation_bytes:,} bytes"),
+        *memory_facts(compiled),
         ("weights", weights),
+    ]
+
+
+def memory_facts(compiled: CompiledModel) -> list[tuple[str, str]]:
+    """The arena's yardsticks and the band plan (nncg.compiler.memory_figures)."""
+    figures = memory_figures(compiled)
+    if figures is None:
+        return []
+    return [
+        ("layer-by-layer bound (largest layer computed whole)", f"{figures.layer_bound_bytes:,} bytes"),
+        ("all activations side by side", f"{figures.all_activation_bytes:,} bytes"),
+        ("memory plan", figures.plan),
     ]
 
 

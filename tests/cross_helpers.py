@@ -165,10 +165,8 @@ CORTEX_M4_FLAGS = (
     "-ffunction-sections", "-fdata-sections",
 )  # fmt: skip
 # newlib (nano) only for libm's exp (and memset); nosys.specs stubs the system calls nothing here makes.
-CORTEX_M4_LINK = (
-    "-nostartfiles", f"-T{CORTEX_M4_DIR / 'mps2_an386.ld'}", "--specs=nano.specs", "--specs=nosys.specs",
-    "-Wl,--gc-sections",
-)  # fmt: skip
+CORTEX_M4_SCRIPT = CORTEX_M4_DIR / "mps2_an386.ld"
+CORTEX_M4_LINK = ("-nostartfiles", "--specs=nano.specs", "--specs=nosys.specs", "-Wl,--gc-sections")
 # Semihosting output goes to a file: QEMU would otherwise mix it into its own messages on stderr.
 QEMU_MPS2_AN386 = (
     "qemu-system-arm", "-M", "mps2-an386", "-display", "none", "-monitor", "none", "-serial", "null",
@@ -223,17 +221,37 @@ def section_sizes(path: Path) -> dict[str, int]:
     return sizes
 
 
-def build_cortex_m4(compiled: CompiledModel, inputs: Sequence[np.ndarray], workdir: Path) -> tuple[Path, Path]:
+def linker_script(ram: int | None, stack: int | None) -> str:
+    """The board's linker script, with only `ram` bytes of RAM and a stack of `stack` bytes (None:
+    the board's 4 MB and 16 KB)."""
+    script = CORTEX_M4_SCRIPT.read_text()
+    if ram is not None:
+        script = script.replace("ORIGIN = 0x20000000, LENGTH = 4M", f"ORIGIN = 0x20000000, LENGTH = {ram}")
+    if stack is not None:
+        script = script.replace("STACK_SIZE = 16K;", f"STACK_SIZE = {stack};")
+    return script
+
+
+def build_cortex_m4(
+    compiled: CompiledModel,
+    inputs: Sequence[np.ndarray],
+    workdir: Path,
+    ram: int | None = None,
+    stack: int | None = None,
+) -> tuple[Path, Path]:
     """Compiles the model (with its strict flags), the test program and the start-up code for the
-    Cortex-M4 and links them; returns the model's object file and the image."""
+    Cortex-M4 and links them with `ram` bytes of RAM and a `stack`-byte stack (see linker_script);
+    returns the model's object file and the image."""
     compiled.write(workdir)
+    (workdir / "board.ld").write_text(linker_script(ram, stack))
     (workdir / "main.c").write_text(cortex_m4_program(compiled, inputs))
     cc, include = [CORTEX_M4_CC, *CORTEX_M4_FLAGS], f"-I{CORTEX_M4_DIR}"
     model_obj, image = workdir / f"{compiled.name}.o", workdir / f"{compiled.name}.elf"
     _run([*cc, *compiled.strict_cflags, "-c", f"{compiled.name}.c", "-o", model_obj.name], workdir)
     _run([*cc, *PROGRAM_FLAGS, include, "-I.", "-c", "main.c", "-o", "main.o"], workdir)
     _run([*cc, *PROGRAM_FLAGS, include, "-c", str(CORTEX_M4_DIR / "startup.c"), "-o", "startup.o"], workdir)
-    _run([*cc, *CORTEX_M4_LINK, model_obj.name, "main.o", "startup.o", "-o", image.name, "-lm"], workdir)
+    link = [*cc, *CORTEX_M4_LINK, "-Tboard.ld", model_obj.name, "main.o", "startup.o", "-o", image.name, "-lm"]
+    _run(link, workdir)
     return model_obj, image
 
 
@@ -251,18 +269,22 @@ def _parse_output(text: str, compiled: CompiledModel) -> tuple[list[np.ndarray],
     return [c.reshape(spec.shape) for c, spec in zip(chunks, compiled.outputs)], int(words[marker + 1], 16)
 
 
-def run_cortex_m4(compiled: CompiledModel, inputs: Sequence[np.ndarray], workdir: Path) -> CortexM4Result:
-    """Builds the model for the Cortex-M4, runs it on QEMU's MPS2 AN386 and reads its outputs."""
-    model_obj, image = build_cortex_m4(compiled, inputs, workdir)
+def run_cortex_m4(compiled: CompiledModel, inputs: Sequence[np.ndarray], workdir: Path, **memory) -> CortexM4Result:
+    """Builds the model for the Cortex-M4 (`memory`: build_cortex_m4's ram and stack), runs it on
+    QEMU's MPS2 AN386 and reads its outputs."""
+    model_obj, image = build_cortex_m4(compiled, inputs, workdir, **memory)
     _run([*QEMU_MPS2_AN386, image.name], workdir, timeout=QEMU_TIMEOUT_S)
     outputs, stack_bytes = _parse_output((workdir / "semihosting.txt").read_text(), compiled)
     return CortexM4Result(outputs, stack_bytes, section_sizes(model_obj), section_sizes(image))
 
 
-def verify_on_cortex_m4(model: str, compiled: CompiledModel, workdir: Path) -> tuple[VerifyReport, CortexM4Result]:
-    """Runs `compiled` (the C of MODELS[model]) on the Cortex-M4 and compares with onnxruntime."""
+def verify_on_cortex_m4(
+    model: str, compiled: CompiledModel, workdir: Path, **memory
+) -> tuple[VerifyReport, CortexM4Result]:
+    """Runs `compiled` (the C of MODELS[model]) on the Cortex-M4 (`memory`: build_cortex_m4's ram
+    and stack) and compares with onnxruntime."""
     inputs = random_inputs(compiled.inputs, SEED)
-    result = run_cortex_m4(compiled, inputs, workdir)
+    result = run_cortex_m4(compiled, inputs, workdir, **memory)
     references = reference_outputs(nncg.load_model(MODELS[model]), compiled.inputs, inputs)
     stats = compare(result.outputs, references, [spec.name for spec in compiled.outputs])
     return VerifyReport(compiled.name, "cortex-m4", tuple(stats), TOLERANCE, SEED), result

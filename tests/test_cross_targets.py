@@ -82,6 +82,34 @@ def test_model_matches_onnxruntime_on_cortex_m4(model, compiled_model, tmp_path)
     assert 0 < result.stack_bytes < result.image_sizes["stack"]
 
 
+@pytest.mark.parametrize("toolchain", ["aarch64-neon", "armhf-neon"])
+@pytest.mark.parametrize("model", ["robot", "mobilenet_v1_025"])
+def test_neon_at_min_memory_matches_onnxruntime(toolchain, model):
+    tc = TOOLCHAINS[toolchain]
+    require(missing_tools(tc))
+    report = verify_on(tc, model, nncg.compile(MODELS[model], target="neon", memory="min"))
+    assert report.ok, report.format()
+
+
+RAM_MARGIN = 512  # bytes beyond what the first build measured (section alignment)
+
+
+@pytest.mark.parametrize("model", CORTEX_M4_MODELS)
+def test_min_memory_model_runs_in_only_the_ram_its_plan_needs(model, tmp_path):
+    """At --memory min, linked with RAM for just the data and bss (the arena, the test program's
+    output buffers), the stack measured in a first run and a small margin, and run again."""
+    require([tool for tool in CORTEX_M4_TOOLS if shutil.which(tool) is None])
+    compiled = nncg.compile(MODELS[model], target="ansi-c", memory="min")
+    _, measured = verify_on_cortex_m4(model, compiled, tmp_path)
+    stack = measured.stack_bytes + RAM_MARGIN
+    ram = measured.image_sizes["data"] + measured.image_sizes["bss"] + stack + RAM_MARGIN
+    report, result = verify_on_cortex_m4(model, compiled, tmp_path, ram=ram, stack=stack)
+    print(f"{report.format()}\nRAM {ram} bytes: {format_table({model: size_row(result, compiled.arena_bytes)})}")
+    assert report.ok, report.format()
+    if model != "ball":  # ball's tensors are smaller than the program's stack
+        assert ram < nncg.compile(MODELS[model], target="ansi-c").arena_bytes  # below the speed arena alone
+
+
 def divide_by_tensor():
     """x / (d * d + 1): a vector division by a computed tensor (8 contiguous floats: two vectors)."""
     nodes = [

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..compiler import compile as compile_model
+from ..compiler import memory_figures
 from ..errors import NncgError
 from ..frontend import load_model
 from ..verify import compare, find_c_compiler, random_inputs
@@ -38,6 +39,8 @@ class BenchResult:
     compile_seconds: float
     arena_bytes: int = 0  # the planned activation memory (NAME_ARENA_BYTES)
     activation_bytes: int = 0  # all activations side by side, without reuse
+    layer_bound_bytes: int = 0  # the most one layer computed whole needs (the arena at --memory speed, about)
+    plan: str = ""  # the layers run in bands (--memory, --ram-budget)
     ort_version: str = ""  # onnxruntime's, as the report names the opponent
     ort_threads: int = THREADS
 
@@ -112,6 +115,7 @@ def benchmark(
     start = time.perf_counter()
     compiled = compile_model(model, target=target, unroll=unroll, input_shapes=input_shapes, **compile_options)
     generate_seconds = time.perf_counter() - start
+    figures = memory_figures(compiled)
     inputs = random_inputs(compiled.inputs, seed=0)
     isa = TARGET_ISA[target]
     peak = peaks[isa] if peaks is not None else measure_peak(isa, cc)
@@ -140,6 +144,8 @@ def benchmark(
         compile_seconds=harness.compile_seconds,
         arena_bytes=compiled.arena_bytes,
         activation_bytes=compiled.activation_bytes,
+        layer_bound_bytes=figures.layer_bound_bytes,
+        plan=figures.plan,
         ort_version=ort.version,
     )
 
@@ -216,6 +222,7 @@ def format_results(results: list[BenchResult]) -> str:
         "rodata B",
         "bss B",
         "arena B",
+        "layer bound B",
         "activations B",
     )
     rows = [header]
@@ -223,9 +230,11 @@ def format_results(results: list[BenchResult]) -> str:
         rows.append((
             r.model, r.target, f"{r.nncg_us:.2f}", f"{r.ort_bound_us:.2f}", f"{r.ort_run_us:.2f}",
             f"{r.speedup:.2f}x", f"{r.gflops:.2f}", r.peak_cell(), f"{r.max_rel_err:.1e}",
-            str(r.sizes.text), str(r.sizes.rodata), str(r.sizes.bss), str(r.arena_bytes), str(r.activation_bytes),
+            str(r.sizes.text), str(r.sizes.rodata), str(r.sizes.bss), str(r.arena_bytes), str(r.layer_bound_bytes),
+            str(r.activation_bytes),
         ))  # fmt: skip
     notes = [f"ORT: {opponent}" for opponent in dict.fromkeys(_opponent(r) for r in results)]
+    notes += [f"memory plan of {r.model}: {r.plan}" for r in results if r.plan]
     if any(r.effective_peak for r in results):
         notes.append("effective: above 100 % as GFLOP/s count direct convolution's multiply-adds; Winograd does fewer")
     return "\n".join([_table(rows), *notes])

@@ -11,6 +11,8 @@ from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm
 from ..ir.loops import Program, StoredValue
 from ..ir.ops import REDUCE_OPS
+from .band_plan import plan_bands
+from .bands import BandGroup
 from .concat import lower_concat
 from .context import LoweringContext, row_major
 from .conv import lower_conv
@@ -36,6 +38,7 @@ from .reshape import copy_nest, lower_reshape
 from .resize import lower_resize
 from .slice import lower_slice, lower_split
 from .softmax import lower_log_softmax, lower_softmax
+from .stream import band_values, lower_band_group
 from .tile import lower_tile
 from .transpose import lower_transpose
 from .winograd import lower_winograd
@@ -116,14 +119,22 @@ LOWERINGS = {
 }
 
 
-def lower(graph: Graph, function_name: str | None = None, halos: bool | str = "auto") -> Program:
+def lower(
+    graph: Graph, function_name: str | None = None, halos: bool | str = "auto", memory: str = "speed", budget: int = 0
+) -> Program:
     """`halos`: store tensors that only padded Convs read inside a zero border (see halo.py). `auto`
     (the default) does it only where the readers are cache-blocked Convs: it removes every border
     check, which on a small image is every pixel (resnet18's layer4 at 96x96, avx2: 1860 -> 1400 us),
     but for the other layers gcc's code came out as often slower as faster (robot avx2 -2 %,
-    pedestrian ssse3 +23 %). true: for every padded Conv; false: never."""
+    pedestrian ssse3 +23 %). true: for every padded Conv; false: never. `memory` (speed, balanced,
+    min) and `budget` (bytes; 0: none) choose the layers run in bands (see band_plan.py)."""
     name = program_name(function_name or graph.name)
     ctx = LoweringContext(graph, name, halos)
+    groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget)}
+    banded = {name for group in groups.values() for name in group.nodes}
+    # a line buffer has no halo; a group's output neither, as it would only add memory
+    unbordered = band_values(graph, tuple(groups.values()))
+    ctx.halos = {value: halo for value, halo in ctx.halos.items() if value not in unbordered}
     for value in graph.inputs:
         ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
     outputs = {}
@@ -132,9 +143,14 @@ def lower(graph: Graph, function_name: str | None = None, halos: bool | str = "a
         if value.name not in ctx.refs:  # an input that is also an output is copied, not aliased
             ctx.refs[value.name] = outputs[value.name]
     stored = []
+    ends = {group.nodes[-1] for group in groups.values()}
     for node in graph.nodes:
-        _lower_node(ctx, node)
-        stored += _stored_values(ctx, node)
+        if node.name in groups:
+            _lower_group(ctx, groups[node.name])
+        elif node.name not in banded:
+            _lower_node(ctx, node)
+        if node.name not in banded or node.name in ends:  # a line buffer holds no whole value to read back
+            stored += _stored_values(ctx, node)
     for value, target in outputs.items():
         if ctx.refs[value] != target:
             ctx.emit_helper(f"copy_{value}", "Copy", copy_nest(ctx.refs[value], target))
@@ -156,6 +172,15 @@ def _lower_node(ctx: LoweringContext, node: Node) -> None:
     if lowering is None:
         raise NncgError(f"no lowering for op {node.op} (node '{node.name}'); supported: {', '.join(LOWERINGS)}")
     lowering(ctx, node)
+    _emit_pending_copies(ctx, node.name)
+
+
+def _lower_group(ctx: LoweringContext, group: BandGroup) -> None:
+    lower_band_group(ctx, group)
+    _emit_pending_copies(ctx, group.nodes[-1])
+
+
+def _emit_pending_copies(ctx: LoweringContext, layer: str) -> None:
     for value, temp, target in ctx.pending_copies:
-        ctx.emit_helper(f"{node.name}_to_{value}", "Copy", copy_nest(temp, target))
+        ctx.emit_helper(f"{layer}_to_{value}", "Copy", copy_nest(temp, target))
     ctx.pending_copies.clear()

@@ -123,6 +123,7 @@ class LoweringContext:
         self.pending_copies: list[tuple[str, TensorRef, TensorRef]] = []
         self.halos = conv_halos(graph, blocked_only=halos == "auto") if halos else {}
         self.slabs = concat_slices(graph)  # Concat inputs their producers write in place
+        self.written_as_is: set[str] = set()  # graph outputs their producer writes in their own layout
 
     def add_buffer(self, name: str, role: str, shape, order, onnx_name: str = "") -> TensorRef:
         shape = tuple(int(d) for d in shape)
@@ -148,12 +149,13 @@ class LoweringContext:
         """Allocates the buffer a node writes `value` to, in the layout the lowering prefers.
 
         A graph output is row-major at the function boundary; where the preferred layout differs
-        in memory, the node writes an internal buffer and a copy kernel converts it afterwards."""
+        in memory, the node writes an internal buffer and a copy kernel converts it afterwards (unless
+        `written_as_is` has it: a banded group's output, where the copy's buffer would be the largest)."""
         shape = self.graph.shape(value)
         preferred = TensorRef("", shape, tuple(order))
         if self.graph.is_graph_output(value):
             target = self.refs[value]
-            if same_memory_order(preferred, target):
+            if same_memory_order(preferred, target) or value in self.written_as_is:
                 return target
             temp = self.add_buffer("t_" + value, "internal", shape, order)
             self.pending_copies.append((value, temp, target))

@@ -23,7 +23,7 @@ from itertools import groupby
 
 import numpy as np
 
-from ..ir.graph import ConvAttrs, Node
+from ..ir.graph import ConvAttrs, Graph, Node
 from ..ir.loops import (
     Affine,
     Assign,
@@ -164,6 +164,20 @@ class TileAt:
     channel: Affine
 
 
+def scratch_floats(graph: Graph, node: Node) -> int:
+    """The floats of a Winograd layer's two scratch buffers (what the band planner counts)."""
+    c_out, c_in = graph.shape(node.inputs[1])[:2]
+    tiles = chunk_tiles(graph.shape(node.outputs[0])[2:])[1]
+    return PATCH * PATCH * tiles * (c_in + max(c_out, node.attrs.gemm_channels))
+
+
+def chunk_tiles(out_hw: tuple[int, int]) -> tuple[int, int]:
+    """Tile rows per chunk and tiles per chunk: at least CHUNK_TILES, in whole tile rows."""
+    tiles = [-(-size // TILE) for size in out_hw]
+    rows = max(1, min(tiles[0], -(-CHUNK_TILES // tiles[1])))
+    return rows, rows * tiles[1]
+
+
 class TileGrid:
     """The output's 2x2 tiles, taken a chunk of CHUNK_TILES (whole tile rows) at a time, so the
     scratch of the transforms and GEMMs stays small and in cache. Tiles whose patch reaches into the
@@ -173,8 +187,7 @@ class TileGrid:
     def __init__(self, out_hw: tuple[int, int], pads: tuple[int, ...], readable: list[tuple[int, int]]):
         self.out_hw, self.pads, self.readable = out_hw, pads, readable
         self.tiles = tuple(-(-size // TILE) for size in out_hw)
-        self.rows_per_chunk = max(1, min(self.tiles[0], -(-CHUNK_TILES // self.tiles[1])))
-        self.chunk_tiles = self.rows_per_chunk * self.tiles[1]
+        self.rows_per_chunk, self.chunk_tiles = chunk_tiles(out_hw)
         self.col_kinds = [self.kind(1, t) for t in range(self.tiles[1])]
 
     def kind(self, dim: int, t: int) -> RowKind:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from ..errors import NncgError
 from ..ir.target import Target
 from ..lowering import lower
+from ..lowering.band_plan import parse_memory
 from .cache_block import cache_block
 from .cache_block import format_choice as format_cache_block
 from .cache_block import parse_layers as parse_cache_block_layers
@@ -38,6 +39,14 @@ from .winograd import winograd
 def parse_halos(text: str) -> bool | str:
     """lower's halos: auto (for cache-blocked Convs' inputs), true or false."""
     return "auto" if text == "auto" else parse_bool(text)
+
+
+def parse_budget(text: str) -> int:
+    """lower's RAM budget in bytes: an integer >= 1 (0: none)."""
+    budget = int(text)
+    if budget < 0:
+        raise ValueError("the budget is a number of bytes >= 0")
+    return budget
 
 
 def parse_unroll_level(text: str) -> int | None:
@@ -75,7 +84,7 @@ register(
     "cache-block", "graph", cache_block, target=True,
     tunable=Tunable(cache_block_choices, format_cache_block), layers=parse_cache_block_layers,
 )  # fmt: skip
-register("lower", "lower", lower, halos=parse_halos)
+register("lower", "lower", lower, halos=parse_halos, memory=parse_memory, budget=parse_budget)
 register("vectorize", "loop", vectorize, target=True)
 register(
     "register-block",
@@ -96,11 +105,17 @@ GRAPH_PIPELINE = "drop-identity,cancel-transposes,fold-batchnorm,fuse-bias,fuse-
 
 
 def default_pipeline(
-    target: Target, unroll_level: str = "auto", weights: str = "auto", budget: int | None = None
+    target: Target,
+    unroll_level: str = "auto",
+    weights: str = "auto",
+    budget: int | None = None,
+    memory: str = "speed",
+    ram_budget: int | None = None,
 ) -> str:
     """The pipeline `nncg-onnx` runs for `target` at an unroll level; `weights` (auto, embed, bin) says
     where plan-memory puts the weights; `budget` caps the statements of the unrolled program (None: no
-    cap). Vector widths and registers are the target's, not the text's."""
+    cap); `memory` (speed, balanced, min) or `ram_budget` (bytes) choose the layers lower runs in bands.
+    Vector widths and registers are the target's, not the text's."""
     try:
         parse_unroll_level(unroll_level)
     except ValueError:
@@ -114,7 +129,8 @@ def default_pipeline(
     graph = f"{GRAPH_PIPELINE},winograd" + (",vectorize-pixels,cache-block" if vectors else "")
     loops = ",vectorize" if vectors else ""
     loops += f",register-block,unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
-    return f"{graph},lower{loops}"
+    lower_params = f"{{budget={ram_budget}}}" if ram_budget else "" if memory == "speed" else f"{{memory={memory}}}"
+    return f"{graph},lower{lower_params}{loops}"
 
 
 __all__ = [

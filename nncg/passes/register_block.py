@@ -24,7 +24,21 @@ from dataclasses import replace
 
 from ..ir.analysis import holds_accumulators, is_accumulator
 from ..ir.kinds import BufferRole, Layout
-from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
+from ..ir.loops import (
+    Affine,
+    Assign,
+    If,
+    Kernel,
+    Let,
+    Load,
+    Loop,
+    Program,
+    Stmt,
+    Store,
+    stmt_exprs,
+    walk_exprs,
+    walk_stmts,
+)
 from ..ir.rename import rename_variables
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
@@ -58,10 +72,27 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
     layers = layers or {}
     check_layer_names(program, layers, "register-block")
     blocks = chosen_blocks(program, target, layers)
+    planar = planar_tensors(program)
     kernels = tuple(
-        replace(k, body=block_body(k.body, *blocks[k.name])) if k.name in blocks else k for k in program.kernels
+        replace(k, body=_block_kernel(k, blocks[k.name], k.name not in layers, target.registers, planar))
+        if k.name in blocks
+        else k
+        for k in program.kernels
     )
     return replace(program, kernels=kernels)
+
+
+def _block_kernel(kernel: Kernel, block: tuple[int, int], own: bool, registers: int, planar) -> tuple[Stmt, ...]:
+    """A kernel's body blocked by `block`; a band kernel runs several layers' nests, each of which the
+    cost model sizes for itself (unless `layers` chose the kernel's block: `own` is False)."""
+    if kernel.op != "Band" or not own:
+        return block_body(kernel.body, *block)
+
+    def per_nest(pixel: Loop) -> tuple[int, int]:
+        pixels, channels = choose_blocks((pixel.extent, sum(_vectors(s) for s in pixel.body)), registers)
+        return (1 if reads_across_planes((pixel,), planar) else pixels), channels
+
+    return block_body(kernel.body, *block, per_nest)
 
 
 def chosen_blocks(
@@ -235,14 +266,16 @@ def _reads_planes(loop: Loop, planar: dict[str, int]) -> bool:
 # ---------------------------------------------------------------------------- mechanism
 
 
-def block_body(body: tuple[Stmt, ...], pixels: int, channels: int) -> tuple[Stmt, ...]:
+def block_body(body: tuple[Stmt, ...], pixels: int, channels: int, per_nest=None) -> tuple[Stmt, ...]:
+    """Every blockable nest blocked by pixels x channels, or by what `per_nest(pixel loop)` says."""
     out: list[Stmt] = []
     for stmt in body:
         pixel = pixel_loop_of(stmt) if isinstance(stmt, Loop) else None
         if pixel is not None and jammable(pixel):
-            out.extend(_replace_loop(stmt, pixel, _block_pixel_loop(pixel, pixels, channels)))
+            block = per_nest(pixel) if per_nest else (pixels, channels)
+            out.extend(_replace_loop(stmt, pixel, _block_pixel_loop(pixel, *block)))
         elif isinstance(stmt, Loop | Let | If):
-            out.append(replace(stmt, body=block_body(stmt.body, pixels, channels)))
+            out.append(replace(stmt, body=block_body(stmt.body, pixels, channels, per_nest)))
         else:
             out.append(stmt)
     return tuple(out)
