@@ -139,8 +139,44 @@ def residual_model(seed: int = 3) -> onnx.ModelProto:
     return model
 
 
+def add_model(seed: int = 4) -> onnx.ModelProto:
+    """Two Convs added (each input with its own scale and zero point), the sum the output."""
+    rng = np.random.default_rng(seed)
+    init = {"w1": _weights(rng, 8, 4, 3, 3), "w2": _weights(rng, 8, 4, 1, 1) * 3, "b2": rng.standard_normal(8)}
+    nodes = [
+        helper.make_node("Conv", ["x", "w1"], ["c1"], pads=[1, 1, 1, 1]),
+        helper.make_node("Conv", ["x", "w2", "b2"], ["c2"]),
+        helper.make_node("Add", ["c1", "c2"], ["y"]),
+    ]
+    return _model(nodes, [1, 4, 8, 8], init)
+
+
+def average_pool_model(seed: int = 5) -> onnx.ModelProto:
+    """Conv, then AveragePool with padding (windows of different counts), the output."""
+    rng = np.random.default_rng(seed)
+    nodes = [
+        helper.make_node("Conv", ["x", "w"], ["c"], pads=[1, 1, 1, 1]),
+        helper.make_node("AveragePool", ["c"], ["y"], kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1]),
+    ]
+    return _model(nodes, [1, 4, 9, 9], {"w": _weights(rng, 8, 4, 3, 3)})
+
+
 def repository_model(path: str) -> onnx.ModelProto:
-    return onnx.load(ROOT / path)
+    """One of the repository's float models, BatchNormalization folded into the Convs (onnxruntime's
+    quant_pre_process, the step its quantizer asks for) and a final Softmax removed: onnxruntime
+    computes a quantized Softmax with a lookup table of its own, which NNCG does not reproduce."""
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    model = onnx.load(ROOT / path)
+    last = model.graph.node[-1]
+    if last.op_type == "Softmax":
+        model.graph.node.remove(last)
+        model.graph.output[0].CopyFrom(helper.make_tensor_value_info(last.input[0], TensorProto.FLOAT, None))
+    with tempfile.TemporaryDirectory() as tmp:
+        src, dst = Path(tmp) / "model.onnx", Path(tmp) / "prepared.onnx"
+        onnx.save(model, src)
+        quant_pre_process(str(src), str(dst), skip_symbolic_shape=True)
+        return onnx.load(dst)
 
 
 @dataclass

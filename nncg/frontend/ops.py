@@ -43,6 +43,7 @@ from nncg.frontend.ops_quantized import (
     convert_dequantize_linear,
     convert_qgemm,
     convert_qlinear_add,
+    convert_qlinear_average_pool,
     convert_qlinear_conv,
     convert_qlinear_global_average_pool,
     convert_qlinear_matmul,
@@ -164,6 +165,9 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "QLinearMatMul": ConvertedOp(convert_qlinear_matmul, ("QLinearDense",), (1, 2, 4, 5, 6, 7)),
     "QGemm": ConvertedOp(convert_qgemm, ("QLinearDense",), (1, 2, 4, 5, 7, 8)),
     "QLinearAdd": ConvertedOp(convert_qlinear_add, ("QLinearAdd",), (1, 2, 4, 5, 6, 7)),
+    "QLinearAveragePool": ConvertedOp(
+        convert_qlinear_average_pool, ("QLinearAveragePool", "QLinearGlobalAveragePool"), (1, 2, 3, 4)
+    ),  # a window of the whole image is the global pool, as in onnxruntime
     "QLinearGlobalAveragePool": ConvertedOp(
         convert_qlinear_global_average_pool, ("QLinearGlobalAveragePool",), (1, 2, 3, 4)
     ),

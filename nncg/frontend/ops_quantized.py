@@ -9,9 +9,11 @@ import numpy as np
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_nn import conv_geometry
+from nncg.frontend.windows import checked_pool_output_shape, pool_attrs
 from nncg.ir.graph import (
     Node,
     QAddAttrs,
+    QAveragePoolAttrs,
     QConvAttrs,
     QDenseAttrs,
     QPoolAttrs,
@@ -191,6 +193,24 @@ def convert_qlinear_add(op: OnnxOp, ctx: Context) -> Node:
     ctx.set_shape(op, op.node.output[0], ctx.shape(a))
     attrs = QAddAttrs(a_scale, a_zero, b_scale, b_zero, y_scale, requantization(op, y_scale, y_zero, y_dtype))
     return op.ir_node("QLinearAdd", [a, b], attrs)
+
+
+def convert_qlinear_average_pool(op: OnnxOp, ctx: Context) -> Node:
+    """onnxruntime's QLinearAveragePool: X, x_scale, x_zero_point, y_scale, y_zero_point."""
+    if op.attr("channels_last", 0):
+        raise op.error("has channels_last=1; NNCG takes NCHW inputs")
+    x = op.input(0)
+    shape = ctx.shape(x)
+    pool = pool_attrs(op, shape)
+    if set(pool.dilations) != {1}:
+        raise op.error("has dilations; onnxruntime's QLinearAveragePool has none")
+    if pool.kernel == shape[2:] and not any(pool.pads_begin + pool.pads_end):
+        return convert_qlinear_global_average_pool(op, ctx)  # onnxruntime falls back to it too
+    x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
+    y_scale, y_zero, y_dtype = quantization(op, ctx, 3, "output")
+    ctx.set_shape(op, op.node.output[0], checked_pool_output_shape(op, pool, shape))
+    attrs = QAveragePoolAttrs(pool, x_scale, x_zero, y_scale, requantization(op, y_scale, y_zero, y_dtype))
+    return op.ir_node("QLinearAveragePool", [x], attrs)
 
 
 def convert_qlinear_global_average_pool(op: OnnxOp, ctx: Context) -> Node:

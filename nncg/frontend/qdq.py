@@ -4,7 +4,8 @@ QOperator op serves both formats.
 
 A float op whose inputs come from DequantizeLinear nodes and whose only reader is a QuantizeLinear
 computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm, Add QLinearAdd,
-GlobalAveragePool QLinearGlobalAveragePool (the last three in onnxruntime's com.microsoft domain).
+GlobalAveragePool QLinearGlobalAveragePool and AveragePool QLinearAveragePool (the last four in
+onnxruntime's com.microsoft domain).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
 is monotonic, so clamping before it is clamping its result. MaxPool, Reshape and Flatten between a
 DequantizeLinear and a QuantizeLinear of the same scale and zero point move the integers as they
@@ -223,6 +224,16 @@ def _global_average_pool(model: _Model, pool: onnx.NodeProto):
     return _node("QLinearGlobalAveragePool", inputs, q.output[0], pool, domain=CONTRIB), [q]
 
 
+def _average_pool(model: _Model, pool: onnx.NodeProto):
+    dq_x = model.live_dq(pool.input[0])
+    out = _q_output(model, pool)
+    if dq_x is None or out is None or out[1]:
+        return None
+    q = out[0]
+    inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
+    return _node("QLinearAveragePool", inputs, q.output[0], pool, domain=CONTRIB), [q]
+
+
 def _pass_through(model: _Model, op: onnx.NodeProto):
     """MaxPool, Reshape or Flatten of the integers, when the scale and zero point do not change."""
     dq_x = model.live_dq(op.input[0])
@@ -249,5 +260,6 @@ REWRITES: dict[str, Callable] = {
     "MatMul": _matmul,
     "Add": _add,
     "GlobalAveragePool": _global_average_pool,
+    "AveragePool": _average_pool,
     **dict.fromkeys(PASS_THROUGH, _pass_through),
 }

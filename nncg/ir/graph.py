@@ -376,12 +376,24 @@ class QPoolAttrs:
     out: Requantization
 
 
+@dataclass(frozen=True)
+class QAveragePoolAttrs:
+    """QLinearAveragePool as onnxruntime computes it: per window the float32 sum of the dequantized
+    taps inside the input, divided by the tap count, then y = sum / y_scale + y_zero_point rounded."""
+
+    pool: PoolAttrs
+    x_scale: float
+    x_zero_point: int
+    y_scale: float
+    out: Requantization
+
+
 # Every attribute record a node may carry.
 AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
     SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs, QuantAttrs, QConvAttrs,
-    QDenseAttrs, QAddAttrs, QPoolAttrs,
+    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs,
 ]  # fmt: skip
 
 

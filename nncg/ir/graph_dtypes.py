@@ -20,6 +20,7 @@ QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QLinearDense": (ACTIVATIONS, (INT8, INT16), (INT32,), (FLOAT32,)),
     "QLinearAdd": (ACTIVATIONS, ACTIVATIONS),
     "QLinearGlobalAveragePool": (ACTIVATIONS,),
+    "QLinearAveragePool": (ACTIVATIONS,),
 }
 
 

@@ -24,6 +24,7 @@ from .graph import (
     PadAttrs,
     PoolAttrs,
     QAddAttrs,
+    QAveragePoolAttrs,
     QConvAttrs,
     QDenseAttrs,
     QPoolAttrs,
@@ -161,4 +162,5 @@ IR_OPS: dict[str, IrOp] = {
     "QLinearDense": IrOp(QDenseAttrs, q_dense_macs),
     "QLinearAdd": IrOp(QAddAttrs, no_macs),
     "QLinearGlobalAveragePool": IrOp(QPoolAttrs, no_macs),
+    "QLinearAveragePool": IrOp(QAveragePoolAttrs, no_macs),
 }

@@ -34,6 +34,7 @@ from .pool import lower_averagepool, lower_maxpool
 from .quantized import (
     lower_dequantize_linear,
     lower_integer_maxpool,
+    lower_qlinear_average_pool,
     lower_qlinear_conv,
     lower_qlinear_dense,
     lower_qlinear_global_average_pool,
@@ -136,6 +137,7 @@ LOWERINGS = {
     "QLinearDense": lower_qlinear_dense,
     "QLinearAdd": lower_qlinear_add,
     "QLinearGlobalAveragePool": lower_qlinear_global_average_pool,
+    "QLinearAveragePool": lower_qlinear_average_pool,
 }
 
 

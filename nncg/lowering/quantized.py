@@ -10,11 +10,12 @@ import math
 
 import numpy as np
 
-from ..ir.graph import Node, QConvAttrs, QDenseAttrs, QPoolAttrs, QuantAttrs
+from ..ir.graph import Node, QAveragePoolAttrs, QConvAttrs, QDenseAttrs, QPoolAttrs, QuantAttrs
 from ..ir.kinds import DType
 from ..ir.loops import Affine, Assign, Binary, Cast, Const, Expr, Let, Load, LocalRef, Loop, Requantize, Stmt, Store
 from .context import LoweringContext, TensorRef, channels_last, nest, row_major
 from .elementwise import elementwise
+from .pool import window_counts
 from .requantize import Scales
 from .window import spatial_names, window_nest
 
@@ -109,6 +110,38 @@ def lower_qlinear_global_average_pool(ctx: LoweringContext, node: Node) -> None:
         return (Let("acc", Const.integer(-count * attrs.x_zero_point), (*nest(taps, tap, parallel=False), store)),)
 
     ctx.emit(node.name, "QLinearGlobalAveragePool", nest([("n", x.shape[0]), ("c", x.shape[1])], body, parallel=True))
+
+
+def lower_qlinear_average_pool(ctx: LoweringContext, node: Node) -> None:
+    """As onnxruntime's QLinearAveragePool: the float32 sum, in tap order, of x_scale * (x - x_zp)
+    over the taps inside the input, divided by the window's count (window_counts), then
+    sum / y_scale + y_zp rounded half to even and saturated."""
+    attrs: QAveragePoolAttrs = node.attrs
+    x = ctx.ref(node.inputs[0])
+    rank = len(attrs.pool.kernel)
+    out = ctx.output(node.outputs[0], channels_last(rank + 2))
+    counts = window_counts(attrs.pool, x.shape[2:], out.shape[2:]).astype(np.float32)
+    uniform = bool(np.all(counts == counts.flat[0]))
+    count_ref = None if uniform else ctx.add_constant(f"count_{node.name}", counts)
+    names = spatial_names(rank)
+    out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]
+
+    def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
+        def tap(positions: list[Affine], _k: list[Affine]) -> tuple[Stmt, ...]:
+            dequantized = Cast(FLOAT32, widened(x, [env["n"], env["c"], *positions], attrs.x_zero_point))
+            return (accumulate(Binary("*", Const.splat(attrs.x_scale), dequantized)),)
+
+        window = window_nest(attrs.pool, env, dict(out_loops), x.spatial_ranges, tap)
+        spatial = [env["o" + s] for s in names]
+        count = Const.splat(float(counts.flat[0])) if uniform else Load(count_ref.buffer, count_ref.at(spatial))
+        mean = Binary("/", LocalRef("acc"), count)
+        value = Binary("+", Binary("/", mean, Const.splat(attrs.y_scale)), Const.splat(float(attrs.out.zero_point)))
+        requantized = Requantize(value, 0, attrs.out.low, attrs.out.high, attrs.out.dtype)
+        store = Store(out.buffer, out.at([env["n"], env["c"], *spatial]), requantized)
+        return (Let("acc", Const.splat(0.0), (*window, store)),)
+
+    loops = [("n", out.shape[0]), *out_loops, ("c", out.shape[1])]
+    ctx.emit(node.name, "QLinearAveragePool", nest(loops, body, parallel=True))
 
 
 def lower_quantize_linear(ctx: LoweringContext, node: Node) -> None:
