@@ -151,12 +151,14 @@ def add_model(seed: int = 4) -> onnx.ModelProto:
     return _model(nodes, [1, 4, 8, 8], init)
 
 
-def average_pool_model(seed: int = 5) -> onnx.ModelProto:
-    """Conv, then AveragePool with padding (windows of different counts), the output."""
+def average_pool_model(seed: int = 5, whole_image: bool = False) -> onnx.ModelProto:
+    """Conv, then AveragePool with padding (windows of different counts), or of the whole image (a
+    global pool to onnxruntime), the output."""
     rng = np.random.default_rng(seed)
+    window = {"kernel_shape": [9, 9]} if whole_image else {"kernel_shape": [3, 3], "strides": [2, 2], "pads": [1] * 4}
     nodes = [
         helper.make_node("Conv", ["x", "w"], ["c"], pads=[1, 1, 1, 1]),
-        helper.make_node("AveragePool", ["c"], ["y"], kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1]),
+        helper.make_node("AveragePool", ["c"], ["y"], **window),
     ]
     return _model(nodes, [1, 4, 9, 9], {"w": _weights(rng, 8, 4, 3, 3)})
 

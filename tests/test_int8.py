@@ -31,7 +31,6 @@ from int8_models import (
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg
-from nncg.errors import UnsupportedOpsError
 from nncg.ir.graph import Node, QuantAttrs
 from nncg.ir.kinds import BufferRole, DType
 from nncg.ir.loops import Affine, Buffer, Const, Kernel, Program, Store
@@ -215,11 +214,10 @@ def test_arena_and_weights_shrink_and_output_is_deterministic():
         program = compiled.record.program
         return sum(b.size * b.dtype.bytes for b in program.role(BufferRole.CONSTANT))
 
-    print(
-        f"arena {floats.arena_bytes} -> {int8.arena_bytes} bytes, weights {weight_bytes(floats)} -> {weight_bytes(int8)} bytes"
-    )
+    weights = weight_bytes(floats), weight_bytes(int8)
+    print(f"arena {floats.arena_bytes} -> {int8.arena_bytes} bytes, weights {weights[0]} -> {weights[1]} bytes")
     assert int8.arena_bytes * 3 < floats.arena_bytes
-    assert weight_bytes(int8) * 3 < weight_bytes(floats)
+    assert weights[1] * 3 < weights[0]
     header = int8.header
     assert re.search(rf"#define {int8.name.upper()}_ARENA_BYTES {int8.arena_bytes}\b", header)
 

@@ -24,6 +24,7 @@ from nncg.ir.kinds import DType
 from nncg.safe_text import shown
 
 F32 = np.float32
+QUANTIZATION_HINT = "NNCG specialises the code to the scales and zero points: make them constants"
 # ONNX's TensorProto element types of QuantizeLinear's output_dtype attribute (opset 21)
 OUTPUT_DTYPES = {2: DType.UINT8, 3: DType.INT8}
 
@@ -31,9 +32,12 @@ OUTPUT_DTYPES = {2: DType.UINT8, 3: DType.INT8}
 def quantization(op: OnnxOp, ctx: Context, scale_slot: int, role: str) -> tuple[float, int, DType]:
     """(scale, zero point, dtype) of a per-tensor quantized value: the scale at `scale_slot`, the
     zero point after it (omitted: 0, uint8 unless output_dtype says otherwise)."""
-    scale, zero = ctx.const(op.input(scale_slot)), ctx.const(op.input(scale_slot + 1))
-    if scale is None or (op.input(scale_slot + 1) and zero is None):
-        raise op.error(f"has its {role} scale or zero point computed at run time; NNCG needs them constant")
+    scale = ctx.constant_input(op, scale_slot, f"{role} scale", QUANTIZATION_HINT)
+    zero = (
+        ctx.constant_input(op, scale_slot + 1, f"{role} zero point", QUANTIZATION_HINT)
+        if op.input(scale_slot + 1)
+        else None
+    )
     if scale.size != 1 or (zero is not None and zero.size != 1):
         raise op.error(f"quantizes its {role} per axis; NNCG quantizes activations per tensor only")
     if zero is None:
@@ -82,11 +86,11 @@ def convert_dequantize_linear(op: OnnxOp, ctx: Context) -> Node:
 def integer_weights(op: OnnxOp, ctx: Context, slot: int, channels: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
     """The weights (constant, int8 or uint8; minus their zero points, as int16, unless those are
     all 0) and their scales, one per output channel along `axis`."""
-    w, scale, zero = (ctx.const(op.input(i)) for i in (slot, slot + 1, slot + 2))
-    if w is None or scale is None or (op.input(slot + 2) and zero is None):
-        raise op.error(
-            "has weights, weight scales or weight zero points computed at run time; NNCG needs them constant"
-        )
+    w = ctx.const(op.input(slot))
+    if w is None:
+        raise op.error("has its weights computed at run time; NNCG's integer kernels take constant weights")
+    scale = ctx.constant_input(op, slot + 1, "weight scale", QUANTIZATION_HINT)
+    zero = ctx.constant_input(op, slot + 2, "weight zero point", QUANTIZATION_HINT) if op.input(slot + 2) else None
     if w.dtype not in (np.int8, np.uint8):
         raise op.error(f"has weights of type {w.dtype.name}; NNCG takes int8 and uint8")
     if scale.size not in (1, channels) or (zero is not None and zero.size not in (1, channels)):
