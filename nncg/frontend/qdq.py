@@ -214,24 +214,19 @@ def _add(model: _Model, add: onnx.NodeProto):
     return _node("QLinearAdd", inputs, q.output[0], add, _with_clamps(model, q, clamps), CONTRIB), [q, *clamps]
 
 
-def _global_average_pool(model: _Model, pool: onnx.NodeProto):
-    dq_x = model.live_dq(pool.input[0])
-    out = _q_output(model, pool)
-    if dq_x is None or out is None or out[1]:
-        return None
-    q = out[0]
-    inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
-    return _node("QLinearGlobalAveragePool", inputs, q.output[0], pool, domain=CONTRIB), [q]
+def _pool(qop: str) -> Callable:
+    """GlobalAveragePool or AveragePool between a DequantizeLinear and a QuantizeLinear as `qop`."""
 
+    def rewrite(model: _Model, pool: onnx.NodeProto):
+        dq_x = model.live_dq(pool.input[0])
+        out = _q_output(model, pool)
+        if dq_x is None or out is None or out[1]:
+            return None
+        q = out[0]
+        inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
+        return _node(qop, inputs, q.output[0], pool, domain=CONTRIB), [q]
 
-def _average_pool(model: _Model, pool: onnx.NodeProto):
-    dq_x = model.live_dq(pool.input[0])
-    out = _q_output(model, pool)
-    if dq_x is None or out is None or out[1]:
-        return None
-    q = out[0]
-    inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
-    return _node("QLinearAveragePool", inputs, q.output[0], pool, domain=CONTRIB), [q]
+    return rewrite
 
 
 def _pass_through(model: _Model, op: onnx.NodeProto):
@@ -259,7 +254,7 @@ REWRITES: dict[str, Callable] = {
     "Gemm": _gemm,
     "MatMul": _matmul,
     "Add": _add,
-    "GlobalAveragePool": _global_average_pool,
-    "AveragePool": _average_pool,
+    "GlobalAveragePool": _pool("QLinearGlobalAveragePool"),
+    "AveragePool": _pool("QLinearAveragePool"),
     **dict.fromkeys(PASS_THROUGH, _pass_through),
 }

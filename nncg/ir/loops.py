@@ -199,14 +199,8 @@ class Fma:
         return max(self.a.lanes, self.b.lanes, self.c.lanes)
 
 
-@dataclass(frozen=True)
-class Cast:
-    """value converted to `dtype`: integer widening or narrowing to a type that holds the value,
-    integer to float (rounded to nearest), float32 to float64 (exact). Float to integer is never a
-    Cast: Requantize rounds and saturates."""
-
-    dtype: DType
-    value: Expr
+class _Converting:
+    """A node that converts its `value` to its `dtype`: it has value's lanes."""
 
     def __post_init__(self) -> None:
         coerce(self, dtype=DType)
@@ -217,7 +211,17 @@ class Cast:
 
 
 @dataclass(frozen=True)
-class Requantize:
+class Cast(_Converting):
+    """value converted to `dtype`: integer widening or narrowing to a type that holds the value,
+    integer to float (rounded to nearest), float32 to float64 (exact) and back (rounded). Float to
+    integer is never a Cast: Requantize rounds and saturates."""
+
+    dtype: DType
+    value: Expr
+
+
+@dataclass(frozen=True)
+class Requantize(_Converting):
     """The float form of requantisation (MLAS's, onnxruntime's CPU kernels): a float32 `value`
     already multiplied by its scale, clamped to [low - zero_point, high - zero_point] (NaN to the
     low end), rounded half to even, plus `zero_point`; an integer of `dtype` in [low, high]."""
@@ -228,16 +232,9 @@ class Requantize:
     high: int
     dtype: DType
 
-    def __post_init__(self) -> None:
-        coerce(self, dtype=DType)
-
-    @property
-    def lanes(self) -> int:
-        return self.value.lanes
-
 
 @dataclass(frozen=True)
-class RequantizeFixed:
+class RequantizeFixed(_Converting):
     """The fixed-point form (gemmlowp's, TFLite's): an int32 `value` times the int32 `multiplier`
     (in [2^30, 2^31)), the 64-bit product divided by 2^31 rounding half up, then divided by
     2^`shift` rounding half away from zero, plus `zero_point`, saturated to [low, high]. So the
@@ -250,13 +247,6 @@ class RequantizeFixed:
     low: int
     high: int
     dtype: DType
-
-    def __post_init__(self) -> None:
-        coerce(self, dtype=DType)
-
-    @property
-    def lanes(self) -> int:
-        return self.value.lanes
 
 
 Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call, Fma, Cast, Requantize, RequantizeFixed]
