@@ -163,6 +163,44 @@ def average_pool_model(seed: int = 5, whole_image: bool = False) -> onnx.ModelPr
     return _model(nodes, [1, 4, 9, 9], {"w": _weights(rng, 8, 4, 3, 3)})
 
 
+def hand_qdq_model(activation: str, seed: int = 6) -> onnx.ModelProto:
+    """A QDQ Conv written by hand, with the `activation` (Relu or Clip(0, 2)) that quantize_static
+    would have folded away left between the Conv and its QuantizeLinear (zero point 0: onnxruntime
+    drops the Relu or Clip into the output range, as NNCG does)."""
+    rng = np.random.default_rng(seed)
+    w_scale = rng.uniform(0.005, 0.02, 8).astype(np.float32)
+    x_scale = np.float32(0.03)
+    init = {
+        "xs": x_scale, "xz": np.uint8(120), "ys": np.float32(0.01), "yz": np.uint8(0),
+        "wq": rng.integers(-127, 128, (8, 3, 3, 3)).astype(np.int8), "wsc": w_scale, "wz": np.zeros(8, np.int8),
+        "bq": rng.integers(-2000, 2000, 8).astype(np.int32), "bs": (x_scale * w_scale).astype(np.float32),
+        "bz": np.zeros(8, np.int32), "lo": np.float32(0), "hi": np.float32(2),
+    }  # fmt: skip
+    clamp = (
+        helper.make_node("Relu", ["c"], ["r"])
+        if activation == "Relu"
+        else helper.make_node("Clip", ["c", "lo", "hi"], ["r"])
+    )
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "xs", "xz"], ["xq"]),
+        helper.make_node("DequantizeLinear", ["xq", "xs", "xz"], ["xd"]),
+        helper.make_node("DequantizeLinear", ["wq", "wsc", "wz"], ["w"], axis=0),
+        helper.make_node("DequantizeLinear", ["bq", "bs", "bz"], ["b"], axis=0),
+        helper.make_node("Conv", ["xd", "w", "b"], ["c"], pads=[1, 1, 1, 1]),
+        clamp,
+        helper.make_node("QuantizeLinear", ["r", "ys", "yz"], ["rq"]),
+        helper.make_node("DequantizeLinear", ["rq", "ys", "yz"], ["y"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "hand_qdq",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, 8, 8])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+        [numpy_helper.from_array(np.asarray(a), n) for n, a in init.items()],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+
+
 def repository_model(path: str) -> onnx.ModelProto:
     """One of the repository's float models, BatchNormalization folded into the Convs (onnxruntime's
     quant_pre_process, the step its quantizer asks for) and a final Softmax removed: onnxruntime

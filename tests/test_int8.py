@@ -21,6 +21,7 @@ from int8_models import (
     clip_gemm_model,
     compare,
     conv_model,
+    hand_qdq_model,
     onnxruntime_outputs,
     output_scales,
     quantized,
@@ -66,6 +67,18 @@ def test_conv_geometries_match_onnxruntime_to_the_bit(kind):
 @pytest.mark.parametrize("model", sorted(MODELS))
 def test_patterns_match_onnxruntime_to_the_bit(model):
     check(MODELS[model]())
+
+
+@pytest.mark.parametrize("activation", ["Relu", "Clip"])
+def test_relu_and_clip_fold_into_the_output_range(activation):
+    """A Relu or Clip(0, 2) between a QDQ Conv and its QuantizeLinear (scale 0.01, zero point 0) is the
+    output range [0, 255] or [0, 200] of the integer Conv."""
+    model = hand_qdq_model(activation)
+    compiled = nncg.compile(model, verify_ir=True)
+    assert kernel_ops(compiled) == ["QuantizeLinear", "QLinearConv", "DequantizeLinear"]
+    assert (", 0, 0, 200)" in compiled.source) == (activation == "Clip")
+    result = compare(model, compiled, random_feeds(model, FEEDS, SEED))
+    assert result.max_steps == 0 and result.identical == 1.0, result
 
 
 @pytest.mark.parametrize("model", ["depthwise", "residual"])

@@ -166,7 +166,9 @@ def lower_dequantize_linear(ctx: LoweringContext, node: Node) -> None:
     def value(idx: list[Affine]) -> Expr:
         return Binary("*", Cast(FLOAT32, widened(x, idx, attrs.zero_point)), Const.splat(attrs.scale))
 
-    elementwise(ctx, node, x.order, value)
+    # a graph output (the usual place of the last DequantizeLinear) is written in its own order: no copy
+    output = ctx.graph.is_graph_output(node.outputs[0])
+    elementwise(ctx, node, row_major(len(x.shape)) if output else x.order, value)
 
 
 def lower_integer_maxpool(ctx: LoweringContext, node: Node) -> None:
