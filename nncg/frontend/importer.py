@@ -20,7 +20,7 @@ from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
 from nncg.frontend.qdq import fuse_qdq
 from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
-from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, output_dtype
+from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, float_ops_reading_integers, output_dtype
 from nncg.ir.kinds import DType
 from nncg.safe_text import shown
 
@@ -38,6 +38,7 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     graph = _assemble(proto.graph, nodes, ctx)
     check_computed_shapes([(n.name, n.op, n.outputs) for n in graph.nodes], graph.shapes)  # converters' own too
     check_constants(graph, constant_origins(proto.graph, folded))
+    check_integer_reads(graph)
     check_attributes(graph)
     return graph
 
@@ -67,6 +68,18 @@ def check_supported(nodes: list[NamedNode]) -> None:
         raise UnsupportedOpsError(
             f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "
             f"(plus {FOLDED_OPS}, which are folded at compile time)"
+        )
+
+
+def check_integer_reads(graph: Graph) -> None:
+    """A float op that reads an int8 tensor directly (a QOperator model's Transpose of uint8, say) is
+    refused: NNCG computes only its int8 ops on integers, and nothing quantized in float."""
+    found = float_ops_reading_integers(graph)
+    if found:
+        node, value = found[0]
+        raise UnsupportedOpsError(
+            f"{node.op} node {shown(node.name)} reads the {graph.dtype(value)} tensor {shown(value)}; NNCG computes "
+            "that op in float only: dequantize its input (DequantizeLinear) or compile the float model"
         )
 
 

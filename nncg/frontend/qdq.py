@@ -157,8 +157,10 @@ def _clip_bounds(model: _Model, node: onnx.NodeProto) -> tuple[float, float]:
 
 
 def _node(op_type: str, inputs: list[str], output: str, source: onnx.NodeProto, extra=(), domain: str = ""):
+    """The QOperator node with the float op's attributes (but Gemm's transA and beta, which QGemm
+    lacks: only transA=0 and beta=1 are rewritten) and `extra` ones."""
     node = helper.make_node(op_type, inputs, [output], domain=domain)
-    node.attribute.extend([a for a in source.attribute if a.name not in ("transA",)])
+    node.attribute.extend([a for a in source.attribute if a.name not in ("transA", "beta")])
     node.attribute.extend(extra)
     return node
 

@@ -35,6 +35,18 @@ def output_dtype(node: Node, dtype_of: Callable[[str], DType]) -> DType:
     return FLOAT32
 
 
+def float_ops_reading_integers(graph: Graph) -> list[tuple[Node, str]]:
+    """(node, input) for every float op that reads an integer value."""
+    integer_ops = (*TYPE_PRESERVING, *QUANTIZED_INPUTS)
+    return [
+        (node, name)
+        for node in graph.nodes
+        if node.op not in integer_ops
+        for name in node.inputs
+        if graph.dtype(name) != FLOAT32
+    ]
+
+
 def graph_dtype_problems(graph: Graph) -> list[str]:
     """Every node reads the dtypes its op takes and its outputs have the dtype it writes."""
     problems = []
