@@ -11,6 +11,7 @@ from .errors import NncgError, NncgWarning  # noqa: E402
 from .frontend import import_onnx, load_model  # noqa: E402
 from .options import CompileOptions  # noqa: E402
 from .passes import PassManager, default_pipeline  # noqa: E402
+from .quantization import quantize  # noqa: E402
 
 __all__ = [
     "CompileOptions",
@@ -24,4 +25,5 @@ __all__ = [
     "get_target",
     "import_onnx",
     "load_model",
+    "quantize",
 ]

@@ -32,7 +32,7 @@ def check_compile_arguments(
     _check_str("target", target)
     _check_unroll(unroll)
     _check_str("name", name, optional=True)
-    _check_input_shapes(input_shapes)
+    check_input_shapes(input_shapes)
     _check_str("pipeline", pipeline, optional=True)
     _check_stream("print_ir_after_all", print_ir_after_all)
     _check_bool("verify_ir", verify_ir)
@@ -98,7 +98,7 @@ def _check_unroll(unroll) -> None:
         raise NncgError(f'unroll must be "auto", "none", None or a level (an int >= 0); {_got(unroll)}')
 
 
-def _check_input_shapes(shapes) -> None:
+def check_input_shapes(shapes) -> None:
     if shapes is None:
         return
     if not isinstance(shapes, Mapping):

@@ -7,7 +7,7 @@ import re
 import shlex
 import sys
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import NoReturn
@@ -17,7 +17,7 @@ from .arguments import DIM_MAX, REQUANTIZE_FORMS
 from .backends import BACKENDS
 from .errors import NncgError, NncgWarning
 from .options import CompileOptions
-from .output_files import check_output_folder
+from .output_files import check_output_folder, write_files
 from .passes.unroll import CODE_BUDGET
 from .safe_text import shown, terminal_line
 
@@ -80,14 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
         "their reduction loops); LEVEL: keep the LEVEL outermost loops of each layer, unroll the rest "
         "(the paper's levels; 0 unrolls everything); none: nothing (default: auto)",
     )
-    p.add_argument(
-        "--input-shape",
-        action="append",
-        type=parse_input_shape,
-        default=[],
-        metavar="NAME=DIMS",
-        help="fix a dynamic input shape, e.g. image=1x3x60x80 (repeatable)",
-    )
+    add_input_shape_option(p)
     p.add_argument(
         "--code-budget",
         type=whole_number,
@@ -115,6 +108,13 @@ def build_parser() -> argparse.ArgumentParser:
         choices=("nchw", "nhwc"),
         help="layout of the C function's 4-D inputs (default: the model's own; Keras models are nhwc): the other "
         "one inserts a Transpose at the input, which the passes cancel against the model's own",
+    )
+    p.add_argument(
+        "--calibration",
+        metavar="PATH",
+        help="quantise the model to int8 first (onnxruntime.quantization: QDQ, uint8 activations, int8 weights per "
+        "output channel) on these inputs: an .npz keyed by input name with the samples along the first axis, or a "
+        "folder of .npy files, one sample each; writes NAME.qdq.onnx beside the C (nncg-quantize has more settings)",
     )
     p.add_argument("--pipeline", help="run this pass pipeline instead of the default (see --list-passes)")
     p.add_argument(
@@ -165,31 +165,52 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def add_input_shape_option(p: argparse.ArgumentParser) -> None:
+    """--input-shape NAME=DIMS, repeatable, as input_shapes() reads it."""
+    p.add_argument(
+        "--input-shape",
+        action="append",
+        type=parse_input_shape,
+        default=[],
+        metavar="NAME=DIMS",
+        help="fix a dynamic input shape, e.g. image=1x3x60x80 (repeatable)",
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    return run_command(build_parser(), run, argv)
+
+
+def run_command(
+    parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], int], argv: list[str] | None
+) -> int:
+    """Runs `run` on the parsed `argv`: bad input (NncgError, a file-system error) is one line on stderr
+    and exit status 2, any other exception a bug, status 3; NNCG's notes follow a successful run."""
+    args = parser.parse_args(argv)
+    prog = parser.prog
     notes: list[str] = []
     try:
         with collected_notes(notes):
             status = run(args)
     except NncgError as exc:
-        return fail(str(exc))
+        return fail(str(exc), prog)
     except OSError as exc:  # the file system's answer (a full disk, a vanished file): the user's to fix
         if args.debug:
             raise
-        return fail(f"{exc} (check the paths given, free space and permissions)")
+        return fail(f"{exc} (check the paths given, free space and permissions)", prog)
     except Exception as exc:
         if args.debug:
             raise
         print(
             terminal_line(
-                f"nncg-onnx: internal error: {type(exc).__name__}: {exc} (a bug in NNCG: please report it "
+                f"{prog}: internal error: {type(exc).__name__}: {exc} (a bug in NNCG: please report it "
                 "with the model; --debug shows the traceback)"
             ),
             file=sys.stderr,
         )
         return 3
     for note in notes:  # after the run, so that bad input stays one error line
-        print(terminal_line(f"nncg-onnx: note: {note}"), file=sys.stderr)
+        print(terminal_line(f"{prog}: note: {note}"), file=sys.stderr)
     return status
 
 
@@ -211,9 +232,9 @@ def collected_notes(notes: list[str]) -> Iterator[None]:
         yield
 
 
-def fail(message: str) -> int:
+def fail(message: str, prog: str) -> int:
     """Prints `message` as the one error line; returns exit status 2."""
-    print(terminal_line(f"nncg-onnx: error: {message}"), file=sys.stderr)
+    print(terminal_line(f"{prog}: error: {message}"), file=sys.stderr)
     return 2
 
 
@@ -222,6 +243,7 @@ def run(args: argparse.Namespace) -> int:
     from .compiler import compile, onnx_model
     from .frontend.keras_export import is_keras_path
     from .passes import REGISTRY, default_pipeline
+    from .quantization import quantize
 
     if args.list_passes:
         for info in REGISTRY.values():
@@ -242,6 +264,9 @@ def run(args: argparse.Namespace) -> int:
     if is_keras_path(args.model) or args.input_layout:  # converted once: --verify, --tune, ... use it too
         args.name = args.name or Path(args.model).stem
         args.model = onnx_model(args.model, args.input_layout)[0]
+    if args.calibration:  # quantised once, like a Keras model converted: --verify, --tune, ... take the QDQ model
+        args.name = args.name or Path(args.model).stem
+        args.model = quantize(args.model, args.calibration, input_shapes=input_shapes(args))
     if args.tune or args.tune_runner:
         options = options.with_pipeline(tune_command(args))
     compiled = compile(
@@ -253,8 +278,10 @@ def run(args: argparse.Namespace) -> int:
         print_ir_after_all=sys.stderr if args.print_ir_after_all else None,
         **options.kwargs(),
     )
-    paths = compiled.write(args.output_dir, cmake=args.cmake)
-    print_written(paths)
+    files = compiled.files(args.output_dir, cmake=args.cmake)
+    if args.calibration:
+        files[f"{compiled.name}.qdq.onnx"] = args.model.SerializeToString(deterministic=True)
+    print_written(write_files(args.output_dir, files))
     results: dict[str, object] = {}  # what --report shows of --verify, --benchmark and --profile
     status = verify_command(args, compiled, options, results) if args.verify else 0
     if args.benchmark or args.profile:

@@ -90,12 +90,16 @@ class CompiledModel:
         """Writes NAME.c, NAME.h (and NAME.weights; with `cmake`, a CMakeLists.txt defining the static
         library NAME, see nncg/cmake.py) all or nothing (see output_files); failures raise NncgError."""
         check_write_arguments(directory, cmake)
+        return write_files(directory, self.files(directory, cmake))
+
+    def files(self, directory: str | os.PathLike, cmake: bool = False) -> dict[str, bytes]:
+        """What `write` writes into `directory`, by file name (a caller can add its own to the set)."""
         files = {f"{self.name}.c": self.source.encode(), f"{self.name}.h": self.header.encode()}
         if self.weights is not None:
             files[f"{self.name}.weights"] = self.weights
         if cmake:
             files[CMAKE_LISTS] = cmake_file(self, Path(directory))
-        return write_files(directory, files)
+        return files
 
 
 def compile(

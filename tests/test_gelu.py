@@ -4,6 +4,7 @@ producer's store. Graph-level Before/Expected and refusals, the scalar erf helpe
 against math.erf, then ONNX models against onnxruntime on every target (NEON under qemu-user)."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -32,6 +33,7 @@ CONSTANTS = {
     "half": 0.5,
     "cubic": 0.044715,
     "sqrt_2_over_pi": math.sqrt(2 / math.pi),
+    "three": 3.0,
 }
 
 # ------------------------------------------------------------------- the decompositions, as steps
@@ -44,12 +46,18 @@ def erf_gate(x, scale="div"):
     return [scaled, ("Erf", ("s",), "e"), ("Add", ("e", "one"), "g")]
 
 
-def tanh_gate(x, square_first=True):
-    """g = 1 + Tanh(sqrt(2/pi) * (x + 0.044715 * x * x * x)), as torch's legacy exporter writes it."""
-    cube = (x, "x2") if square_first else ("x2", x)
+# x^3 as torch's legacy exporter writes it (x * x first, then either way round) or as onnxscript does
+CUBES = {
+    "square_first": lambda x: [("Mul", (x, x), "x2"), ("Mul", (x, "x2"), "x3")],
+    "square_last": lambda x: [("Mul", (x, x), "x2"), ("Mul", ("x2", x), "x3")],
+    "pow": lambda x: [("Pow", (x, "three"), "x3")],
+}
+
+
+def tanh_gate(x, cube="square_first"):
+    """g = 1 + Tanh(sqrt(2/pi) * (x + 0.044715 * x * x * x))."""
     return [
-        ("Mul", (x, x), "x2"),
-        ("Mul", cube, "x3"),
+        *CUBES[cube](x),
         ("Mul", ("cubic", "x3"), "t3"),
         ("Add", (x, "t3"), "v"),
         ("Mul", ("sqrt_2_over_pi", "v"), "u"),
@@ -78,12 +86,13 @@ def used_constants(steps):
 
 # ------------------------------------------------------------------------------------ graph level
 
-ACTIVATION_OF = {"Erf": Activation("erf"), "Tanh": Activation("tanh")}
+ACTIVATION_OF = {"Erf": Activation("erf"), "Tanh": Activation("tanh"), "Pow": Activation("pow", alpha=3.0)}
 
 
 def graph(steps, outputs=("y",), constants=None, conv=True):
     """x -> [Conv writing c] -> the steps; every value of SHAPE."""
     nodes = [Node("Conv", "conv", ("x", "w"), ("c",), CONV)] if conv else []
+    steps = [(op, inputs[:1] if op == "Pow" else inputs, out) for op, inputs, out in steps]  # the exponent: an attr
     nodes += [Node(op, f"n_{out}", tuple(inputs), (out,), ACTIVATION_OF.get(op)) for op, inputs, out in steps]
     consts = {"w": np.ones((4, 4, 1, 1), np.float32)} if conv else {}
     consts |= used_constants(steps) if constants is None else constants
@@ -105,10 +114,10 @@ def test_conv_exact_gelu_decomposition_becomes_conv_with_gelu(product, scale):
     assert fuse_activation(graph(gelu_steps("c", "none", product, scale))) == conv_with(GELU)
 
 
-@pytest.mark.parametrize("square_first", [True, False])
+@pytest.mark.parametrize("cube", CUBES)
 @pytest.mark.parametrize("product", PRODUCTS)
-def test_conv_tanh_gelu_decomposition_becomes_conv_with_gelu_tanh(product, square_first):
-    steps = tanh_gate("c", square_first) + PRODUCTS[product]("c")
+def test_conv_tanh_gelu_decomposition_becomes_conv_with_gelu_tanh(product, cube):
+    steps = tanh_gate("c", cube) + PRODUCTS[product]("c")
     assert fuse_activation(graph(steps)) == conv_with(GELU_TANH)
 
 
@@ -155,6 +164,13 @@ def test_intermediate_read_by_another_node_is_not_fused():
 def test_wrong_constant_is_not_fused(approximate, name, value):
     steps = gelu_steps("c", approximate)
     before = graph(steps, constants={**used_constants(steps), name: np.float32(value)})
+    assert "Gelu" not in ops(fuse_activation(before))
+
+
+def test_square_by_pow_is_not_the_cube():
+    before = graph(tanh_gate("c", "pow") + PRODUCTS["legacy"]("c"))
+    square = Activation("pow", alpha=2.0)
+    before = before.with_nodes([replace(n, attrs=square) if n.op == "Pow" else n for n in before.nodes])
     assert "Gelu" not in ops(fuse_activation(before))
 
 
@@ -218,6 +234,7 @@ CONV_CASES = {
     "exact_onnxscript_mul": gelu_steps("c", product="onnxscript", scale="mul"),
     "exact_x_half_first": gelu_steps("c", product="x_half_first"),
     "tanh_legacy": gelu_steps("c", "tanh"),
+    "tanh_onnxscript_pow": tanh_gate("c", "pow") + PRODUCTS["onnxscript"]("c"),
 }
 
 

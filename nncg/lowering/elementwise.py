@@ -58,8 +58,7 @@ def lower_batchnorm(ctx: LoweringContext, node: Node) -> None:
 
 
 def _runtime_batchnorm(ctx: LoweringContext, node: Node) -> None:
-    """y = (x - mean) * gamma / sqrt(var + eps) + beta, with 1 / sqrt(v) as exp(-log(v) / 2): the
-    loop-nest IR calls only exp, log and tanh."""
+    """y = (x - mean) * (gamma / sqrt(var + eps)) + beta."""
     x = ctx.ref(node.inputs[0])
     gamma, beta, mean, var = (ctx.ref(name) for name in node.inputs[1:5])
 
@@ -67,10 +66,9 @@ def _runtime_batchnorm(ctx: LoweringContext, node: Node) -> None:
         def at_channel(ref: TensorRef) -> Load:
             return Load(ref.buffer, ref.at([idx[1]]))
 
-        log_var = Call("log", Binary("+", at_channel(var), Const.splat(node.attrs.epsilon)))
-        inv_std = Call("exp", Binary("*", log_var, Const.splat(-0.5)))
+        std = Call("sqrt", Binary("+", at_channel(var), Const.splat(node.attrs.epsilon)))
         centred = Binary("-", Load(x.buffer, x.at(idx)), at_channel(mean))
-        return Binary("+", Binary("*", centred, Binary("*", at_channel(gamma), inv_std)), at_channel(beta))
+        return Binary("+", Binary("*", centred, Binary("/", at_channel(gamma), std)), at_channel(beta))
 
     elementwise(ctx, node, x.order, value)
 

@@ -8,8 +8,8 @@ The three factors x, 0.5 and the gate (1 + ...) may be multiplied in any associa
 (the legacy exporter: (x * gate) * 0.5; onnxscript: 0.5 * (x * gate) or x * (0.5 * gate); others
 (x * 0.5) * gate), each commutative op with its operands either way round. Each constant is one
 element within RTOL of its exact value; each intermediate is read by the next node of the pattern
-only and is no graph output, so nothing else needs it stored. Pow(x, 3), onnxscript's cube, is not
-matched: it stays a pow activation node, and the GELU runs node by node."""
+only and is no graph output, so nothing else needs it stored. The cube x*x*x is two Muls (either
+association) or Pow(x, 3), onnxscript's form, which the front end made a pow activation node."""
 
 from __future__ import annotations
 
@@ -114,7 +114,10 @@ def _tanh_part(graph: Graph, value: str, reader: Node) -> _Part | None:
 
 
 def _cube(graph: Graph, value: str, reader: Node, x: str) -> tuple[Node, ...] | None:
-    """The nodes of x * (x * x) or (x * x) * x written to `value` for `reader` alone."""
+    """The nodes of x * (x * x), (x * x) * x or Pow(x, 3) written to `value` for `reader` alone."""
+    power = _written_for(graph, value, reader, "Pow")
+    if power is not None:
+        return (power,) if power.inputs == (x,) and power.attrs.alpha == 3.0 else None
     outer = _written_for(graph, value, reader, "Mul")
     if outer is None or len(outer.inputs) != 2 or x not in outer.inputs:
         return None
