@@ -219,15 +219,30 @@ def test_integer_ops_nncg_does_not_compile_are_refused_by_name():
     assert "ConvInteger" in result.stderr
 
 
-def test_float_ops_reading_integers_are_refused():
-    """A QOperator model's Transpose of uint8 values: NNCG computes nothing quantized in float."""
+def test_transpose_moves_integers():
+    """QuantizeLinear, Transpose of the uint8 tensor (as tf2onnx writes them), DequantizeLinear."""
     nodes = [
         helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
-        helper.make_node("Transpose", ["q"], ["t"], perm=[0, 1, 3, 2]),
+        helper.make_node("Transpose", ["q"], ["t"], perm=[0, 2, 3, 1]),
         helper.make_node("DequantizeLinear", ["t", "s", "z"], ["y"]),
     ]
     model = onnx_model(nodes, inputs={"x": (1, 2, 3, 4)}, initializers={"s": np.float32(0.1), "z": np.uint8(3)})
-    with pytest.raises(UnsupportedOpsError, match=r"Transpose node .* reads the uint8 tensor 'q'; NNCG computes"):
+    compiled = nncg.compile(model, target="avx2", verify_ir=True)
+    skip_unless_host_runs("avx2")
+    for feed in random_feeds(model, FEEDS, SEED):
+        ours = run_compiled(compiled, [feed["x"]])[0]
+        np.testing.assert_array_equal(ours, onnxruntime_outputs(model, feed)[0].reshape(ours.shape))
+
+
+def test_float_ops_reading_integers_are_refused():
+    """A Concat of uint8 tensors (NNCG has no integer Concat yet): nothing quantized runs in float."""
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
+        helper.make_node("Concat", ["q", "q"], ["t"], axis=1),
+        helper.make_node("DequantizeLinear", ["t", "s", "z"], ["y"]),
+    ]
+    model = onnx_model(nodes, inputs={"x": (1, 2, 3, 4)}, initializers={"s": np.float32(0.1), "z": np.uint8(3)})
+    with pytest.raises(UnsupportedOpsError, match=r"Concat node .* reads the uint8 tensor 'q'; NNCG computes"):
         nncg.compile(model)
 
 

@@ -7,7 +7,7 @@ computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm
 GlobalAveragePool QLinearGlobalAveragePool and AveragePool QLinearAveragePool (the last four in
 onnxruntime's com.microsoft domain).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
-is monotonic, so clamping before it is clamping its result. MaxPool, Reshape and Flatten between a
+is monotonic, so clamping before it is clamping its result. MaxPool, Reshape, Flatten and Transpose between a
 DequantizeLinear and a QuantizeLinear of the same scale and zero point move the integers as they
 are. Weights and biases are the constants that folding dequantized (Folded.dequantized keeps the
 DequantizeLinear they came from). Every QuantizeLinear and DequantizeLinear left over stays: an
@@ -26,7 +26,7 @@ from onnx import helper
 from nncg.frontend.folding import Folded, NamedNode, live_nodes
 
 CONTRIB = "com.microsoft"
-PASS_THROUGH = ("MaxPool", "Reshape", "Flatten")
+PASS_THROUGH = ("MaxPool", "Reshape", "Flatten", "Transpose")
 ACTIVATION_TYPES = (np.int8, np.uint8)
 
 
@@ -232,7 +232,7 @@ def _pool(qop: str) -> Callable:
 
 
 def _pass_through(model: _Model, op: onnx.NodeProto):
-    """MaxPool, Reshape or Flatten of the integers, when the scale and zero point do not change."""
+    """MaxPool, Reshape, Flatten or Transpose of the integers, when the scale and zero point do not change."""
     dq_x = model.live_dq(op.input[0])
     q = model.sole_reader(op.output[0], "QuantizeLinear")
     if dq_x is None or q is None or not _per_tensor(model, q) or not _same_quantization(model, dq_x, q):
