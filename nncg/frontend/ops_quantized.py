@@ -213,7 +213,8 @@ def convert_qlinear_average_pool(op: OnnxOp, ctx: Context) -> Node:
     x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
     y_scale, y_zero, y_dtype = quantization(op, ctx, 3, "output")
     ctx.set_shape(op, op.node.output[0], checked_pool_output_shape(op, pool, shape))
-    attrs = QAveragePoolAttrs(pool, x_scale, x_zero, y_scale, requantization(op, y_scale, y_zero, y_dtype))
+    out = requantization(op, y_scale, y_zero, y_dtype)
+    attrs = QAveragePoolAttrs(pool, x_scale, x_zero, y_scale, out, int(op.attr("nncg_u8_offset", 0)))
     return op.ir_node("QLinearAveragePool", [x], attrs)
 
 

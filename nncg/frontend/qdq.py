@@ -217,7 +217,8 @@ def _add(model: _Model, add: onnx.NodeProto):
 
 
 def _pool(qop: str) -> Callable:
-    """GlobalAveragePool or AveragePool between a DequantizeLinear and a QuantizeLinear as `qop`."""
+    """GlobalAveragePool or AveragePool between a DequantizeLinear and a QuantizeLinear as `qop`;
+    an int8 one marked nncg_u8_offset=128: onnxruntime computes it in uint8 (see QAveragePoolAttrs)."""
 
     def rewrite(model: _Model, pool: onnx.NodeProto):
         dq_x = model.live_dq(pool.input[0])
@@ -226,7 +227,10 @@ def _pool(qop: str) -> Callable:
             return None
         q = out[0]
         inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
-        return _node(qop, inputs, q.output[0], pool, domain=CONTRIB), [q]
+        zero = model.const(_quantize_params(q)[1])
+        signed = zero is not None and zero.dtype == np.int8
+        extra = [helper.make_attribute("nncg_u8_offset", 128)] if signed else []
+        return _node(qop, inputs, q.output[0], pool, extra, CONTRIB), [q]
 
     return rewrite
 

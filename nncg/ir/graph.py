@@ -379,13 +379,17 @@ class QPoolAttrs:
 @dataclass(frozen=True)
 class QAveragePoolAttrs:
     """QLinearAveragePool as onnxruntime computes it: per window the float32 sum of the dequantized
-    taps inside the input, divided by the tap count, then y = sum / y_scale + y_zero_point rounded."""
+    taps inside the input, divided by the tap count, then y = sum / y_scale + y_zero_point rounded.
+    zero_point_offset: 128 where onnxruntime computes an int8 QDQ pool in uint8 (its QDQ transformer
+    adds 128 to int8 tensors and zero points on x86), which changes how y_zero_point + 128 rounds
+    in float; the result is 128 less."""
 
     pool: PoolAttrs
     x_scale: float
     x_zero_point: int
     y_scale: float
     out: Requantization
+    zero_point_offset: int = 0
 
 
 # Every attribute record a node may carry.

@@ -135,8 +135,10 @@ def lower_qlinear_average_pool(ctx: LoweringContext, node: Node) -> None:
         spatial = [env["o" + s] for s in names]
         count = Const.splat(float(counts.flat[0])) if uniform else Load(count_ref.buffer, count_ref.at(spatial))
         mean = Binary("/", LocalRef("acc"), count)
-        value = Binary("+", Binary("/", mean, Const.splat(attrs.y_scale)), Const.splat(float(attrs.out.zero_point)))
-        requantized = Requantize(value, 0, attrs.out.low, attrs.out.high, attrs.out.dtype)
+        offset = attrs.zero_point_offset
+        zero_point = Const.splat(float(attrs.out.zero_point + offset))
+        value = Binary("+", Binary("/", mean, Const.splat(attrs.y_scale)), zero_point)
+        requantized = Requantize(value, -offset, attrs.out.low, attrs.out.high, attrs.out.dtype)
         store = Store(out.buffer, out.at([env["n"], env["c"], *spatial]), requantized)
         return (Let("acc", Const.splat(0.0), (*window, store)),)
 
