@@ -235,10 +235,11 @@ class Requantize(_Converting):
 
 @dataclass(frozen=True)
 class RequantizeFixed(_Converting):
-    """The fixed-point form (gemmlowp's, TFLite's): an int32 `value` times the int32 `multiplier`
-    (in [2^30, 2^31)), the 64-bit product divided by 2^31 rounding half up, then divided by
-    2^`shift` rounding half away from zero, plus `zero_point`, saturated to [low, high]. So the
-    scale is multiplier * 2^-(31 + shift), with no float arithmetic."""
+    """The fixed-point form (the int32 multiplier and shift of gemmlowp, TFLite and CMSIS-NN): an
+    int32 `value` times the int32 `multiplier` (in [2^30, 2^31)), divided by 2^(31 + `shift`)
+    rounding half away from zero (one rounding, CMSIS-NN's single-rounding mode), plus
+    `zero_point`, saturated to [low, high]: the scale is multiplier * 2^-(31 + shift), with no float
+    arithmetic."""
 
     value: Expr
     multiplier: Expr

@@ -5,10 +5,11 @@ Requantize: clamped to the output range, rounded half to even, plus the zero poi
 onnxruntime's arithmetic (MLAS's MlasRequantizeOutput), so its results match to the bit.
 
 fixed: for targets without an FPU, RequantizeFixed: the multiplier m as an int32 M in [2^30, 2^31)
-and a shift s with m = M * 2^-(31 + s) (M rounded half to even from m's 24-bit significand, so
-exact); the result is (x * M) / 2^31 rounded half up, then / 2^s rounded half away from zero
-(gemmlowp's and TFLite's two roundings), plus the zero point, saturated. It differs from the float
-form by at most one step, where the two roundings meet a tie differently."""
+and a shift s with m = M * 2^-(31 + s) (exact: m has a 24-bit significand); the result is
+x * M / 2^(31 + s) rounded half away from zero in one rounding (CMSIS-NN's single rounding, not
+gemmlowp's two, which move about 0.3 % of the results by a step), plus the zero point, saturated.
+It differs from the float form only where the float product rounds across a half, or lands on
+one exactly (half to even there): rarely, and by one step."""
 
 from __future__ import annotations
 
