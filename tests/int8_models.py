@@ -151,6 +151,18 @@ def add_model(seed: int = 4) -> onnx.ModelProto:
     return _model(nodes, [1, 4, 8, 8], init)
 
 
+def broadcast_add_model(seed: int = 7) -> onnx.ModelProto:
+    """A Conv plus its own global average (an Add that broadcasts, which stays float between explicit
+    DequantizeLinear and QuantizeLinear layers, as in onnxruntime)."""
+    rng = np.random.default_rng(seed)
+    nodes = [
+        helper.make_node("Conv", ["x", "w"], ["c"]),
+        helper.make_node("GlobalAveragePool", ["c"], ["g"]),
+        helper.make_node("Add", ["c", "g"], ["y"]),
+    ]
+    return _model(nodes, [1, 2, 4, 4], {"w": _weights(rng, 3, 2, 1, 1)})
+
+
 def average_pool_model(seed: int = 5, whole_image: bool = False) -> onnx.ModelProto:
     """Conv, then AveragePool with padding (windows of different counts), or of the whole image (a
     global pool to onnxruntime), the output."""

@@ -18,6 +18,7 @@ from helpers import kernel_ops, nncg_onnx, onnx_model, skip_unless_host_runs
 from int8_models import (
     add_model,
     average_pool_model,
+    broadcast_add_model,
     clip_gemm_model,
     compare,
     conv_model,
@@ -42,6 +43,7 @@ from nncg.verify import run_compiled
 FEEDS = 3
 SEED = 99
 MODELS = {
+    "broadcast_add": broadcast_add_model,
     "clip_gemm": clip_gemm_model,
     "residual": residual_model,
     "add": add_model,

@@ -209,8 +209,9 @@ def _matmul(model: _Model, matmul: onnx.NodeProto):
 def _add(model: _Model, add: onnx.NodeProto):
     a, b = (model.live_dq(i) for i in add.input)
     out = _q_output(model, add)
-    if a is None or b is None or out is None:
-        return None
+    shapes = model.folded.shapes
+    if a is None or b is None or out is None or shapes.get(add.input[0]) != shapes.get(add.input[1]):
+        return None  # a broadcast Add stays a float Add between explicit (de)quantise layers
     q, clamps = out
     inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
     return _node("QLinearAdd", inputs, q.output[0], add, _with_clamps(model, q, clamps), CONTRIB), [q, *clamps]
