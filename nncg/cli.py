@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from . import __version__
-from .arguments import DIM_MAX
+from .arguments import DIM_MAX, REQUANTIZE_FORMS
 from .backends import BACKENDS
 from .errors import NncgError, NncgWarning
 from .lowering.band_plan import MEMORY_MODES
@@ -117,6 +117,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="embed: weights as static const arrays in the C file; bin: in NAME.weights, which the caller "
         "passes by pointer; auto (default): bin above 4 MiB of weights",
+    )
+    p.add_argument(
+        "--requantize",
+        choices=REQUANTIZE_FORMS,
+        default="float",
+        help="int8 models: how integer layers scale their int32 results; float (default): onnxruntime's "
+        "arithmetic, bit-exact; fixed: int32 multiplier and rounding shift, no float (cores without an FPU)",
     )
     p.add_argument(
         "--input-layout",
@@ -276,7 +283,7 @@ def run(args: argparse.Namespace) -> int:
 
         require_plots()
     options = CompileOptions.of(
-        args.unroll, args.weights, args.code_budget, args.pipeline, args.memory, args.ram_budget
+        args.unroll, args.weights, args.code_budget, args.pipeline, args.memory, args.ram_budget, args.requantize
     )
     if is_keras_path(args.model) or args.input_layout:  # converted once: --verify, --tune, ... use it too
         args.name = args.name or Path(args.model).stem
@@ -331,6 +338,8 @@ def tune_command(args: argparse.Namespace) -> str:
         raise NncgError("--tune chooses unroll budgets per layer: leave --unroll at auto")
     if args.memory != "speed" or args.ram_budget:
         raise NncgError("--tune times the layers computed whole: give --tune or --memory/--ram-budget, not both")
+    if args.requantize != "float":
+        raise NncgError("--tune times the default pipeline: give --tune or --requantize fixed, not both")
     return tune(
         args.model, args.target, cc=args.cc, runner=shlex.split(args.tune_runner or ""),
         input_shapes=input_shapes(args), weights=args.weights, code_budget=args.code_budget or None,

@@ -122,6 +122,7 @@ def compile(
     input_layout: str | None = None,
     memory: str = "speed",
     ram_budget: int | None = None,
+    requantize: str = "float",
 ) -> CompiledModel:
     """Compiles a model to C for `target`: ONNX (a file path, bytes or an onnx.ModelProto), a
     torch.nn.Module, exported in eval mode for inputs shaped like `example_inputs` (a float32 tensor or
@@ -139,12 +140,14 @@ def compile(
     extra output of the function after the model's own (see passes/expose_layers.py). `memory` (speed,
     balanced, min) trades speed for activation memory, running chains of layers in bands of rows;
     `ram_budget` (bytes) asks for the fastest plan whose arena fits, and is refused with the
-    smallest arena any plan reaches when none does (see nncg/lowering/band_plan.py)."""
+    smallest arena any plan reaches when none does (see nncg/lowering/band_plan.py). `requantize`
+    ("float" or "fixed") is how an int8 model's integer layers scale their int32 results: onnxruntime's
+    float arithmetic, or integers only (see nncg/lowering/requantize.py)."""
     check_compile_arguments(
         model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights,
-        code_budget, example_inputs, exporter, expose_layers, input_layout, memory, ram_budget,
+        code_budget, example_inputs, exporter, expose_layers, input_layout, memory, ram_budget, requantize,
     )  # fmt: skip
-    options = CompileOptions.of(unroll, weights, code_budget, pipeline, memory, ram_budget)
+    options = CompileOptions.of(unroll, weights, code_budget, pipeline, memory, ram_budget, requantize)
     backend = get_backend(target)
     source = model
     from_torch = is_torch_module(model)
@@ -241,6 +244,7 @@ def emit(
     pipeline: str = "",
     profile: bool = False,
     input_layout: str | None = None,
+    requantize: str = "float",
 ) -> CompiledModel:
     """Prints a lowered program (run through a PassManager, which ends it with plan-memory) with the
     backend of `target`; `profile` adds per-layer timers; `input_layout` is what the header says of

@@ -17,8 +17,8 @@ class CompileOptions:
     """`unroll`: auto, a depth (the paper's levels) or none; `weights`: auto, embed or bin;
     `code_budget`: statements of unrolled code in the whole model (None: no cap); `memory`: speed,
     balanced or min, and `ram_budget`: bytes of activation memory (None: none), the layers run in bands
-    (see nncg/lowering/band_plan.py); `pipeline`: a custom pass pipeline instead of the one these
-    options give."""
+    (see nncg/lowering/band_plan.py); `requantize`: float or fixed, how an int8 model's integer layers
+    scale their results; `pipeline`: a custom pass pipeline instead of the one these options give."""
 
     unroll: str = "auto"
     weights: str = "auto"
@@ -26,6 +26,7 @@ class CompileOptions:
     pipeline: str | None = None
     memory: str = "speed"
     ram_budget: int | None = None
+    requantize: str = "float"
 
     def __post_init__(self) -> None:
         if self.pipeline is None:
@@ -46,10 +47,11 @@ class CompileOptions:
         pipeline: str | None,
         memory: str = "speed",
         ram_budget: int | None = None,
+        requantize: str = "float",
     ):
         """From nncg.compile's arguments: unroll None means none, code_budget 0 means no cap."""
         unroll = "none" if unroll is None else str(unroll)
-        return cls(unroll, weights, code_budget or None, pipeline, memory, ram_budget)
+        return cls(unroll, weights, code_budget or None, pipeline, memory, ram_budget, requantize)
 
     def with_pipeline(self, pipeline: str) -> CompileOptions:
         """These options replaced by a pipeline that records them (what --tune returns)."""
@@ -63,4 +65,6 @@ class CompileOptions:
         """The one place options become the pass pipeline for `target`."""
         if self.pipeline is not None:
             return self.pipeline
-        return default_pipeline(target, self.unroll, self.weights, self.code_budget, self.memory, self.ram_budget)
+        return default_pipeline(
+            target, self.unroll, self.weights, self.code_budget, self.memory, self.ram_budget, self.requantize
+        )

@@ -17,8 +17,11 @@ from nncg.frontend.folding import Folded, NamedNode, fold_constants
 from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, real_inputs
 from nncg.frontend.names import node_reads, value_names
 from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
+from nncg.frontend.qdq import fuse_qdq
 from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
+from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, float_ops_reading_integers, output_dtype
+from nncg.ir.kinds import DType
 from nncg.safe_text import shown
 
 
@@ -26,6 +29,7 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     """The graph IR of an ONNX model (path, bytes, ModelProto or load_model's result)."""
     proto, shapes = load_with_shapes(model, input_shapes)
     folded = fold_constants(proto, shapes)
+    folded = replace(folded, nodes=fuse_qdq(folded, [v.name for v in proto.graph.output]))
     check_supported(folded.nodes)
     ctx = _context(proto, folded)
     computed = [(name, node.op_type, node.output) for node, name in folded.nodes]
@@ -34,13 +38,14 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     graph = _assemble(proto.graph, nodes, ctx)
     check_computed_shapes([(n.name, n.op, n.outputs) for n in graph.nodes], graph.shapes)  # converters' own too
     check_constants(graph, constant_origins(proto.graph, folded))
+    check_integer_reads(graph)
     check_attributes(graph)
     return graph
 
 
-# Operators of quantised models, named in the error: int8 compilation does not exist yet, and
-# dynamic quantisation (scales computed per inference) never will in generated C.
-QUANTIZED_OPS = {"QuantizeLinear", "DequantizeLinear", "QLinearConv", "QLinearMatMul", "ConvInteger", "MatMulInteger"}
+# Integer operators NNCG does not compile yet, named in the error; dynamic quantisation (scales
+# computed per inference) never will be in generated C.
+QUANTIZED_OPS = {"ConvInteger", "MatMulInteger"}
 DYNAMIC_QUANTIZATION = "DynamicQuantizeLinear"
 
 
@@ -56,13 +61,25 @@ def check_supported(nodes: list[NamedNode]) -> None:
     if types & QUANTIZED_OPS:
         found = ", ".join(sorted(types & QUANTIZED_OPS))
         raise UnsupportedOpsError(
-            f"the model computes in int8 ({found} on activations), which NNCG does not compile yet: compile "
-            "the float model instead (constant DequantizeLinear on weights alone is folded and supported)"
+            f"the model computes in int8 with {found}, which NNCG does not compile yet: quantize it with "
+            "onnxruntime.quantization (QDQ or QOperator format), or compile the float model"
         )
     if bad:
         raise UnsupportedOpsError(
             f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "
             f"(plus {FOLDED_OPS}, which are folded at compile time)"
+        )
+
+
+def check_integer_reads(graph: Graph) -> None:
+    """A float op that reads an int8 tensor directly (a QOperator model's Transpose of uint8, say) is
+    refused: NNCG computes only its int8 ops on integers, and nothing quantized in float."""
+    found = float_ops_reading_integers(graph)
+    if found:
+        node, value = found[0]
+        raise UnsupportedOpsError(
+            f"{node.op} node {shown(node.name)} reads the {graph.dtype(value)} tensor {shown(value)}; NNCG computes "
+            "that op in float only: dequantize its input (DequantizeLinear) or compile the float model"
         )
 
 
@@ -99,8 +116,26 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
     for node in nodes:
         for name in node.inputs:
             if name in ctx.constants:
-                constants[name] = _float32(node, name, ctx.constants[name])
-    return Graph(graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes)
+                array = ctx.constants[name]
+                constants[name] = (
+                    np.ascontiguousarray(array) if node.op in QUANTIZED_INPUTS else _float32(node, name, array)
+                )
+    return Graph(
+        graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes, _dtypes(nodes, constants)
+    )
+
+
+def _dtypes(nodes: tuple[Node, ...], constants: dict[str, np.ndarray]) -> dict:
+    """The dtype of every computed value that is not float32, from its producer."""
+    dtypes: dict[str, DType] = {}
+
+    def dtype_of(name: str) -> DType:
+        return DType(constants[name].dtype.name) if name in constants else dtypes.get(name, DType.FLOAT32)
+
+    for node in nodes:
+        dtype = output_dtype(node, dtype_of)
+        dtypes.update(dict.fromkeys(node.outputs, dtype) if dtype != DType.FLOAT32 else {})
+    return dtypes
 
 
 def _layer_named(nodes: tuple[Node, ...]) -> tuple[Node, ...]:

@@ -10,6 +10,7 @@ from ..errors import NncgError
 from ..ir.target import Target
 from ..lowering import lower
 from ..lowering.band_plan import parse_memory
+from ..lowering.requantize import parse_requantize
 from .cache_block import cache_block
 from .cache_block import format_choice as format_cache_block
 from .cache_block import parse_layers as parse_cache_block_layers
@@ -84,7 +85,9 @@ register(
     "cache-block", "graph", cache_block, target=True,
     tunable=Tunable(cache_block_choices, format_cache_block), layers=parse_cache_block_layers,
 )  # fmt: skip
-register("lower", "lower", lower, halos=parse_halos, memory=parse_memory, budget=parse_budget)
+register(
+    "lower", "lower", lower, halos=parse_halos, memory=parse_memory, budget=parse_budget, requantize=parse_requantize
+)
 register("vectorize", "loop", vectorize, target=True)
 register(
     "register-block",
@@ -111,11 +114,13 @@ def default_pipeline(
     budget: int | None = None,
     memory: str = "speed",
     ram_budget: int | None = None,
+    requantize: str = "float",
 ) -> str:
     """The pipeline `nncg-onnx` runs for `target` at an unroll level; `weights` (auto, embed, bin) says
     where plan-memory puts the weights; `budget` caps the statements of the unrolled program (None: no
-    cap); `memory` (speed, balanced, min) or `ram_budget` (bytes) choose the layers lower runs in bands.
-    Vector widths and registers are the target's, not the text's."""
+    cap); `memory` (speed, balanced, min) or `ram_budget` (bytes) choose the layers lower runs in bands;
+    `requantize` is lower's form of requantisation. Defaults are not written. Vector widths and
+    registers are the target's, not the text's."""
     try:
         parse_unroll_level(unroll_level)
     except ValueError:
@@ -129,8 +134,10 @@ def default_pipeline(
     graph = f"{GRAPH_PIPELINE},winograd" + (",vectorize-pixels,cache-block" if vectors else "")
     loops = ",vectorize" if vectors else ""
     loops += f",register-block,unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
-    lower_params = f"{{budget={ram_budget}}}" if ram_budget else "" if memory == "speed" else f"{{memory={memory}}}"
-    return f"{graph},lower{lower_params}{loops}"
+    lower_params = [f"budget={ram_budget}" if ram_budget else "" if memory == "speed" else f"memory={memory}"]
+    lower_params.append("" if requantize == "float" else f"requantize={requantize}")
+    lower_text = ",".join(p for p in lower_params if p)
+    return f"{graph},lower{'{' + lower_text + '}' if lower_text else ''}{loops}"
 
 
 __all__ = [

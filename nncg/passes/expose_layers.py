@@ -10,7 +10,7 @@ import math
 from dataclasses import replace
 
 from ..ir.c_names import Namespace, buffer_name, layer_name
-from ..ir.kinds import BufferRole, Layout
+from ..ir.kinds import BufferRole, DType, Layout
 from ..ir.loops import Buffer, Kernel, Program, Stmt, StoredValue
 from ..lowering.context import TensorRef, row_major
 from ..lowering.reshape import copy_nest
@@ -24,6 +24,8 @@ def with_exposed_layers(program: Program) -> Program:
     kernel_names = Namespace(layer_name, lambda ident: ident.lower() in layers)
     outputs, copies = [], {}
     for value in program.values:
+        if program.buffer(value.buffer).dtype != DType.FLOAT32:
+            continue  # the outputs are float: an int8 model's integer values are checked by its float outputs
         out = Buffer(
             buffer_names.claim(f"layer_{value.value}"), math.prod(value.shape), BufferRole.OUTPUT, value.shape,
             Layout.ROW_MAJOR, value.value,
