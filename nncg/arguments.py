@@ -14,6 +14,7 @@ from .errors import NncgError
 from .frontend.keras_export import is_keras_model
 from .frontend.layout import check_layout
 from .frontend.torch_export import check_exporter, is_torch_module
+from .lowering.requantize import FORMS as REQUANTIZE_FORMS
 from .passes.plan_memory import WEIGHTS_MODES
 from .safe_text import capped, shown
 
@@ -23,7 +24,7 @@ MODEL_TYPES = (str, os.PathLike, bytes, bytearray, memoryview, onnx.ModelProto)
 
 def check_compile_arguments(
     model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights, code_budget,
-    example_inputs, exporter, expose_layers, input_layout=None,
+    example_inputs, exporter, expose_layers, input_layout=None, requantize="float",
 ) -> None:  # fmt: skip
     """Raises NncgError for the first argument of nncg.compile that has the wrong type or value."""
     _check_model(model)
@@ -40,6 +41,8 @@ def check_compile_arguments(
     check_layout(input_layout)
     if weights not in WEIGHTS_MODES:
         raise NncgError(f"weights must be one of {', '.join(WEIGHTS_MODES)}; {_got(weights)}")
+    if requantize not in REQUANTIZE_FORMS:
+        raise NncgError(f"requantize must be one of {', '.join(REQUANTIZE_FORMS)}; {_got(requantize)}")
     if code_budget is not None and not _whole(code_budget):
         raise NncgError(f"code_budget must be an int >= 0 (0: no cap) or None; {_got(code_budget)}")
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from . import __version__
-from .arguments import DIM_MAX
+from .arguments import DIM_MAX, REQUANTIZE_FORMS
 from .backends import BACKENDS
 from .errors import NncgError, NncgWarning
 from .options import CompileOptions
@@ -95,6 +95,13 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="embed: weights as static const arrays in the C file; bin: in NAME.weights, which the caller "
         "passes by pointer; auto (default): bin above 4 MiB of weights",
+    )
+    p.add_argument(
+        "--requantize",
+        choices=REQUANTIZE_FORMS,
+        default="float",
+        help="int8 models: how integer layers scale their int32 results; float (default): onnxruntime's "
+        "arithmetic, bit-exact; fixed: int32 multiplier and rounding shift, no float (cores without an FPU)",
     )
     p.add_argument(
         "--input-layout",
@@ -253,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
         from .report import require_plots
 
         require_plots()
-    options = CompileOptions.of(args.unroll, args.weights, args.code_budget, args.pipeline)
+    options = CompileOptions.of(args.unroll, args.weights, args.code_budget, args.pipeline, args.requantize)
     if is_keras_path(args.model) or args.input_layout:  # converted once: --verify, --tune, ... use it too
         args.name = args.name or Path(args.model).stem
         args.model = onnx_model(args.model, args.input_layout)[0]
@@ -305,6 +312,8 @@ def tune_command(args: argparse.Namespace) -> str:
         raise NncgError("--tune builds its own pipeline: give --tune or --pipeline, not both")
     if args.unroll != "auto":
         raise NncgError("--tune chooses unroll budgets per layer: leave --unroll at auto")
+    if args.requantize != "float":
+        raise NncgError("--tune times the default pipeline: give --tune or --requantize fixed, not both")
     return tune(
         args.model, args.target, cc=args.cc, runner=shlex.split(args.tune_runner or ""),
         input_shapes=input_shapes(args), weights=args.weights, code_budget=args.code_budget or None,

@@ -118,6 +118,7 @@ def compile(
     exporter: str = DEFAULT_EXPORTER,
     expose_layers: bool = False,
     input_layout: str | None = None,
+    requantize: str = "float",
 ) -> CompiledModel:
     """Compiles a model to C for `target`: ONNX (a file path, bytes or an onnx.ModelProto), a
     torch.nn.Module, exported in eval mode for inputs shaped like `example_inputs` (a float32 tensor or
@@ -132,12 +133,14 @@ def compile(
     bin (NAME.weights, passed by pointer) or auto (bin when large); `code_budget` caps the
     statements of the unrolled program (None: the paper's levels exactly); `expose_layers` makes the
     debug build of verify_per_layer: every layer's output, as a graph value after the passes, is an
-    extra output of the function after the model's own (see passes/expose_layers.py)."""
+    extra output of the function after the model's own (see passes/expose_layers.py). `requantize`
+    ("float" or "fixed") is how an int8 model's integer layers scale their int32 results: onnxruntime's
+    float arithmetic, or integers only (see nncg/lowering/requantize.py)."""
     check_compile_arguments(
         model, target, unroll, name, input_shapes, pipeline, print_ir_after_all, verify_ir, profile, weights,
-        code_budget, example_inputs, exporter, expose_layers, input_layout,
+        code_budget, example_inputs, exporter, expose_layers, input_layout, requantize,
     )  # fmt: skip
-    options = CompileOptions.of(unroll, weights, code_budget, pipeline)
+    options = CompileOptions.of(unroll, weights, code_budget, pipeline, requantize)
     backend = get_backend(target)
     source = model
     from_torch = is_torch_module(model)
@@ -192,6 +195,7 @@ def emit(
     pipeline: str = "",
     profile: bool = False,
     input_layout: str | None = None,
+    requantize: str = "float",
 ) -> CompiledModel:
     """Prints a lowered program (run through a PassManager, which ends it with plan-memory) with the
     backend of `target`; `profile` adds per-layer timers; `input_layout` is what the header says of

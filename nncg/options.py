@@ -15,13 +15,15 @@ from .passes.unroll import CODE_BUDGET
 @dataclass(frozen=True)
 class CompileOptions:
     """`unroll`: auto, a depth (the paper's levels) or none; `weights`: auto, embed or bin;
-    `code_budget`: statements of unrolled code in the whole model (None: no cap); `pipeline`: a custom
-    pass pipeline instead of the one these options give."""
+    `code_budget`: statements of unrolled code in the whole model (None: no cap); `requantize`: float
+    or fixed, how an int8 model's integer layers scale their results; `pipeline`: a custom pass
+    pipeline instead of the one these options give."""
 
     unroll: str = "auto"
     weights: str = "auto"
     code_budget: int | None = CODE_BUDGET
     pipeline: str | None = None
+    requantize: str = "float"
 
     def __post_init__(self) -> None:
         if self.pipeline is None:
@@ -34,9 +36,16 @@ class CompileOptions:
             )
 
     @classmethod
-    def of(cls, unroll: str | int | None, weights: str, code_budget: int | None, pipeline: str | None):
+    def of(
+        cls,
+        unroll: str | int | None,
+        weights: str,
+        code_budget: int | None,
+        pipeline: str | None,
+        requantize: str = "float",
+    ):
         """From nncg.compile's arguments: unroll None means none, code_budget 0 means no cap."""
-        return cls("none" if unroll is None else str(unroll), weights, code_budget or None, pipeline)
+        return cls("none" if unroll is None else str(unroll), weights, code_budget or None, pipeline, requantize)
 
     def with_pipeline(self, pipeline: str) -> CompileOptions:
         """These options replaced by a pipeline that records them (what --tune returns)."""
@@ -50,4 +59,4 @@ class CompileOptions:
         """The one place options become the pass pipeline for `target`."""
         if self.pipeline is not None:
             return self.pipeline
-        return default_pipeline(target, self.unroll, self.weights, self.code_budget)
+        return default_pipeline(target, self.unroll, self.weights, self.code_budget, self.requantize)

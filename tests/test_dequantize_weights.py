@@ -1,12 +1,13 @@
 """Quantised weights in float models: a constant DequantizeLinear (what tf2onnx writes on the weights
 of models converted from TFLite, at opset 13) folds at compile time in every opset that has the op,
-per tensor and per output channel, and the model is checked against onnxruntime. Quantised
-activations and dynamic quantisation are refused with an error that names them."""
+per tensor and per output channel, and the model is checked against onnxruntime. Integer ops NNCG
+has no kernel for and dynamic quantisation are refused with an error that names them (the int8 path
+itself: test_int8.py)."""
 
 import numpy as np
 import pytest
 from helpers import compile_and_check, onnx_model
-from onnx import helper
+from onnx import TensorProto, helper
 
 import nncg
 from nncg.errors import UnsupportedOpsError
@@ -44,14 +45,15 @@ def test_uint8_weights_per_channel_on_vector_targets(target):
     compile_and_check(dequantized_conv(13, True, np.uint8), target)
 
 
-def test_quantized_activations_are_refused_by_name():
-    scale, zero = np.float32(0.1), np.int8(0)
+def test_integer_ops_without_a_kernel_are_refused_by_name():
     nodes = [
         helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
-        helper.make_node("DequantizeLinear", ["q", "s", "z"], ["y"]),
+        helper.make_node("MatMulInteger", ["q", "w"], ["i"]),
+        helper.make_node("Cast", ["i"], ["y"], to=TensorProto.FLOAT),
     ]
-    model = onnx_model(nodes, inputs={"x": (1, 2, 3, 3)}, initializers={"s": scale, "z": zero})
-    with pytest.raises(UnsupportedOpsError, match=r"int8 \(DequantizeLinear, QuantizeLinear on activations\)"):
+    init = {"s": np.float32(0.1), "z": np.uint8(0), "w": np.ones((3, 2), np.uint8)}
+    model = onnx_model(nodes, inputs={"x": (2, 3)}, initializers=init)
+    with pytest.raises(UnsupportedOpsError, match=r"int8 with MatMulInteger, which NNCG does not compile yet"):
         nncg.compile(model)
 
 

@@ -7,11 +7,12 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..errors import NncgError
-from ..ir.kinds import BufferRole
+from ..ir.kinds import BufferRole, DType
 from ..ir.loops import Kernel, Let, Load, Loop, Program, Store, stmt_exprs, walk_exprs, walk_stmts
 from ..ir.rename import rename_variables
 from .c_header import run_signature, signature
-from .c_text import INDENT, c_float
+from .c_integer import c_type
+from .c_text import INDENT, c_float, c_int
 from .scalar import ScalarPrinter
 from .weights import assume_aligned_macro, external_weights, weights_check, weights_pointers
 
@@ -66,8 +67,9 @@ def _constants(program: Program) -> list[str]:
         return weights_check(program)
     lines = []
     for buf in program.role(BufferRole.CONSTANT):
-        values = [c_float(v) for v in program.constants[buf.name].ravel()]
-        lines.append(f"static NNCG_ALIGNED const float {buf.name}[{buf.size}] = {{")
+        literal = c_float if buf.dtype == DType.FLOAT32 else c_int
+        values = [literal(v) for v in program.constants[buf.name].ravel()]
+        lines.append(f"static NNCG_ALIGNED const {c_type(buf.dtype)} {buf.name}[{buf.size}] = {{")
         for i in range(0, len(values), VALUES_PER_LINE):
             lines.append(INDENT + ", ".join(values[i : i + VALUES_PER_LINE]) + ",")
         lines.append("};")
@@ -109,7 +111,8 @@ def _kernel_function(printer: ScalarPrinter, prefix: str, kernel: Kernel, params
     than one huge one, and it inlines them back into the single entry point anyway. The memory
     plan never gives one layer overlapping buffers, so its pointers are restrict."""
     written = {s.buffer for s in walk_stmts(kernel.body) if isinstance(s, Store)}
-    args = ", ".join(f"{'' if b.name in written else 'const '}float *NNCG_RESTRICT {b.name}" for b in params) or "void"
+    args = [f"{'' if b.name in written else 'const '}{c_type(b.dtype)} *NNCG_RESTRICT {b.name}" for b in params]
+    args = ", ".join(args) or "void"
     head = [f"/* {kernel.name}: {kernel.op} */", f"static void {prefix}_{kernel.name}({args})", "{"]
     return head + printer.function_body(kernel.body) + ["}", ""]
 
@@ -119,10 +122,7 @@ def _run_function(program: Program, calls: list[str], passed: set[str], profile:
     NAME_WEIGHTS_ALIGN-byte aligned) and each internal buffer into the caller's arena, then runs the
     layers. `passed` names the buffers some layer takes; an input no layer reads is cast to void."""
     decls = weights_pointers(program) if external_weights(program) else []
-    decls += [
-        f"float *const {b.name} = (float *)arena + {b.offset}; /* {'x'.join(map(str, b.shape))} {b.layout} */"
-        for b in _planned(program)
-    ]
+    decls += [f"{_arena_pointer(b)}; /* {'x'.join(map(str, b.shape))} {b.layout} */" for b in _planned(program)]
     if profile:
         decls.append("double start = nncg_now(), end;")
         calls = _timed(program, calls)
@@ -131,6 +131,18 @@ def _run_function(program: Program, calls: list[str], passed: set[str], profile:
     unused += [] if _planned(program) else ["(void)arena;"]
     body = [*decls, *unused, *calls]
     return [run_signature(program), "{", *(INDENT + line for line in body), "}", ""]
+
+
+def _arena_pointer(buf) -> str:
+    """The declaration of a buffer's pointer into the float arena. The arena stays float (its offsets
+    count floats, and float code reads it as float): an int8 or uint8 buffer is read and written
+    through a character type, which may access any object. int32 and int16 values never live in the
+    arena (the lowering keeps them in locals), since reading them through a float array breaks C's
+    aliasing rules."""
+    if buf.dtype == DType.FLOAT32:
+        return f"float *const {buf.name} = (float *)arena + {buf.offset}"
+    ctype = c_type(buf.dtype)
+    return f"{ctype} *const {buf.name} = ({ctype} *)((float *)arena + {buf.offset})"
 
 
 def _static_arena_function(program: Program) -> list[str]:

@@ -24,6 +24,15 @@ def c_float(value: float) -> str:
     return text + "f"
 
 
+def c_int(value: int) -> str:
+    """An integer literal; a negative one in parentheses (x - -1 is not x--1). INT32_MIN has no
+    literal in C: -2147483647 - 1."""
+    value = int(value)
+    if value == -(2**31):
+        return "(-2147483647 - 1)"
+    return f"({value})" if value < 0 else str(value)
+
+
 def c_affine(index: Affine) -> str:
     parts = [var if c == 1 else f"{c} * {var}" for var, c in index.terms]
     if index.const or not parts:

@@ -5,7 +5,8 @@ that the program calls; the SIMD printer (simd.py) extends it, c_file.py prints 
 from __future__ import annotations
 
 from ..errors import NncgError
-from ..ir.kinds import LoopKind
+from ..ir.dtypes import buffer_dtypes, expr_dtype
+from ..ir.kinds import DType, LoopKind
 from ..ir.loops import (
     Affine,
     Assign,
@@ -13,6 +14,7 @@ from ..ir.loops import (
     Bound,
     Broadcast,
     Call,
+    Cast,
     Const,
     Expr,
     Fma,
@@ -22,13 +24,16 @@ from ..ir.loops import (
     LocalRef,
     Loop,
     Program,
+    Requantize,
+    RequantizeFixed,
     Select,
     Stmt,
     Store,
     walk_stmts,
 )
 from ..ir.target import Target
-from .c_text import INDENT, c_affine, c_float, unparen
+from .c_integer import c_type, integer_preamble
+from .c_text import INDENT, c_affine, c_float, c_int, unparen
 from .scalar_math import HELPERS, helper_definitions, helper_name, scalar_calls
 
 
@@ -44,16 +49,25 @@ class ScalarPrinter:
 
     def __init__(self, math_calls: frozenset[str] = frozenset()) -> None:
         self.math_calls = math_calls  # the math functions scalar code calls, for their helpers
+        self.dtypes: dict[str, DType] = {}  # buffer -> dtype, and the locals in scope while printing
+        self.integer_lines: list[str] = []
 
     def for_program(self, program: Program) -> ScalarPrinter:
         """The printer for one program: the helpers it needs are collected here, before any code is
         printed."""
-        return type(self)(scalar_calls(program))
+        return type(self)(scalar_calls(program)).typed_for(program)
+
+    def typed_for(self, program: Program) -> ScalarPrinter:
+        """This printer with the program's buffer dtypes and integer definitions."""
+        self.dtypes = buffer_dtypes(program)
+        self.integer_lines = integer_preamble(program)
+        return self
 
     def preamble(self) -> list[str]:
         """Definitions the printed code calls, printed after the includes: the helpers of the math
-        functions C89 lacks, when the program calls them."""
-        return helper_definitions(self.math_calls)
+        functions C89 lacks, when the program calls them, and the integer types and requantisation
+        helpers of an int8 program."""
+        return helper_definitions(self.math_calls) + self.integer_lines
 
     def function_body(self, body: tuple[Stmt, ...]) -> list[str]:
         """The lines inside a kernel's function: its loop variables, then its statements."""
@@ -86,8 +100,18 @@ class ScalarPrinter:
             if any(inner.name == outer.name for outer in chain):
                 break  # a shadowing declaration needs its own block
             chain.append(inner)
-        decls = [f"{pad}{INDENT}{self.type_of(v.init.lanes)} {v.name} = {self.expr(v.init)};" for v in chain]
-        return [pad + "{", *decls, *self.stmts(chain[-1].body, depth + 1), pad + "}"]
+        outer = dict(self.dtypes)
+        decls = []
+        for v in chain:
+            decls.append(f"{pad}{INDENT}{self.local_type(v.init)} {v.name} = {self.expr(v.init)};")
+            self.dtypes[v.name] = expr_dtype(v.init, self.dtypes, self.dtypes)
+        body = self.stmts(chain[-1].body, depth + 1)
+        self.dtypes = outer
+        return [pad + "{", *decls, *body, pad + "}"]
+
+    def local_type(self, init: Expr) -> str:
+        dtype = expr_dtype(init, self.dtypes, self.dtypes)
+        return self.type_of(init.lanes) if dtype == DType.FLOAT32 else c_type(dtype)
 
     def _stmt_If(self, stmt: If, depth: int) -> list[str]:
         pad = INDENT * depth
@@ -131,7 +155,19 @@ class ScalarPrinter:
     # ------------------------------------------------------------------ scalar expressions
 
     def _expr_Const(self, e: Const) -> str:
-        return c_float(e.values[0])
+        if e.dtype == DType.FLOAT64:
+            return repr(float(e.values[0]))
+        return c_float(e.values[0]) if e.dtype == DType.FLOAT32 else c_int(e.values[0])
+
+    def _expr_Cast(self, e: Cast) -> str:
+        return f"(({c_type(e.dtype)}){self.expr(e.value)})"
+
+    def _expr_Requantize(self, e: Requantize) -> str:
+        return f"nncg_requantize({unparen(self.expr(e.value))}, {e.zero_point}, {e.low}, {e.high})"
+
+    def _expr_RequantizeFixed(self, e: RequantizeFixed) -> str:
+        args = ", ".join(unparen(self.expr(x)) for x in (e.value, e.multiplier, e.shift))
+        return f"nncg_requantize_fixed({args}, {e.zero_point}, {e.low}, {e.high})"
 
     def _expr_Load(self, e: Load) -> str:
         return f"{e.buffer}[{c_affine(e.index)}]"

@@ -35,7 +35,7 @@ class SimdPrinter(ScalarPrinter):
         math, which call the scalar function on each lane."""
         needs = collect_needs(program, self.widths)
         lane_wise = {fn for lanes, fn in needs.math if not has_vector_math(self.widths[lanes])}
-        return type(self)(needs, scalar_calls(program) | lane_wise)
+        return type(self)(needs, scalar_calls(program) | lane_wise).typed_for(program)
 
     # ------------------------------------------------------------------ dispatch, once
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import onnx
@@ -51,12 +51,14 @@ NamedNode = tuple[onnx.NodeProto, str]
 @dataclass
 class Folded:
     """The live nodes left after folding (with their stable names), all constants, static shapes,
-    and for each folded constant the name of the node it was folded from."""
+    for each folded constant the name of the node it was folded from, and for each constant folded
+    from a DequantizeLinear that node (the int8 path reads the quantized weights from it)."""
 
     nodes: list[NamedNode]
     constants: dict[str, np.ndarray]
     shapes: dict[str, Shape]
     folded_by: dict[str, str]
+    dequantized: dict[str, onnx.NodeProto] = field(default_factory=dict)
 
 
 def fold_constants(model: onnx.ModelProto, shapes: dict[str, Shape]) -> Folded:
@@ -69,14 +71,18 @@ def fold_constants(model: onnx.ModelProto, shapes: dict[str, Shape]) -> Folded:
     constants = initializer_arrays(model.graph)
     nodes = live_nodes(list(zip(model.graph.node, node_names(model.graph), strict=True)), outputs)
     folded_by: dict[str, str] = {}
+    dequantized: dict[str, onnx.NodeProto] = {}
     while True:
         remaining = [n for n in nodes if not _fold_node(n, constants, shapes, opset, folded_by)]
+        dequantized.update(
+            {n.output[0]: n for n, _ in nodes if n.op_type == "DequantizeLinear" and n.output[0] in constants}
+        )
         _check_outputs_computed(outputs, constants)
         if len(remaining) == len(nodes):
             break
         nodes = live_nodes(remaining, outputs)
         shapes = inferred_shapes(_rebuild(model, nodes, constants))
-    return Folded(nodes, constants, shapes, folded_by)
+    return Folded(nodes, constants, shapes, folded_by, dequantized)
 
 
 def live_nodes(nodes: list[NamedNode], outputs: list[str]) -> list[NamedNode]:

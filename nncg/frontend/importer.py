@@ -17,8 +17,11 @@ from nncg.frontend.folding import Folded, NamedNode, fold_constants
 from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, real_inputs
 from nncg.frontend.names import node_reads, value_names
 from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
+from nncg.frontend.qdq import fuse_qdq
 from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
+from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, output_dtype
+from nncg.ir.kinds import DType
 from nncg.safe_text import shown
 
 
@@ -26,6 +29,7 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     """The graph IR of an ONNX model (path, bytes, ModelProto or load_model's result)."""
     proto, shapes = load_with_shapes(model, input_shapes)
     folded = fold_constants(proto, shapes)
+    folded = replace(folded, nodes=fuse_qdq(folded, [v.name for v in proto.graph.output]))
     check_supported(folded.nodes)
     ctx = _context(proto, folded)
     computed = [(name, node.op_type, node.output) for node, name in folded.nodes]
@@ -38,9 +42,9 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     return graph
 
 
-# Operators of quantised models, named in the error: int8 compilation does not exist yet, and
-# dynamic quantisation (scales computed per inference) never will in generated C.
-QUANTIZED_OPS = {"QuantizeLinear", "DequantizeLinear", "QLinearConv", "QLinearMatMul", "ConvInteger", "MatMulInteger"}
+# Integer operators NNCG does not compile yet, named in the error; dynamic quantisation (scales
+# computed per inference) never will be in generated C.
+QUANTIZED_OPS = {"ConvInteger", "MatMulInteger"}
 DYNAMIC_QUANTIZATION = "DynamicQuantizeLinear"
 
 
@@ -56,8 +60,8 @@ def check_supported(nodes: list[NamedNode]) -> None:
     if types & QUANTIZED_OPS:
         found = ", ".join(sorted(types & QUANTIZED_OPS))
         raise UnsupportedOpsError(
-            f"the model computes in int8 ({found} on activations), which NNCG does not compile yet: compile "
-            "the float model instead (constant DequantizeLinear on weights alone is folded and supported)"
+            f"the model computes in int8 with {found}, which NNCG does not compile yet: quantize it with "
+            "onnxruntime.quantization (QDQ or QOperator format), or compile the float model"
         )
     if bad:
         raise UnsupportedOpsError(
@@ -99,8 +103,26 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
     for node in nodes:
         for name in node.inputs:
             if name in ctx.constants:
-                constants[name] = _float32(node, name, ctx.constants[name])
-    return Graph(graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes)
+                array = ctx.constants[name]
+                constants[name] = (
+                    np.ascontiguousarray(array) if node.op in QUANTIZED_INPUTS else _float32(node, name, array)
+                )
+    return Graph(
+        graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes, _dtypes(nodes, constants)
+    )
+
+
+def _dtypes(nodes: tuple[Node, ...], constants: dict[str, np.ndarray]) -> dict:
+    """The dtype of every computed value that is not float32, from its producer."""
+    dtypes: dict[str, DType] = {}
+
+    def dtype_of(name: str) -> DType:
+        return DType(constants[name].dtype.name) if name in constants else dtypes.get(name, DType.FLOAT32)
+
+    for node in nodes:
+        dtype = output_dtype(node, dtype_of)
+        dtypes.update(dict.fromkeys(node.outputs, dtype) if dtype != DType.FLOAT32 else {})
+    return dtypes
 
 
 def _layer_named(nodes: tuple[Node, ...]) -> tuple[Node, ...]:

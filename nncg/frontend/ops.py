@@ -39,6 +39,16 @@ from nncg.frontend.ops_nn import (
     convert_softmax,
 )
 from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
+from nncg.frontend.ops_quantized import (
+    convert_dequantize_linear,
+    convert_qgemm,
+    convert_qlinear_add,
+    convert_qlinear_average_pool,
+    convert_qlinear_conv,
+    convert_qlinear_global_average_pool,
+    convert_qlinear_matmul,
+    convert_quantize_linear,
+)
 from nncg.frontend.ops_rearrange import (
     convert_depth_to_space,
     convert_expand,
@@ -147,6 +157,20 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "InstanceNormalization": ConvertedOp(convert_instance_norm, ("InstanceNormalization",)),
     "GroupNormalization": ConvertedOp(convert_group_norm, ("GroupNormalization",)),
     "LayerNormalization": ConvertedOp(convert_layer_norm, ("LayerNormalization",)),
+    # The int8 path: scales and zero points are parameters; QGemm, QLinearAdd and
+    # QLinearGlobalAveragePool are onnxruntime's (com.microsoft), and what QDQ groups become (qdq.py).
+    "QuantizeLinear": ConvertedOp(convert_quantize_linear, ("QuantizeLinear",), (1, 2)),
+    "DequantizeLinear": ConvertedOp(convert_dequantize_linear, ("DequantizeLinear",), (1, 2)),
+    "QLinearConv": ConvertedOp(convert_qlinear_conv, ("QLinearConv",), (1, 2, 4, 5, 6, 7)),
+    "QLinearMatMul": ConvertedOp(convert_qlinear_matmul, ("QLinearDense",), (1, 2, 4, 5, 6, 7)),
+    "QGemm": ConvertedOp(convert_qgemm, ("QLinearDense",), (1, 2, 4, 5, 7, 8)),
+    "QLinearAdd": ConvertedOp(convert_qlinear_add, ("QLinearAdd",), (1, 2, 4, 5, 6, 7)),
+    "QLinearAveragePool": ConvertedOp(
+        convert_qlinear_average_pool, ("QLinearAveragePool", "QLinearGlobalAveragePool"), (1, 2, 3, 4)
+    ),  # a window of the whole image is the global pool, as in onnxruntime
+    "QLinearGlobalAveragePool": ConvertedOp(
+        convert_qlinear_global_average_pool, ("QLinearGlobalAveragePool",), (1, 2, 3, 4)
+    ),
 }
 
 CONVERTERS: dict[str, Converter] = {name: op.convert for name, op in ONNX_OPS.items()}

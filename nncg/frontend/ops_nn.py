@@ -29,15 +29,19 @@ from nncg.safe_text import shown
 
 def convert_conv(op: OnnxOp, ctx: Context) -> Node:
     x, w = op.input(0), op.input(1)
-    x_shape, w_shape = ctx.shape(x), ctx.shape(w)  # w: [C_out, C_in/group, k...]
+    attrs = conv_geometry(op, ctx.shape(x), ctx.shape(w))
+    return op.ir_node("Conv", [x, w, *bias_input(op, ctx, ctx.shape(w)[0])], attrs)
+
+
+def conv_geometry(op: OnnxOp, x_shape: tuple[int, ...], w_shape: tuple[int, ...]) -> ConvAttrs:
+    """The window of a Conv or QLinearConv (w: [C_out, C_in/group, k...]), checked against x."""
     group = int(op.attr("group", 1))
     check_groups(op, group, x_shape[1], w_shape[0], w_shape, w_shape[1] * group == x_shape[1])
     kernel = weight_kernel(op, w_shape)
     strides, dilations = window_steps(op, len(kernel))
     begin, end = resolve_pads(op, x_shape[2:], kernel, strides, dilations)
     check_window_fits(op, x_shape[2:], kernel, dilations, begin, end)
-    attrs = ConvAttrs(kernel, strides, dilations, begin, end, group)
-    return op.ir_node("Conv", [x, w, *bias_input(op, ctx, w_shape[0])], attrs)
+    return ConvAttrs(kernel, strides, dilations, begin, end, group)
 
 
 def convert_maxpool(op: OnnxOp, ctx: Context) -> Node:

@@ -1,7 +1,9 @@
 """Graph IR: the ONNX model after import, with static shapes, folded constants and typed attributes.
 
 Stage 1 of the pipeline (ONNX -> graph IR -> graph passes -> loop-nest IR -> loop passes -> backend).
-Every value has a static shape; every constant is a float32 numpy array; every node carries one
+Every value has a static shape and a dtype (float32 unless Graph.dtypes says otherwise: the int8
+path); every constant is a numpy array, float32 but for the integer weights of the quantized ops;
+every node carries one
 frozen attribute record with ONNX defaults already filled in, so passes and lowerings never look
 at raw ONNX attributes.
 """
@@ -14,7 +16,7 @@ from typing import Union
 import numpy as np
 
 from .arrays import same_arrays
-from .kinds import ActivationKind, ConvAlgorithm, GeluApproximation, VectorAxis, coerce
+from .kinds import ActivationKind, ConvAlgorithm, DType, GeluApproximation, VectorAxis, coerce
 
 Shape = tuple[int, ...]
 
@@ -292,11 +294,106 @@ class ResizeAttrs:
     extrapolation_value: float = 0.0
 
 
+@dataclass(frozen=True)
+class QuantAttrs:
+    """QuantizeLinear (float -> dtype) and DequantizeLinear (dtype -> float) of one tensor:
+    real = (q - zero_point) * scale, per tensor."""
+
+    scale: float
+    zero_point: int
+    dtype: DType
+
+    def __post_init__(self) -> None:
+        coerce(self, dtype=DType)
+
+
+@dataclass(frozen=True)
+class Requantization:
+    """How an integer op writes its output: the int32 result, scaled (per output channel where the
+    op has a multipliers input), rounded and offset by zero_point, clamped to [low, high] (the
+    type's range, or narrower where a Relu or Clip was folded into it), as dtype."""
+
+    zero_point: int
+    low: int
+    high: int
+    dtype: DType
+
+    def __post_init__(self) -> None:
+        coerce(self, dtype=DType)
+
+    def __str__(self) -> str:
+        return f"{self.dtype}(zero_point={self.zero_point}, {self.low}..{self.high})"
+
+
+@dataclass(frozen=True)
+class QConvAttrs:
+    """QLinearConv: inputs x (int8/uint8), w [C_out, C_in/group, k...] (constant, int8, or int16
+    when its zero point is not 0 and was subtracted), b [C_out] (int32 constant) and the
+    multipliers [C_out] (float32 constant: x_scale * w_scale / y_scale). The accumulator is
+    b + sum (x - x_zero_point) * w over the taps inside the image (a padded tap reads the zero
+    point: it adds 0)."""
+
+    kernel: Shape
+    strides: Shape
+    dilations: Shape
+    pads_begin: Shape
+    pads_end: Shape
+    group: int
+    x_zero_point: int
+    out: Requantization
+
+
+@dataclass(frozen=True)
+class QDenseAttrs:
+    """QLinearMatMul and Gemm in QDQ form: inputs x [M, K] (int8/uint8), w [K, N] (constant, as
+    QConvAttrs's w), b [N] (int32) and the multipliers [N]."""
+
+    x_zero_point: int
+    out: Requantization
+
+
+@dataclass(frozen=True)
+class QAddAttrs:
+    """QLinearAdd of two tensors of one shape: (a_scale (a - a_zp) + b_scale (b - b_zp)) / y_scale
+    + y_zp, computed as onnxruntime's x86 kernel does (lowering/quantized_add.py)."""
+
+    a_scale: float
+    a_zero_point: int
+    b_scale: float
+    b_zero_point: int
+    y_scale: float
+    out: Requantization
+
+
+@dataclass(frozen=True)
+class QPoolAttrs:
+    """QLinearGlobalAveragePool: the int32 sum of each channel minus N * x_zero_point, times
+    x_scale / (y_scale * N) (N: the pixels of a channel), requantized."""
+
+    x_scale: float
+    x_zero_point: int
+    y_scale: float
+    out: Requantization
+
+
+@dataclass(frozen=True)
+class QAveragePoolAttrs:
+    """QLinearAveragePool as onnxruntime computes it: per window the float32 sum of the dequantized
+    taps inside the input, divided by the tap count, then y = sum / y_scale + y_zero_point rounded."""
+
+    pool: PoolAttrs
+    x_scale: float
+    x_zero_point: int
+    y_scale: float
+    out: Requantization
+
+
 # Every attribute record a node may carry.
 AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
-    SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs,
+    SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs, QuantAttrs, QConvAttrs,
+    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs,
 ]  # fmt: skip
 
 
@@ -319,7 +416,8 @@ class Node:
 
 @dataclass(frozen=True)
 class Graph:
-    """Nodes in topological order. `shapes` holds the shape of every non-constant value."""
+    """Nodes in topological order. `shapes` holds the shape of every non-constant value, `dtypes`
+    the dtype of every non-constant value that is not float32 (a constant's is its array's)."""
 
     name: str
     inputs: tuple[Value, ...]
@@ -327,18 +425,24 @@ class Graph:
     nodes: tuple[Node, ...]
     constants: dict[str, np.ndarray] = field(default_factory=dict)
     shapes: dict[str, Shape] = field(default_factory=dict)
+    dtypes: dict[str, DType] = field(default_factory=dict)
 
     def __eq__(self, other: object) -> bool:
         """Structural equality, constants included (same names, dtypes, shapes and values)."""
         if not isinstance(other, Graph):
             return NotImplemented
-        same = (self.name, self.inputs, self.outputs, self.nodes, self.shapes)
-        return same == (other.name, other.inputs, other.outputs, other.nodes, other.shapes) and same_arrays(
-            self.constants, other.constants
-        )
+        same = (self.name, self.inputs, self.outputs, self.nodes, self.shapes, self.dtypes)
+        return same == (
+            other.name, other.inputs, other.outputs, other.nodes, other.shapes, other.dtypes
+        ) and same_arrays(self.constants, other.constants)  # fmt: skip
 
     def is_constant(self, name: str) -> bool:
         return name in self.constants
+
+    def dtype(self, name: str) -> DType:
+        if name in self.constants:
+            return DType(self.constants[name].dtype.name)
+        return self.dtypes.get(name, DType.FLOAT32)
 
     def shape(self, name: str) -> Shape:
         if name in self.constants:
@@ -368,4 +472,5 @@ class Graph:
             nodes=nodes,
             constants={k: v for k, v in constants.items() if k in used},
             shapes={k: v for k, v in self.shapes.items() if k in used},
+            dtypes={k: v for k, v in self.dtypes.items() if k in used},
         )

@@ -1,5 +1,5 @@
-"""The closed vocabularies of both IRs as enums: loop kinds, operators, comparisons, buffer roles and
-layouts, activation kinds and GELU approximations, conv algorithms and vector axes. Each member is
+"""The closed vocabularies of both IRs as enums: loop kinds, operators, comparisons, data types,
+buffer roles and layouts, activation kinds and GELU approximations, conv algorithms and vector axes. Each member is
 also its text (it compares, hashes, prints and formats as its value), so IR text and generated C
 spell them as before, and IR nodes built from text are converted on construction: a misspelt kind
 fails where it is made."""
@@ -59,6 +59,32 @@ class MathFunction(TextEnum):
     ABS = "abs"
     SQRT = "sqrt"
     SOFTPLUS = "softplus"  # log(1 + exp(x))
+
+
+class DType(TextEnum):
+    """The element type of a graph value, a buffer or an expression. float64 is for expressions only
+    (exact products of small integers and float32 scales, see lowering/quantized_add.py)."""
+
+    FLOAT32 = "float32"
+    FLOAT64 = "float64"
+    INT8 = "int8"
+    UINT8 = "uint8"
+    INT16 = "int16"
+    INT32 = "int32"
+
+    @property
+    def is_integer(self) -> bool:
+        return self.value.startswith(("int", "uint"))
+
+    @property
+    def bytes(self) -> int:
+        return {"float32": 4, "float64": 8, "int8": 1, "uint8": 1, "int16": 2, "int32": 4}[self.value]
+
+    @property
+    def range(self) -> tuple[int, int]:
+        """The smallest and largest value of an integer type."""
+        bits = self.bytes * 8
+        return (0, 2**bits - 1) if self.value.startswith("uint") else (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1)
 
 
 class BufferRole(TextEnum):

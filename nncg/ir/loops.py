@@ -1,8 +1,9 @@
 """Loop-nest IR: what the graph lowers to, what loop passes rewrite and what backends print.
 
-A Program is a list of Kernels (one per layer) over flat float buffers. Indices are affine in the
-integer loop variables, so unrolling is substitution and vectorisation is a stride check. Every
-float expression has a lane count: a vector operation is the same node with lanes > 1.
+A Program is a list of Kernels (one per layer) over flat buffers, float32 unless a buffer says
+another DType (the int8 path, see nncg/ir/dtypes.py for how expressions are typed). Indices are
+affine in the integer loop variables, so unrolling is substitution and vectorisation is a stride
+check. Every expression has a lane count: a vector operation is the same node with lanes > 1.
 All nodes are frozen dataclasses, so two IRs compare structurally with ==.
 """
 
@@ -14,7 +15,7 @@ from typing import Union
 import numpy as np
 
 from .arrays import same_arrays
-from .kinds import BinaryOp, BufferRole, Comparison, Layout, LoopKind, MathFunction, coerce
+from .kinds import BinaryOp, BufferRole, Comparison, DType, Layout, LoopKind, MathFunction, coerce
 
 # ---------------------------------------------------------------------------- integer indices
 
@@ -87,18 +88,26 @@ class Affine:
         return " + ".join(parts).replace("+ -", "- ")
 
 
-# ---------------------------------------------------------------------------- float expressions
+# ---------------------------------------------------------------------------- expressions
 
 
 @dataclass(frozen=True)
 class Const:
-    """A literal; one value per lane (a splat repeats it)."""
+    """A literal; one value per lane (a splat repeats it). Integer types hold Python ints."""
 
     values: tuple[float, ...]
+    dtype: DType = DType.FLOAT32
+
+    def __post_init__(self) -> None:
+        coerce(self, dtype=DType)
 
     @staticmethod
     def splat(value: float, lanes: int = 1) -> Const:
         return Const((float(np.float32(value)),) * lanes)
+
+    @staticmethod
+    def integer(value: int, dtype: DType = DType.INT32) -> Const:
+        return Const((int(value),), dtype)
 
     @property
     def lanes(self) -> int:
@@ -190,7 +199,67 @@ class Fma:
         return max(self.a.lanes, self.b.lanes, self.c.lanes)
 
 
-Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call, Fma]
+@dataclass(frozen=True)
+class Cast:
+    """value converted to `dtype`: integer widening or narrowing to a type that holds the value,
+    integer to float (rounded to nearest), float32 to float64 (exact). Float to integer is never a
+    Cast: Requantize rounds and saturates."""
+
+    dtype: DType
+    value: Expr
+
+    def __post_init__(self) -> None:
+        coerce(self, dtype=DType)
+
+    @property
+    def lanes(self) -> int:
+        return self.value.lanes
+
+
+@dataclass(frozen=True)
+class Requantize:
+    """The float form of requantisation (MLAS's, onnxruntime's CPU kernels): a float32 `value`
+    already multiplied by its scale, clamped to [low - zero_point, high - zero_point] (NaN to the
+    low end), rounded half to even, plus `zero_point`; an integer of `dtype` in [low, high]."""
+
+    value: Expr
+    zero_point: int
+    low: int
+    high: int
+    dtype: DType
+
+    def __post_init__(self) -> None:
+        coerce(self, dtype=DType)
+
+    @property
+    def lanes(self) -> int:
+        return self.value.lanes
+
+
+@dataclass(frozen=True)
+class RequantizeFixed:
+    """The fixed-point form (gemmlowp's, TFLite's): an int32 `value` times the int32 `multiplier`
+    (in [2^30, 2^31)), the 64-bit product divided by 2^31 rounding half up, then divided by
+    2^`shift` rounding half away from zero, plus `zero_point`, saturated to [low, high]. So the
+    scale is multiplier * 2^-(31 + shift), with no float arithmetic."""
+
+    value: Expr
+    multiplier: Expr
+    shift: Expr
+    zero_point: int
+    low: int
+    high: int
+    dtype: DType
+
+    def __post_init__(self) -> None:
+        coerce(self, dtype=DType)
+
+    @property
+    def lanes(self) -> int:
+        return self.value.lanes
+
+
+Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call, Fma, Cast, Requantize, RequantizeFixed]
 
 BINARY_OPS = tuple(BinaryOp)
 COMPARISONS = tuple(Comparison)
@@ -275,7 +344,7 @@ BUFFER_ROLES = tuple(BufferRole)
 
 @dataclass(frozen=True)
 class Buffer:
-    """A flat float32 array. `shape` and `layout` are documentation for the reader of the C."""
+    """A flat array of `dtype`. `shape` and `layout` are documentation for the reader of the C."""
 
     name: str
     size: int
@@ -284,9 +353,15 @@ class Buffer:
     layout: Layout = Layout.UNSPECIFIED
     onnx_name: str = ""
     offset: int | None = None  # floats into the arena (internal) or the weights blob (constant), by plan-memory
+    dtype: DType = DType.FLOAT32
 
     def __post_init__(self) -> None:
-        coerce(self, role=BufferRole, layout=Layout)
+        coerce(self, role=BufferRole, layout=Layout, dtype=DType)
+
+    @property
+    def floats(self) -> int:
+        """The float32 slots the buffer takes in the arena or the weights blob (rounded up)."""
+        return -(-self.size * self.dtype.bytes // 4)
 
 
 @dataclass(frozen=True)
@@ -377,6 +452,10 @@ def children(expr: Expr) -> tuple[Expr, ...]:
         return (expr.arg,)
     if isinstance(expr, Fma):
         return (expr.a, expr.b, expr.c)
+    if isinstance(expr, Cast | Requantize):
+        return (expr.value,)
+    if isinstance(expr, RequantizeFixed):
+        return (expr.value, expr.multiplier, expr.shift)
     return ()
 
 
@@ -392,6 +471,10 @@ def with_children(expr: Expr, new: tuple[Expr, ...]) -> Expr:
         return Call(expr.fn, new[0])
     if isinstance(expr, Fma):
         return Fma(*new)
+    if isinstance(expr, Cast | Requantize):
+        return replace(expr, value=new[0])
+    if isinstance(expr, RequantizeFixed):
+        return replace(expr, value=new[0], multiplier=new[1], shift=new[2])
     return expr
 
 

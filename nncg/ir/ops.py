@@ -23,6 +23,12 @@ from .graph import (
     NormAttrs,
     PadAttrs,
     PoolAttrs,
+    QAddAttrs,
+    QAveragePoolAttrs,
+    QConvAttrs,
+    QDenseAttrs,
+    QPoolAttrs,
+    QuantAttrs,
     ReduceAttrs,
     ReshapeAttrs,
     ResizeAttrs,
@@ -72,6 +78,11 @@ def dense_macs(graph: Graph, node: Node) -> int:
     weight = graph.shape(node.inputs[1])
     k = weight[-1] if node.attrs.trans_w else weight[-2]
     return math.prod(graph.shape(node.outputs[0])) * k
+
+
+def q_dense_macs(graph: Graph, node: Node) -> int:
+    """Outputs x K (w: [K, N])."""
+    return math.prod(graph.shape(node.outputs[0])) * graph.shape(node.inputs[1])[0]
 
 
 @dataclass(frozen=True)
@@ -144,4 +155,12 @@ IR_OPS: dict[str, IrOp] = {
     "InstanceNormalization": IrOp(NormAttrs, no_macs),
     "GroupNormalization": IrOp(NormAttrs, no_macs),
     "LayerNormalization": IrOp(NormAttrs, no_macs),
+    # The int8 path (nncg/ir/graph_dtypes.py says which inputs are integer)
+    "QuantizeLinear": IrOp(QuantAttrs, no_macs),
+    "DequantizeLinear": IrOp(QuantAttrs, no_macs),
+    "QLinearConv": IrOp(QConvAttrs, conv_macs),
+    "QLinearDense": IrOp(QDenseAttrs, q_dense_macs),
+    "QLinearAdd": IrOp(QAddAttrs, no_macs),
+    "QLinearGlobalAveragePool": IrOp(QPoolAttrs, no_macs),
+    "QLinearAveragePool": IrOp(QAveragePoolAttrs, no_macs),
 }

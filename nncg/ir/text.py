@@ -8,12 +8,13 @@ import numpy as np
 
 from ..safe_text import capped, escaped
 from .graph import Activation, Graph
-from .kinds import LoopKind
+from .kinds import DType, LoopKind
 from .loops import (
     Assign,
     Binary,
     Broadcast,
     Call,
+    Cast,
     Const,
     Expr,
     Fma,
@@ -23,6 +24,8 @@ from .loops import (
     LocalRef,
     Loop,
     Program,
+    Requantize,
+    RequantizeFixed,
     Select,
     Stmt,
     Store,
@@ -32,9 +35,13 @@ from .loops import (
 def graph_to_text(graph: Graph) -> str:
     """Value names as the model has them, made printable and capped (the text goes to a terminal)."""
 
+    def typed(n: str) -> str:
+        dtype = graph.dtype(n)
+        return f"{_name(n)}{'' if dtype == DType.FLOAT32 else ' ' + dtype}"
+
     def sig(names):
         return ", ".join(
-            f"{_name(n)}: const{list(graph.shape(n))}" if graph.is_constant(n) else f"{_name(n)}{list(graph.shape(n))}"
+            f"{typed(n)}: const{list(graph.shape(n))}" if graph.is_constant(n) else f"{typed(n)}{list(graph.shape(n))}"
             for n in names
         )
 
@@ -43,7 +50,7 @@ def graph_to_text(graph: Graph) -> str:
     for node in graph.nodes:
         attrs = attrs_to_text(node.attrs) if node.attrs is not None else ""
         attrs = f" {{{attrs}}}" if attrs else ""
-        results = ", ".join(map(_name, node.outputs))
+        results = ", ".join(map(typed, node.outputs))
         lines.append(f"  {results} = {node.op}({sig(node.inputs)}){attrs}  # {_name(node.name)}")
     lines.append("}")
     return "\n".join(lines)
@@ -76,7 +83,8 @@ def program_to_text(program: Program) -> str:
     for buf in program.buffers:
         shape = "x".join(map(str, buf.shape))
         place = f" @ arena+{buf.offset}" if buf.offset is not None else ""
-        lines.append(f"  {buf.role} {buf.name}[{buf.size}]{place}  # {shape} {buf.layout}".rstrip())
+        dtype = f" {buf.dtype}" if buf.dtype != DType.FLOAT32 else ""
+        lines.append(f"  {buf.role}{dtype} {buf.name}[{buf.size}]{place}  # {shape} {buf.layout}".rstrip())
     for kernel in program.kernels:
         overlap = " overlapping-stores" if kernel.overlapping_stores else ""
         lines.append(f"  kernel {kernel.name} ({kernel.op}){overlap} {{")
@@ -118,6 +126,16 @@ def _stmts(body: tuple[Stmt, ...], depth: int) -> list[str]:
 
 
 def expr_to_text(expr: Expr) -> str:
+    if isinstance(expr, Const) and expr.dtype != DType.FLOAT32:
+        values = ", ".join(str(v) for v in expr.values)
+        return f"{expr.dtype}({values})" if expr.lanes == 1 else f"{expr.dtype}<{values}>"
+    if isinstance(expr, Cast):
+        return f"{expr.dtype}({expr_to_text(expr.value)})"
+    if isinstance(expr, Requantize):
+        return f"requantize_{expr.dtype}({expr_to_text(expr.value)}, zp={expr.zero_point}, {expr.low}..{expr.high})"
+    if isinstance(expr, RequantizeFixed):
+        operands = ", ".join(expr_to_text(e) for e in (expr.value, expr.multiplier, expr.shift))
+        return f"requantize_fixed_{expr.dtype}({operands}, zp={expr.zero_point}, {expr.low}..{expr.high})"
     if isinstance(expr, Const):
         vals = [f"{np.float32(v)!r}".removeprefix("np.float32(").removesuffix(")") for v in expr.values]
         return (

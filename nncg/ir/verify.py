@@ -11,6 +11,8 @@ from ..ir.loops import (
     Binary,
     Broadcast,
     Buffer,
+    Call,
+    Cast,
     Expr,
     Fma,
     If,
@@ -19,14 +21,20 @@ from ..ir.loops import (
     LocalRef,
     Loop,
     Program,
+    Requantize,
+    RequantizeFixed,
     Select,
     Stmt,
     Store,
     walk_exprs,
 )
 from ..ir.ops import IR_OPS
-from .kinds import BufferRole, LoopKind
+from .dtypes import buffer_dtypes, expr_dtype
+from .graph_dtypes import graph_dtype_problems
+from .kinds import BufferRole, DType, LoopKind
 
+FLOAT32, INT32 = DType.FLOAT32, DType.INT32
+ARENA_DTYPES = (DType.FLOAT32, DType.INT8, DType.UINT8)  # what an arena buffer may hold (c_file.py says why)
 VECTOR_WIDTHS = (1, 2, 4, 8, 16)  # lanes a loop or expression may have
 
 
@@ -47,7 +55,7 @@ def verify_graph(graph: Graph) -> list[str]:
                 problems.append(f"node {node.name}: output {name} has no shape")
         known |= set(node.outputs)
     problems += [f"graph output {v.name} is never produced" for v in graph.outputs if v.name not in known]
-    return problems
+    return problems + graph_dtype_problems(graph)
 
 
 def _node_op_problems(node: Node) -> list[str]:
@@ -67,20 +75,31 @@ def verify_program(program: Program) -> list[str]:
     for buf in program.role(BufferRole.CONSTANT):
         if buf.name not in program.constants or program.constants[buf.name].size != buf.size:
             problems.append(f"constant {buf.name} has no data of size {buf.size}")
+    for buf in program.buffers:
+        if buf.role != BufferRole.CONSTANT and buf.dtype not in ARENA_DTYPES:
+            problems.append(
+                f"{buf.role} buffer {buf.name} is {buf.dtype}: only {', '.join(ARENA_DTYPES)} live in memory"
+            )
+        data = program.constants.get(buf.name)
+        if data is not None and data.dtype.name != buf.dtype:
+            problems.append(f"constant {buf.name} is {buf.dtype} but its data is {data.dtype.name}")
+    scope = _Scope(buffers, {}, frozenset(), {}, buffer_dtypes(program))
     for kernel in program.kernels:
-        _check_body(kernel.body, _Scope(buffers, {}, frozenset(), {}), problems, kernel.name)
+        _check_body(kernel.body, scope, problems, kernel.name)
     return problems
 
 
 @dataclass(frozen=True)
 class _Scope:
     """What a statement sees: the buffers, the enclosing loops' extents, the loop variables an
-    enclosing border check constrains, and the declared locals with their lanes."""
+    enclosing border check constrains, the declared locals with their lanes, and the dtypes of
+    the buffers and the locals."""
 
     buffers: dict[str, Buffer]
     extents: dict[str, int]
     guarded: frozenset[str]
     locals_: dict[str, int]
+    dtypes: dict[str, DType]
 
 
 def _check_body(body: tuple[Stmt, ...], scope: _Scope, problems: list[str], where: str) -> None:
@@ -96,7 +115,10 @@ def _check_body(body: tuple[Stmt, ...], scope: _Scope, problems: list[str], wher
             _check_body(stmt.body, replace(scope, guarded=guarded), problems, where)
         elif isinstance(stmt, Let):
             _check_expr(stmt.init, scope, problems, where)
-            inner = replace(scope, locals_=scope.locals_ | {stmt.name: stmt.init.lanes})
+            dtype = expr_dtype(stmt.init, scope.dtypes, scope.dtypes)
+            inner = replace(
+                scope, locals_=scope.locals_ | {stmt.name: stmt.init.lanes}, dtypes=scope.dtypes | {stmt.name: dtype}
+            )
             _check_body(stmt.body, inner, problems, where)
         else:
             _check_expr(stmt.value, scope, problems, where)
@@ -105,8 +127,13 @@ def _check_body(body: tuple[Stmt, ...], scope: _Scope, problems: list[str], wher
                 if buf is None or buf.role not in (BufferRole.INTERNAL, BufferRole.OUTPUT):
                     problems.append(f"{where}: store to {stmt.buffer}, which is not a writable buffer")
                 _check_access(stmt.buffer, stmt.index, stmt.value.lanes, scope, problems, where)
+                _check_stored_type(
+                    stmt.buffer, expr_dtype(stmt.value, scope.dtypes, scope.dtypes), scope, problems, where
+                )
             elif scope.locals_.get(stmt.name) != stmt.value.lanes:
                 problems.append(f"{where}: assignment to {stmt.name} with {stmt.value.lanes} lanes, not declared so")
+            elif expr_dtype(stmt.value, scope.dtypes, scope.dtypes) != scope.dtypes.get(stmt.name):
+                problems.append(f"{where}: assignment of another type to {stmt.name}")
 
 
 def _check_loop(loop: Loop, problems: list[str], where: str, scope: _Scope) -> None:
@@ -150,6 +177,54 @@ def _check_expr(expr: Expr, scope: _Scope, problems: list[str], where: str) -> N
             problems.append(f"{where}: fma operands differ in lanes")
         elif isinstance(e, Broadcast) and e.value.lanes != 1:
             problems.append(f"{where}: broadcast of a vector")
+        problems += [f"{where}: {p}" for p in _type_problems(e, scope.dtypes)]
+
+
+def _check_stored_type(buffer: str, dtype: DType, scope: _Scope, problems: list[str], where: str) -> None:
+    """A float buffer takes float32 values; an integer buffer an integer value (Requantize and Cast
+    narrow to it, and a copy moves the buffer's own type)."""
+    buf = scope.buffers.get(buffer)
+    if buf is not None and (buf.dtype == FLOAT32) != (dtype == FLOAT32):
+        problems.append(f"{where}: store of a {dtype} value to {buf.dtype} buffer {buffer}")
+
+
+def _type_problems(e: Expr, dtypes: dict[str, DType]) -> list[str]:
+    """The operands of one node have the types it computes on."""
+
+    def dtype(x: Expr) -> DType:
+        return expr_dtype(x, dtypes, dtypes)
+
+    if isinstance(e, Binary):
+        a, b = dtype(e.a), dtype(e.b)
+        if a != b:
+            return [f"operands of {e.op} are {a} and {b}"]
+        if a.is_integer and (a != INT32 or e.op == "/"):
+            return [f"{e.op} on {a}: integer arithmetic is int32 +, -, *, max and min"]
+    elif isinstance(e, Select):
+        if dtype(e.lhs) != dtype(e.rhs) or dtype(e.then) != dtype(e.otherwise):
+            return ["select compares or picks values of different types"]
+    elif isinstance(e, Call | Fma):
+        operands = (e.arg,) if isinstance(e, Call) else (e.a, e.b, e.c)
+        if any(dtype(x) != FLOAT32 for x in operands):
+            return ["math on a value that is not float32"]
+    elif isinstance(e, Cast):
+        if not dtype(e.value).is_integer and e.dtype.is_integer:
+            return [f"cast of {dtype(e.value)} to {e.dtype}: float to integer is a Requantize"]
+    elif isinstance(e, Requantize | RequantizeFixed):
+        return _requantize_problems(e, dtype)
+    return []
+
+
+def _requantize_problems(e: Requantize | RequantizeFixed, dtype) -> list[str]:
+    problems = []
+    operands = (e.value,) if isinstance(e, Requantize) else (e.value, e.multiplier, e.shift)
+    expected = (FLOAT32,) if isinstance(e, Requantize) else (INT32, INT32, INT32)
+    if tuple(dtype(x) for x in operands) != expected:
+        problems.append(f"requantize of {', '.join(dtype(x) for x in operands)}, not {', '.join(expected)}")
+    low, high = e.dtype.range if e.dtype.is_integer else (1, 0)
+    if not low <= e.low <= e.high <= high:
+        problems.append(f"requantize to {e.dtype} in [{e.low}, {e.high}]")
+    return problems
 
 
 def _check_vars(vars_, extents: dict[str, int], problems: list[str], where: str) -> None:

@@ -31,6 +31,16 @@ from .lrn import lower_lrn
 from .normalization import lower_normalization
 from .pad import lower_pad
 from .pool import lower_averagepool, lower_maxpool
+from .quantized import (
+    lower_dequantize_linear,
+    lower_integer_maxpool,
+    lower_qlinear_average_pool,
+    lower_qlinear_conv,
+    lower_qlinear_dense,
+    lower_qlinear_global_average_pool,
+    lower_quantize_linear,
+)
+from .quantized_add import lower_qlinear_add
 from .reduce import lower_arg_extreme, lower_reduce
 from .reshape import copy_nest, lower_reshape
 from .resize import lower_resize
@@ -52,10 +62,18 @@ def lower_any_conv(ctx: LoweringContext, node: Node) -> None:
         lower_conv(ctx, node)
 
 
+def lower_any_maxpool(ctx: LoweringContext, node: Node) -> None:
+    """MaxPool of floats, or of the integers of an int8 model."""
+    if ctx.graph.dtype(node.inputs[0]).is_integer:
+        lower_integer_maxpool(ctx, node)
+    else:
+        lower_maxpool(ctx, node)
+
+
 LOWERINGS = {
     "Conv": lower_any_conv,
     "ConvTranspose": lower_conv_transpose,
-    "MaxPool": lower_maxpool,
+    "MaxPool": lower_any_maxpool,
     "AveragePool": lower_averagepool,
     "Relu": lower_activation,
     "Clip": lower_activation,
@@ -113,17 +131,28 @@ LOWERINGS = {
     "InstanceNormalization": lower_normalization,
     "GroupNormalization": lower_normalization,
     "LayerNormalization": lower_normalization,
+    "QuantizeLinear": lower_quantize_linear,
+    "DequantizeLinear": lower_dequantize_linear,
+    "QLinearConv": lower_qlinear_conv,
+    "QLinearDense": lower_qlinear_dense,
+    "QLinearAdd": lower_qlinear_add,
+    "QLinearGlobalAveragePool": lower_qlinear_global_average_pool,
+    "QLinearAveragePool": lower_qlinear_average_pool,
 }
 
 
-def lower(graph: Graph, function_name: str | None = None, halos: bool | str = "auto") -> Program:
+def lower(
+    graph: Graph, function_name: str | None = None, halos: bool | str = "auto", requantize: str = "float"
+) -> Program:
     """`halos`: store tensors that only padded Convs read inside a zero border (see halo.py). `auto`
     (the default) does it only where the readers are cache-blocked Convs: it removes every border
     check, which on a small image is every pixel (resnet18's layer4 at 96x96, avx2: 1860 -> 1400 us),
     but for the other layers gcc's code came out as often slower as faster (robot avx2 -2 %,
-    pedestrian ssse3 +23 %). true: for every padded Conv; false: never."""
+    pedestrian ssse3 +23 %). true: for every padded Conv; false: never. `requantize`: how the integer
+    ops of an int8 model scale their results, `float` (onnxruntime's arithmetic) or `fixed`
+    (integers only, see lowering/requantize.py)."""
     name = program_name(function_name or graph.name)
-    ctx = LoweringContext(graph, name, halos)
+    ctx = LoweringContext(graph, name, halos, requantize)
     for value in graph.inputs:
         ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
     outputs = {}

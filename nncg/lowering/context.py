@@ -9,7 +9,7 @@ import numpy as np
 
 from ..ir.c_names import Namespace, buffer_name, layer_name
 from ..ir.graph import Graph
-from ..ir.kinds import Layout
+from ..ir.kinds import DType, Layout
 from ..ir.loops import Affine, Buffer, Kernel, Loop, Stmt
 from .halo import conv_halos, zero_halo
 from .slabs import concat_slices
@@ -111,9 +111,10 @@ class LoweringContext:
     of their own (nncg/ir/c_names.py); a node's kernel keeps the node's name, which --tune and the
     per-layer pass parameters use as the layer's identity."""
 
-    def __init__(self, graph: Graph, program: str, halos: bool | str = "auto"):
+    def __init__(self, graph: Graph, program: str, halos: bool | str = "auto", requantize: str = "float"):
         self.graph = graph
         self.program = program
+        self.requantize = requantize  # the form of requantisation: float or fixed (lowering/requantize.py)
         self.buffers: list[Buffer] = []
         self.constants: dict[str, np.ndarray] = {}
         self.refs: dict[str, TensorRef] = {}
@@ -124,17 +125,21 @@ class LoweringContext:
         self.halos = conv_halos(graph, blocked_only=halos == "auto") if halos else {}
         self.slabs = concat_slices(graph)  # Concat inputs their producers write in place
 
-    def add_buffer(self, name: str, role: str, shape, order, onnx_name: str = "") -> TensorRef:
+    def add_buffer(
+        self, name: str, role: str, shape, order, onnx_name: str = "", dtype: DType = DType.FLOAT32
+    ) -> TensorRef:
         shape = tuple(int(d) for d in shape)
         ident = self._buffer_names.claim(name)
         size = int(np.prod(shape)) if shape else 1
-        self.buffers.append(Buffer(ident, size, role, shape, layout_of(shape, order), onnx_name))
+        self.buffers.append(Buffer(ident, size, role, shape, layout_of(shape, order), onnx_name, dtype=dtype))
         return TensorRef(ident, shape, tuple(order))
 
     def add_constant(self, name: str, data: np.ndarray) -> TensorRef:
-        """A packed weight array; its logical shape is the packed shape, row-major."""
-        data = np.ascontiguousarray(data, dtype=np.float32)
-        ref = self.add_buffer(name, "constant", data.shape, row_major(data.ndim))
+        """A packed weight array; its logical shape is the packed shape, row-major. Integer weights
+        (the int8 path) keep their type, any other is float32."""
+        integer = data.dtype.kind in "iu"
+        data = np.ascontiguousarray(data, dtype=None if integer else np.float32)
+        ref = self.add_buffer(name, "constant", data.shape, row_major(data.ndim), dtype=DType(data.dtype.name))
         self.constants[ref.buffer] = data
         return ref
 
@@ -149,13 +154,13 @@ class LoweringContext:
 
         A graph output is row-major at the function boundary; where the preferred layout differs
         in memory, the node writes an internal buffer and a copy kernel converts it afterwards."""
-        shape = self.graph.shape(value)
+        shape, dtype = self.graph.shape(value), self.graph.dtype(value)
         preferred = TensorRef("", shape, tuple(order))
         if self.graph.is_graph_output(value):
             target = self.refs[value]
             if same_memory_order(preferred, target):
                 return target
-            temp = self.add_buffer("t_" + value, "internal", shape, order)
+            temp = self.add_buffer("t_" + value, "internal", shape, order, dtype=dtype)
             self.pending_copies.append((value, temp, target))
             return temp
         if value in self.slabs:
@@ -169,7 +174,7 @@ class LoweringContext:
             ref = replace(self.add_buffer("t_" + value, "internal", stored, order), shape=shape, halo=halo)
             self.emit_helper("halo_" + ref.buffer, "ZeroHalo", zero_halo(ref))
         else:
-            ref = self.add_buffer("t_" + value, "internal", shape, order)
+            ref = self.add_buffer("t_" + value, "internal", shape, order, dtype=dtype)
         self.refs[value] = ref
         return ref
 

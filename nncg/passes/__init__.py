@@ -9,6 +9,7 @@ from __future__ import annotations
 from ..errors import NncgError
 from ..ir.target import Target
 from ..lowering import lower
+from ..lowering.requantize import parse_requantize
 from .cache_block import cache_block
 from .cache_block import format_choice as format_cache_block
 from .cache_block import parse_layers as parse_cache_block_layers
@@ -75,7 +76,7 @@ register(
     "cache-block", "graph", cache_block, target=True,
     tunable=Tunable(cache_block_choices, format_cache_block), layers=parse_cache_block_layers,
 )  # fmt: skip
-register("lower", "lower", lower, halos=parse_halos)
+register("lower", "lower", lower, halos=parse_halos, requantize=parse_requantize)
 register("vectorize", "loop", vectorize, target=True)
 register(
     "register-block",
@@ -96,11 +97,16 @@ GRAPH_PIPELINE = "drop-identity,cancel-transposes,fold-batchnorm,fuse-bias,fuse-
 
 
 def default_pipeline(
-    target: Target, unroll_level: str = "auto", weights: str = "auto", budget: int | None = None
+    target: Target,
+    unroll_level: str = "auto",
+    weights: str = "auto",
+    budget: int | None = None,
+    requantize: str = "float",
 ) -> str:
     """The pipeline `nncg-onnx` runs for `target` at an unroll level; `weights` (auto, embed, bin) says
     where plan-memory puts the weights; `budget` caps the statements of the unrolled program (None: no
-    cap). Vector widths and registers are the target's, not the text's."""
+    cap); `requantize` is lower's form of requantisation (float: not written, the default). Vector
+    widths and registers are the target's, not the text's."""
     try:
         parse_unroll_level(unroll_level)
     except ValueError:
@@ -114,7 +120,8 @@ def default_pipeline(
     graph = f"{GRAPH_PIPELINE},winograd" + (",vectorize-pixels,cache-block" if vectors else "")
     loops = ",vectorize" if vectors else ""
     loops += f",register-block,unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
-    return f"{graph},lower{loops}"
+    lower = "lower" if requantize == "float" else f"lower{{requantize={requantize}}}"
+    return f"{graph},{lower}{loops}"
 
 
 __all__ = [

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..ir.kinds import BufferRole
+from ..ir.kinds import BufferRole, DType
 from ..ir.loops import Const, Expr, Load, Program, map_body, map_stmt_exprs, stmt_exprs, walk_exprs, walk_stmts
 
 
@@ -17,7 +17,10 @@ def inline_constants(program: Program) -> Program:
     def literal(e: Expr) -> Expr:
         if isinstance(e, Load) and e.buffer in data and e.index.is_const:
             flat = data[e.buffer].reshape(-1)
-            return Const(tuple(float(v) for v in flat[e.index.const : e.index.const + e.lanes]))
+            values = flat[e.index.const : e.index.const + e.lanes]
+            if values.dtype.kind in "iu":  # integer weights of the int8 path
+                return Const(tuple(int(v) for v in values), DType(values.dtype.name))
+            return Const(tuple(float(v) for v in values))
         return e
 
     kernels = tuple(replace(k, body=map_body(k.body, lambda s: map_stmt_exprs(s, literal))) for k in program.kernels)

@@ -4,7 +4,8 @@ Weights stay `static const` arrays in the C file (embed) or move into one binary
 that the caller passes by pointer (bin); auto picks bin above WEIGHTS_FILE_THRESHOLD bytes, where
 the C literals would make the source slow to compile. Either way each array is aligned.
 
-Every internal activation buffer goes into one arena.
+Every internal activation buffer goes into one arena, of floats: an int8 buffer takes a quarter
+of the floats its elements would (Buffer.floats).
 
 A buffer lives from the first kernel that touches it to the last (a Reshape alias shares its
 buffer, so later readers extend the lifetime). Buffers whose lifetimes do not overlap share memory:
@@ -17,7 +18,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from ..ir.kinds import BufferRole
+from ..errors import NncgError
+from ..ir.kinds import BufferRole, DType
 from ..ir.loops import (
     ArenaPlan,
     Buffer,
@@ -40,7 +42,7 @@ WEIGHTS_MODES = ("auto", "embed", "bin")
 def plan_memory(program: Program, align: int = 64, reuse: bool = True, weights: str = "auto") -> Program:
     """`align` is in bytes; `reuse=False` lays the buffers out back to back (no sharing)."""
     align_floats = max(1, align // FLOAT_BYTES)
-    activation_floats = sum(b.size for b in program.role(BufferRole.INTERNAL))
+    activation_floats = sum(b.floats for b in program.role(BufferRole.INTERNAL))
     if reuse:
         program = _compute_in_place(program)
     offsets, size = _place(program, align_floats, reuse)
@@ -55,8 +57,15 @@ def plan_memory(program: Program, align: int = 64, reuse: bool = True, weights: 
 
 
 def _weights_in_blob(program: Program, mode: str) -> bool:
+    """The blob is float32 words: integer weights (the int8 path) stay in the C file."""
+    integer = any(b.dtype != DType.FLOAT32 for b in program.role(BufferRole.CONSTANT))
     if mode == "auto":
-        return sum(b.size for b in program.role(BufferRole.CONSTANT)) * FLOAT_BYTES > WEIGHTS_FILE_THRESHOLD
+        return (
+            not integer
+            and sum(b.floats for b in program.role(BufferRole.CONSTANT)) * FLOAT_BYTES > WEIGHTS_FILE_THRESHOLD
+        )
+    if mode == "bin" and integer:
+        raise NncgError("--weights bin takes float weights only; an int8 model keeps its weights in the C file (embed)")
     return mode == "bin"
 
 
@@ -130,7 +139,7 @@ def _compute_in_place(program: Program) -> Program:
     """Renames each elementwise kernel's output to its dying input, kernel by kernel."""
     accesses = [kernel_access(k) for k in program.kernels]
     spans = lifetimes(program, accesses)
-    sizes = {b.name: b.size for b in program.role(BufferRole.INTERNAL)}
+    sizes = {b.name: (b.size, b.dtype) for b in program.role(BufferRole.INTERNAL)}
     renames: dict[str, str] = {}
     for i, kernel in enumerate(program.kernels):
         pair = _in_place_pair(kernel, i, accesses[i], spans, sizes, renames)
@@ -144,7 +153,7 @@ def _compute_in_place(program: Program) -> Program:
 
 
 def _in_place_pair(kernel, index, access, spans, sizes, renames) -> tuple[str, str] | None:
-    """(output, input) when the output can take the input's memory: both internal and of one size,
+    """(output, input) when the output can take the input's memory: both internal, of one size and dtype,
     the input dead after this kernel, the output born in it, and the kernel elementwise between them.
     `access` and `spans` use the new names; the kernel body still has the original ones."""
     if kernel.overlapping_stores:
@@ -205,7 +214,7 @@ def _place(program: Program, align: int, reuse: bool) -> tuple[dict[str, int], i
     internal = [b for b in program.role(BufferRole.INTERNAL) if b.name in spans]
     if not reuse:
         return _back_to_back(internal, align)
-    order = sorted(internal, key=lambda b: (-b.size, spans[b.name][0], b.name))
+    order = sorted(internal, key=lambda b: (-b.floats, spans[b.name][0], b.name))
     placed: list[tuple[int, int, Buffer]] = []  # (offset, end, buffer)
     offsets: dict[str, int] = {}
     for buf in order:
@@ -217,11 +226,11 @@ def _place(program: Program, align: int, reuse: bool) -> tuple[dict[str, int], i
         )
         offset = 0
         for start, end in busy:
-            if offset + buf.size <= start:
+            if offset + buf.floats <= start:
                 break
             offset = max(offset, _round_up(end, align))
         offsets[buf.name] = offset
-        placed.append((offset, offset + buf.size, buf))
+        placed.append((offset, offset + buf.floats, buf))
     size = max((_round_up(end, align) for _, end, _ in placed), default=0)
     return offsets, size
 
@@ -230,7 +239,7 @@ def _back_to_back(buffers: list[Buffer], align: int) -> tuple[dict[str, int], in
     offsets, offset = {}, 0
     for buf in buffers:
         offsets[buf.name] = offset
-        offset += _round_up(buf.size, align)
+        offset += _round_up(buf.floats, align)
     return offsets, offset
 
 

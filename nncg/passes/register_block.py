@@ -23,6 +23,7 @@ import math
 from dataclasses import replace
 
 from ..ir.analysis import holds_accumulators, is_accumulator
+from ..ir.dtypes import is_integer_kernel
 from ..ir.kinds import BufferRole, Layout
 from ..ir.loops import Affine, Assign, If, Let, Load, Loop, Program, Stmt, Store, stmt_exprs, walk_exprs, walk_stmts
 from ..ir.rename import rename_variables
@@ -72,7 +73,7 @@ def chosen_blocks(
     layers = layers or {}
     blocks = {}
     for kernel in program.kernels:
-        shape = block_shape(kernel.body)
+        shape = None if is_integer_kernel(kernel, program) else block_shape(kernel.body)
         if shape is None:
             continue
         pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers)

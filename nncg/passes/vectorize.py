@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..ir.analysis import is_accumulator, vector_instructions
+from ..ir.dtypes import is_integer_kernel
 from ..ir.kinds import LoopKind
 from ..ir.loops import (
     Affine,
@@ -52,6 +53,9 @@ def vectorize(program: Program, target: Target) -> Program:
         raise ValueError(f"vector widths {widths} are not strictly decreasing")
     kernels = []
     for kernel in program.kernels:
+        if is_integer_kernel(kernel, program):  # the int8 kernels stay scalar in this version
+            kernels.append(kernel)
+            continue
         body = mark_vector_loop(kernel.body, widths)
         overlaps = any(
             isinstance(s, Loop) and s.kind == LoopKind.VECTORIZED and _overlapped_tail_pays(s, widths)

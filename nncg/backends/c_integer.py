@@ -1,0 +1,100 @@
+"""Backend: the C of the int8 path — the integer types (strict C89 has no <stdint.h>: they are
+derived from <limits.h>) and the requantisation helpers, printed only for programs that use them.
+
+The fixed-point form needs the high half of a 32x32-bit product, which C89 cannot hold in one
+integer (long is only guaranteed 32 bits): the magnitudes are split into 16-bit halves and the
+partial products, each below 2^32, are summed with their carries in unsigned long."""
+
+from __future__ import annotations
+
+from ..ir.kinds import DType
+from ..ir.loops import Program, Requantize, RequantizeFixed, stmt_exprs, walk_exprs, walk_stmts
+
+C_TYPES = {
+    DType.FLOAT32: "float",
+    DType.FLOAT64: "double",
+    DType.INT8: "nncg_int8",
+    DType.UINT8: "nncg_uint8",
+    DType.INT16: "nncg_int16",
+    DType.INT32: "nncg_int32",
+}
+
+# signed char and short hold int8 and int16 on every two's complement machine; int holds int32
+# where INT_MAX says so, else long (at least 32 bits in C89).
+TYPEDEFS = (
+    "#include <limits.h>",
+    "#if SCHAR_MIN > -128",
+    '#error "the int8 code needs a signed char that holds -128"',
+    "#endif",
+    "typedef signed char nncg_int8;",
+    "typedef unsigned char nncg_uint8;",
+    "typedef short nncg_int16;",
+    "#if INT_MAX >= 2147483647",
+    "typedef int nncg_int32;",
+    "#else",
+    "typedef long nncg_int32;",
+    "#endif",
+)
+
+REQUANTIZE = (
+    "/* x clamped to [low - zero_point, high - zero_point] (NaN: low), rounded half to even, plus",
+    "   zero_point: the float form of requantisation, as onnxruntime's CPU kernels compute it. The",
+    "   clamp keeps |x| small, so the conversion truncates exactly and x - i is exact. */",
+    "static nncg_int32 nncg_requantize(float x, nncg_int32 zero_point, nncg_int32 low, nncg_int32 high)",
+    "{",
+    "    nncg_int32 i;",
+    "    float d;",
+    "    if (!(x >= (float)(low - zero_point))) x = (float)(low - zero_point);",
+    "    if (x > (float)(high - zero_point)) x = (float)(high - zero_point);",
+    "    i = (nncg_int32)x;",
+    "    d = x - (float)i;",
+    "    if (d > 0.5f || (d == 0.5f && i % 2 != 0)) ++i;",
+    "    else if (d < -0.5f || (d == -0.5f && i % 2 != 0)) --i;",
+    "    return i + zero_point;",
+    "}",
+)
+
+REQUANTIZE_FIXED = (
+    "/* x * multiplier / 2^31 (the 64-bit product's high half, rounded half up: gemmlowp's",
+    "   SaturatingRoundingDoublingHighMul), then / 2^shift rounded half away from zero, plus",
+    "   zero_point, saturated to [low, high]. multiplier is in [2^30, 2^31), shift in [0, 31]. The",
+    "   product of the magnitudes is summed from 16-bit halves, each partial product below 2^32. */",
+    "static nncg_int32 nncg_requantize_fixed(nncg_int32 x, nncg_int32 multiplier, nncg_int32 shift,",
+    "                                        nncg_int32 zero_point, nncg_int32 low, nncg_int32 high)",
+    "{",
+    "    unsigned long a = x < 0 ? 0UL - (unsigned long)x : (unsigned long)x;",
+    "    unsigned long b = (unsigned long)multiplier;",
+    "    unsigned long nudge = x < 0 ? 0x3FFFFFFFUL : 0x40000000UL;",
+    "    unsigned long a1 = a >> 16, a0 = a & 0xFFFFUL, b1 = b >> 16, b0 = b & 0xFFFFUL;",
+    "    unsigned long lo = a0 * b0, mid = a1 * b0 + a0 * b1;",
+    "    unsigned long s0 = (lo & 0xFFFFUL) + (nudge & 0xFFFFUL);",
+    "    unsigned long s1 = (lo >> 16) + (nudge >> 16) + (mid & 0xFFFFUL) + (s0 >> 16);",
+    "    unsigned long q = 2UL * (a1 * b1 + (mid >> 16) + (s1 >> 16)) + ((s1 >> 15) & 1UL);",
+    "    nncg_int32 y;",
+    "    if (shift > 0) q = (q + (1UL << (shift - 1))) >> shift;",
+    "    y = x < 0 ? -(nncg_int32)q : (nncg_int32)q;",
+    "    return y < low - zero_point ? low : (y > high - zero_point ? high : y + zero_point);",
+    "}",
+)
+
+
+def c_type(dtype: DType) -> str:
+    return C_TYPES[DType(dtype)]
+
+
+def integer_preamble(program: Program) -> list[str]:
+    """The typedefs and the helpers the program calls; nothing for a float program."""
+    if all(b.dtype == DType.FLOAT32 for b in program.buffers):
+        return []
+    kinds = {
+        type(e)
+        for k in program.kernels
+        for s in walk_stmts(k.body)
+        for top in stmt_exprs(s)
+        for e in walk_exprs(top)
+        if isinstance(e, Requantize | RequantizeFixed)
+    }
+    lines = ["", *TYPEDEFS]
+    for kind, helper in ((Requantize, REQUANTIZE), (RequantizeFixed, REQUANTIZE_FIXED)):
+        lines += ["", *helper] if kind in kinds else []
+    return lines

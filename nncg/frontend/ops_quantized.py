@@ -1,0 +1,230 @@
+"""ONNX front end, step 3: the quantized ops (QOperator format, and QDQ groups that qdq.py rewrote
+into it) become integer graph IR nodes. Activations are quantized per tensor (int8 or uint8), weights
+per tensor or per output channel; the scales are folded into one float32 multiplier per output
+channel, computed as onnxruntime computes it (x_scale * w_scale / y_scale, in float32)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nncg.frontend.context import Context, OnnxOp
+from nncg.frontend.ops_nn import conv_geometry
+from nncg.frontend.windows import checked_pool_output_shape, pool_attrs
+from nncg.ir.graph import (
+    Node,
+    QAddAttrs,
+    QAveragePoolAttrs,
+    QConvAttrs,
+    QDenseAttrs,
+    QPoolAttrs,
+    QuantAttrs,
+    Requantization,
+)
+from nncg.ir.kinds import DType
+from nncg.safe_text import shown
+
+F32 = np.float32
+QUANTIZATION_HINT = "NNCG specialises the code to the scales and zero points: make them constants"
+# ONNX's TensorProto element types of QuantizeLinear's output_dtype attribute (opset 21)
+OUTPUT_DTYPES = {2: DType.UINT8, 3: DType.INT8}
+
+
+def quantization(op: OnnxOp, ctx: Context, scale_slot: int, role: str) -> tuple[float, int, DType]:
+    """(scale, zero point, dtype) of a per-tensor quantized value: the scale at `scale_slot`, the
+    zero point after it (omitted: 0, uint8 unless output_dtype says otherwise)."""
+    scale = ctx.constant_input(op, scale_slot, f"{role} scale", QUANTIZATION_HINT)
+    zero = (
+        ctx.constant_input(op, scale_slot + 1, f"{role} zero point", QUANTIZATION_HINT)
+        if op.input(scale_slot + 1)
+        else None
+    )
+    if scale.size != 1 or (zero is not None and zero.size != 1):
+        raise op.error(f"quantizes its {role} per axis; NNCG quantizes activations per tensor only")
+    if zero is None:
+        dtype = OUTPUT_DTYPES.get(int(op.attr("output_dtype", 2)))
+    else:
+        dtype = DType(zero.dtype.name) if zero.dtype.name in ("int8", "uint8") else None
+    if dtype is None:
+        raise op.error(
+            f"quantizes its {role} to {zero.dtype.name if zero is not None else 'that type'}; NNCG takes int8 and uint8"
+        )
+    value = F32(scale.reshape(()))
+    if not (np.isfinite(value) and value > 0):
+        raise op.error(f"has {role} scale {float(value)!r}; a scale is positive and finite")
+    return float(value), 0 if zero is None else int(zero.reshape(())), dtype
+
+
+def quantize(value: float, scale: float, zero_point: int, dtype: DType) -> int:
+    """QuantizeLinear of one real value: value / scale in float32, rounded half to even, saturated."""
+    low, high = dtype.range
+    with np.errstate(over="ignore"):
+        q = np.rint(F32(value) / F32(scale))
+    return int(np.clip(q + zero_point, low, high)) if np.isfinite(q) else (low if q < 0 else high)
+
+
+def requantization(op: OnnxOp, scale: float, zero_point: int, dtype: DType) -> Requantization:
+    """The output range: the type's, narrowed by a folded Relu or Clip (qdq.py's nncg_low and
+    nncg_high, the real bounds, quantized as QuantizeLinear would)."""
+    low, high = dtype.range
+    if op.attr("nncg_low") is not None:
+        low = max(low, quantize(op.attr("nncg_low"), scale, zero_point, dtype))
+    if op.attr("nncg_high") is not None:
+        high = min(high, quantize(op.attr("nncg_high"), scale, zero_point, dtype))
+    return Requantization(zero_point, low, min(max(low, high), dtype.range[1]), dtype)
+
+
+def convert_quantize_linear(op: OnnxOp, ctx: Context) -> Node:
+    scale, zero, dtype = quantization(op, ctx, 1, "output")
+    return op.ir_node("QuantizeLinear", [op.input(0)], QuantAttrs(scale, zero, dtype))
+
+
+def convert_dequantize_linear(op: OnnxOp, ctx: Context) -> Node:
+    scale, zero, dtype = quantization(op, ctx, 1, "input")
+    return op.ir_node("DequantizeLinear", [op.input(0)], QuantAttrs(scale, zero, dtype))
+
+
+def integer_weights(op: OnnxOp, ctx: Context, slot: int, channels: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """The weights (constant, int8 or uint8; minus their zero points, as int16, unless those are
+    all 0) and their scales, one per output channel along `axis`."""
+    w = ctx.const(op.input(slot))
+    if w is None:
+        raise op.error("has its weights computed at run time; NNCG's integer kernels take constant weights")
+    scale = ctx.constant_input(op, slot + 1, "weight scale", QUANTIZATION_HINT)
+    zero = ctx.constant_input(op, slot + 2, "weight zero point", QUANTIZATION_HINT) if op.input(slot + 2) else None
+    if w.dtype not in (np.int8, np.uint8):
+        raise op.error(f"has weights of type {w.dtype.name}; NNCG takes int8 and uint8")
+    if scale.size not in (1, channels) or (zero is not None and zero.size not in (1, channels)):
+        raise op.error(f"has {scale.size} weight scales for {channels} output channels; give one or one per channel")
+    shape = [1] * w.ndim
+    shape[axis] = -1
+    zero = np.zeros(1, np.int16) if zero is None else zero.astype(np.int16).reshape(-1)
+    if w.dtype == np.int8 and not zero.any():
+        return w, np.broadcast_to(scale.astype(F32).reshape(-1), (channels,))
+    shifted = w.astype(np.int16) - np.broadcast_to(zero, (channels,)).reshape(shape)
+    return shifted.astype(np.int16), np.broadcast_to(scale.astype(F32).reshape(-1), (channels,))
+
+
+def multipliers(x_scale: float, w_scales: np.ndarray, y_scale: float) -> np.ndarray:
+    """x_scale * w_scale / y_scale per channel, in float32 as onnxruntime rounds it."""
+    return ((F32(x_scale) * w_scales.astype(F32)) / F32(y_scale)).astype(F32)
+
+
+def int32_bias(op: OnnxOp, ctx: Context, slot: int, channels: int) -> np.ndarray:
+    name = op.input(slot)
+    if not name:
+        return np.zeros(channels, np.int32)
+    bias = ctx.const(name)
+    if bias is None or bias.dtype != np.int32 or bias.size != channels:
+        raise op.error(f"has bias {shown(name)}, which is not a constant int32 vector of {channels} values")
+    return bias.reshape(-1)
+
+
+def convert_qlinear_conv(op: OnnxOp, ctx: Context) -> Node:
+    """QLinearConv: x, x_scale, x_zero_point, w, w_scale, w_zero_point, y_scale, y_zero_point, B."""
+    x = op.input(0)
+    x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
+    y_scale, y_zero, y_dtype = quantization(op, ctx, 6, "output")
+    w_shape = ctx.shape(op.input(3))
+    geometry = conv_geometry(op, ctx.shape(x), w_shape)
+    w, w_scales = integer_weights(op, ctx, 3, w_shape[0], 0)
+    attrs = QConvAttrs(
+        geometry.kernel, geometry.strides, geometry.dilations, geometry.pads_begin, geometry.pads_end,
+        geometry.group, x_zero, requantization(op, y_scale, y_zero, y_dtype),
+    )  # fmt: skip
+    return op.ir_node(
+        "QLinearConv",
+        [x, *_parameters(op, ctx, w, int32_bias(op, ctx, 8, w_shape[0]), x_scale, w_scales, y_scale)],
+        attrs,
+    )
+
+
+def _parameters(op, ctx: Context, w: np.ndarray, bias: np.ndarray, x_scale, w_scales, y_scale) -> list[str]:
+    """The constant inputs of a QLinearConv or QLinearDense: weights, int32 bias, multipliers."""
+    base = op.node.output[0]
+    return [
+        ctx.add_constant(f"{base}_w", w),
+        ctx.add_constant(f"{base}_b", bias),
+        ctx.add_constant(f"{base}_m", multipliers(x_scale, w_scales, y_scale)),
+    ]
+
+
+def _dense(op: OnnxOp, ctx: Context, w_slot: int, trans_w: bool, bias_slot: int | None, y_slot: int) -> Node:
+    """QLinearMatMul or QGemm of a 2-D x and constant weights [K, N] ([N, K] with trans_w)."""
+    x = op.input(0)
+    if len(ctx.shape(x)) != 2:
+        raise op.error(f"multiplies a {len(ctx.shape(x))}-D input; NNCG's integer matrix product takes 2-D inputs")
+    x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
+    y_scale, y_zero, y_dtype = quantization(op, ctx, y_slot, "output")
+    w_shape = ctx.shape(op.input(w_slot))
+    if len(w_shape) != 2:
+        raise op.error(f"has {len(w_shape)}-D weights; NNCG's integer matrix product takes 2-D weights")
+    channels = w_shape[0] if trans_w else w_shape[1]
+    w, w_scales = integer_weights(op, ctx, w_slot, channels, 0 if trans_w else 1)
+    w = np.ascontiguousarray(w.T if trans_w else w)
+    bias = int32_bias(op, ctx, bias_slot, channels) if bias_slot is not None else np.zeros(channels, np.int32)
+    ctx.set_shape(op, op.node.output[0], (ctx.shape(x)[0], channels))
+    attrs = QDenseAttrs(x_zero, requantization(op, y_scale, y_zero, y_dtype))
+    return op.ir_node("QLinearDense", [x, *_parameters(op, ctx, w, bias, x_scale, w_scales, y_scale)], attrs)
+
+
+def convert_qlinear_matmul(op: OnnxOp, ctx: Context) -> Node:
+    """QLinearMatMul: a, a_scale, a_zero_point, b, b_scale, b_zero_point, y_scale, y_zero_point."""
+    return _dense(op, ctx, 3, False, None, 6)
+
+
+def convert_qgemm(op: OnnxOp, ctx: Context) -> Node:
+    """onnxruntime's QGemm: A, a_scale, a_zero_point, B, b_scale, b_zero_point, C, y_scale,
+    y_zero_point; transA 0 and alpha 1 (what qdq.py writes)."""
+    if op.attr("transA", 0) or op.attr("alpha", 1.0) != 1.0 or not op.input(7):
+        raise op.error(
+            "has transA, alpha other than 1 or a float output; NNCG takes QGemm with transA=0, alpha=1, y_scale"
+        )
+    return _dense(op, ctx, 3, bool(op.attr("transB", 0)), 6, 7)
+
+
+def convert_qlinear_add(op: OnnxOp, ctx: Context) -> Node:
+    """onnxruntime's QLinearAdd: A, A_scale, A_zero_point, B, B_scale, B_zero_point, C_scale, C_zero_point."""
+    a, b = op.input(0), op.input(3)
+    if ctx.shape(a) != ctx.shape(b) or ctx.const(a) is not None or ctx.const(b) is not None:
+        raise op.error(
+            "adds tensors of different shapes or a constant; NNCG's integer Add takes two computed tensors of one shape"
+        )
+    a_scale, a_zero, a_dtype = quantization(op, ctx, 1, "first input")
+    b_scale, b_zero, b_dtype = quantization(op, ctx, 4, "second input")
+    y_scale, y_zero, y_dtype = quantization(op, ctx, 6, "output")
+    if len({a_dtype, b_dtype, y_dtype}) != 1:
+        raise op.error("mixes int8 and uint8; QLinearAdd's inputs and output have one type")
+    ctx.set_shape(op, op.node.output[0], ctx.shape(a))
+    attrs = QAddAttrs(a_scale, a_zero, b_scale, b_zero, y_scale, requantization(op, y_scale, y_zero, y_dtype))
+    return op.ir_node("QLinearAdd", [a, b], attrs)
+
+
+def convert_qlinear_average_pool(op: OnnxOp, ctx: Context) -> Node:
+    """onnxruntime's QLinearAveragePool: X, x_scale, x_zero_point, y_scale, y_zero_point."""
+    if op.attr("channels_last", 0):
+        raise op.error("has channels_last=1; NNCG takes NCHW inputs")
+    x = op.input(0)
+    shape = ctx.shape(x)
+    pool = pool_attrs(op, shape)
+    if set(pool.dilations) != {1}:
+        raise op.error("has dilations; onnxruntime's QLinearAveragePool has none")
+    if pool.kernel == shape[2:] and not any(pool.pads_begin + pool.pads_end):
+        return convert_qlinear_global_average_pool(op, ctx)  # onnxruntime falls back to it too
+    x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
+    y_scale, y_zero, y_dtype = quantization(op, ctx, 3, "output")
+    ctx.set_shape(op, op.node.output[0], checked_pool_output_shape(op, pool, shape))
+    attrs = QAveragePoolAttrs(pool, x_scale, x_zero, y_scale, requantization(op, y_scale, y_zero, y_dtype))
+    return op.ir_node("QLinearAveragePool", [x], attrs)
+
+
+def convert_qlinear_global_average_pool(op: OnnxOp, ctx: Context) -> Node:
+    """onnxruntime's QLinearGlobalAveragePool: X, x_scale, x_zero_point, y_scale, y_zero_point."""
+    if op.attr("channels_last", 0):
+        raise op.error("has channels_last=1; NNCG takes NCHW inputs")
+    x = op.input(0)
+    x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
+    y_scale, y_zero, y_dtype = quantization(op, ctx, 3, "output")
+    shape = ctx.shape(x)
+    ctx.set_shape(op, op.node.output[0], (*shape[:2], *[1] * (len(shape) - 2)))
+    attrs = QPoolAttrs(x_scale, x_zero, y_scale, requantization(op, y_scale, y_zero, y_dtype))
+    return op.ir_node("QLinearGlobalAveragePool", [x], attrs)

@@ -1,0 +1,265 @@
+"""ONNX front end, step 2b: QDQ models (what onnxruntime.quantization.quantize_static writes) become
+QOperator models, as onnxruntime's own QDQ transformer rewrites them, so that one converter per
+QOperator op serves both formats.
+
+A float op whose inputs come from DequantizeLinear nodes and whose only reader is a QuantizeLinear
+computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm, Add QLinearAdd,
+GlobalAveragePool QLinearGlobalAveragePool and AveragePool QLinearAveragePool (the last four in
+onnxruntime's com.microsoft domain).
+A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
+is monotonic, so clamping before it is clamping its result. MaxPool, Reshape and Flatten between a
+DequantizeLinear and a QuantizeLinear of the same scale and zero point move the integers as they
+are. Weights and biases are the constants that folding dequantized (Folded.dequantized keeps the
+DequantizeLinear they came from). Every QuantizeLinear and DequantizeLinear left over stays: an
+explicit quantise or dequantise kernel.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+import onnx
+from onnx import helper
+
+from nncg.frontend.folding import Folded, NamedNode, live_nodes
+
+CONTRIB = "com.microsoft"
+PASS_THROUGH = ("MaxPool", "Reshape", "Flatten")
+ACTIVATION_TYPES = (np.int8, np.uint8)
+
+
+class _Model:
+    """The live nodes with their producers and readers, and the names the rewrite adds."""
+
+    def __init__(self, folded: Folded, outputs: list[str]):
+        self.folded = folded
+        self.outputs = set(outputs)
+        self.nodes = list(folded.nodes)
+        self.producer = {o: (node, name) for node, name in self.nodes for o in node.output}
+        self.readers: dict[str, list[onnx.NodeProto]] = {}
+        for node, _ in self.nodes:
+            for i in node.input:
+                self.readers.setdefault(i, []).append(node)
+
+    def const(self, name: str) -> np.ndarray | None:
+        return self.folded.constants.get(name) if name else None
+
+    def sole_reader(self, value: str, op_type: str) -> onnx.NodeProto | None:
+        readers = self.readers.get(value, [])
+        if value in self.outputs or len(readers) != 1 or readers[0].op_type != op_type:
+            return None
+        return readers[0]
+
+    def live_dq(self, value: str) -> onnx.NodeProto | None:
+        """The per-tensor DequantizeLinear of an 8-bit activation that computes `value`."""
+        found = self.producer.get(value)
+        node = found[0] if found else None
+        if node is None or node.op_type != "DequantizeLinear" or not _per_tensor(self, node):
+            return None
+        return node
+
+
+def _per_tensor(model: _Model, node: onnx.NodeProto) -> bool:
+    """A (De)QuantizeLinear with a constant scalar scale and an 8-bit scalar zero point."""
+    scale, zero = model.const(node.input[1]), model.const(node.input[2]) if len(node.input) > 2 else None
+    if scale is None or scale.size != 1 or (len(node.input) > 2 and node.input[2] and zero is None):
+        return False
+    return zero is None or (zero.size == 1 and zero.dtype in ACTIVATION_TYPES)
+
+
+def _quantize_params(node: onnx.NodeProto) -> list[str]:
+    """scale and zero point inputs ("" where the zero point is omitted)."""
+    return [node.input[1], node.input[2] if len(node.input) > 2 else ""]
+
+
+def _output_q(model: _Model, value: str) -> tuple[onnx.NodeProto, list[onnx.NodeProto]] | None:
+    """The QuantizeLinear that reads `value`, alone, possibly through Relu or Clip nodes (returned
+    too, to fold into the output range)."""
+    clamps = []
+    while True:
+        readers = model.readers.get(value, [])
+        if value in model.outputs or len(readers) != 1:
+            return None
+        node = readers[0]
+        if node.op_type == "QuantizeLinear" and _per_tensor(model, node) and node.input[0] == value:
+            return node, clamps
+        if node.op_type == "Relu" or (node.op_type == "Clip" and _constant_clip(model, node)):
+            clamps.append(node)
+            value = node.output[0]
+            continue
+        return None
+
+
+def _constant_clip(model: _Model, node: onnx.NodeProto) -> bool:
+    if any(a.name in ("min", "max") for a in node.attribute):
+        return True  # opset < 11: the bounds are attributes
+    return all(model.const(i) is not None for i in node.input[1:] if i)
+
+
+def _dequantized(model: _Model, value: str, dtypes: tuple) -> onnx.NodeProto | None:
+    """The DequantizeLinear a constant weight or bias was folded from, of one of `dtypes`."""
+    node = model.folded.dequantized.get(value)
+    if node is None or model.const(node.input[0]) is None or model.const(node.input[0]).dtype not in dtypes:
+        return None
+    return node
+
+
+def fuse_qdq(folded: Folded, outputs: list[str]) -> list[NamedNode]:
+    """The live nodes with every QDQ group that computes in integers replaced by its QOperator node."""
+    changed = True
+    nodes = folded.nodes
+    while changed:
+        model = _Model(replace(folded, nodes=nodes), outputs)
+        changed = False
+        for node, name in model.nodes:
+            rewrite = REWRITES.get(node.op_type)
+            replacement = rewrite(model, node) if rewrite else None
+            if replacement is None:
+                continue
+            new, removed = replacement
+            kept = [(n, nm) for n, nm in model.nodes if all(n is not r for r in removed)]
+            nodes = [(new, name) if n is node else (n, nm) for n, nm in kept]
+            nodes = live_nodes(nodes, outputs)
+            changed = True
+            break
+    return nodes
+
+
+def _q_output(model: _Model, op: onnx.NodeProto) -> tuple[onnx.NodeProto, list] | None:
+    return _output_q(model, op.output[0])
+
+
+def _with_clamps(model: _Model, q: onnx.NodeProto, clamps: list[onnx.NodeProto]) -> list[onnx.AttributeProto]:
+    """The folded Relu and Clip bounds, as attributes nncg_low/nncg_high of the output's real range
+    (NNCG's own: an onnx QOperator node has no such attributes; the converter reads them)."""
+    low, high = -np.inf, np.inf
+    for node in clamps:
+        lo, hi = _clip_bounds(model, node)
+        low, high = max(low, lo), min(high, hi)
+    attrs = []
+    if low > -np.inf:
+        attrs.append(helper.make_attribute("nncg_low", float(low)))
+    if high < np.inf:
+        attrs.append(helper.make_attribute("nncg_high", float(high)))
+    return attrs
+
+
+def _clip_bounds(model: _Model, node: onnx.NodeProto) -> tuple[float, float]:
+    if node.op_type == "Relu":
+        return 0.0, np.inf
+    attrs = {a.name: a.f for a in node.attribute}
+    if attrs:
+        return attrs.get("min", -np.inf), attrs.get("max", np.inf)
+    bounds = [model.const(i) if i else None for i in (*node.input[1:], "", "")[:2]]
+    return tuple(float(b) if b is not None else default for b, default in zip(bounds, (-np.inf, np.inf)))
+
+
+def _node(op_type: str, inputs: list[str], output: str, source: onnx.NodeProto, extra=(), domain: str = ""):
+    node = helper.make_node(op_type, inputs, [output], domain=domain)
+    node.attribute.extend([a for a in source.attribute if a.name not in ("transA",)])
+    node.attribute.extend(extra)
+    return node
+
+
+def _conv(model: _Model, conv: onnx.NodeProto):
+    dq_x = model.live_dq(conv.input[0])
+    w = _dequantized(model, conv.input[1], (np.int8, np.uint8))
+    b = _dequantized(model, conv.input[2], (np.int32,)) if len(conv.input) > 2 and conv.input[2] else None
+    out = _q_output(model, conv)
+    if dq_x is None or w is None or out is None or (len(conv.input) > 2 and conv.input[2] and b is None):
+        return None
+    q, clamps = out
+    inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], *_quantize_params(q)] + ([b.input[0]] if b else [])
+    return _node("QLinearConv", inputs, q.output[0], conv, _with_clamps(model, q, clamps)), [q, *clamps]
+
+
+def _gemm(model: _Model, gemm: onnx.NodeProto):
+    attrs = {a.name: helper.get_attribute_value(a) for a in gemm.attribute}
+    if attrs.get("transA", 0) or attrs.get("alpha", 1.0) != 1.0 or attrs.get("beta", 1.0) != 1.0:
+        return None
+    dq_x = model.live_dq(gemm.input[0])
+    w = _dequantized(model, gemm.input[1], (np.int8, np.uint8))
+    has_bias = len(gemm.input) > 2 and gemm.input[2]
+    b = _dequantized(model, gemm.input[2], (np.int32,)) if has_bias else None
+    out = _q_output(model, gemm)
+    if dq_x is None or w is None or out is None or (has_bias and b is None):
+        return None
+    if has_bias and model.const(b.input[0]).ndim != 1:
+        return None
+    q, clamps = out
+    inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], b.input[0] if b else "", *_quantize_params(q)]
+    return _node("QGemm", inputs, q.output[0], gemm, _with_clamps(model, q, clamps), CONTRIB), [q, *clamps]
+
+
+def _matmul(model: _Model, matmul: onnx.NodeProto):
+    dq_x = model.live_dq(matmul.input[0])
+    w = _dequantized(model, matmul.input[1], (np.int8, np.uint8))
+    out = _q_output(model, matmul)
+    if dq_x is None or w is None or out is None:
+        return None
+    q, clamps = out
+    inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], *_quantize_params(q)]
+    return _node("QLinearMatMul", inputs, q.output[0], matmul, _with_clamps(model, q, clamps)), [q, *clamps]
+
+
+def _add(model: _Model, add: onnx.NodeProto):
+    a, b = (model.live_dq(i) for i in add.input)
+    out = _q_output(model, add)
+    if a is None or b is None or out is None:
+        return None
+    q, clamps = out
+    inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
+    return _node("QLinearAdd", inputs, q.output[0], add, _with_clamps(model, q, clamps), CONTRIB), [q, *clamps]
+
+
+def _global_average_pool(model: _Model, pool: onnx.NodeProto):
+    dq_x = model.live_dq(pool.input[0])
+    out = _q_output(model, pool)
+    if dq_x is None or out is None or out[1]:
+        return None
+    q = out[0]
+    inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
+    return _node("QLinearGlobalAveragePool", inputs, q.output[0], pool, domain=CONTRIB), [q]
+
+
+def _average_pool(model: _Model, pool: onnx.NodeProto):
+    dq_x = model.live_dq(pool.input[0])
+    out = _q_output(model, pool)
+    if dq_x is None or out is None or out[1]:
+        return None
+    q = out[0]
+    inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
+    return _node("QLinearAveragePool", inputs, q.output[0], pool, domain=CONTRIB), [q]
+
+
+def _pass_through(model: _Model, op: onnx.NodeProto):
+    """MaxPool, Reshape or Flatten of the integers, when the scale and zero point do not change."""
+    dq_x = model.live_dq(op.input[0])
+    q = model.sole_reader(op.output[0], "QuantizeLinear")
+    if dq_x is None or q is None or not _per_tensor(model, q) or not _same_quantization(model, dq_x, q):
+        return None
+    node = helper.make_node(op.op_type, [dq_x.input[0], *op.input[1:]], [q.output[0]])
+    node.attribute.extend(op.attribute)
+    return node, [q]
+
+
+def _same_quantization(model: _Model, a: onnx.NodeProto, b: onnx.NodeProto) -> bool:
+    def params(node):
+        scale, zero = (model.const(i) for i in _quantize_params(node))
+        zero = np.zeros((), np.uint8) if zero is None else zero
+        return float(scale.reshape(())), int(zero.reshape(())), zero.dtype
+
+    return params(a) == params(b)
+
+
+REWRITES: dict[str, Callable] = {
+    "Conv": _conv,
+    "Gemm": _gemm,
+    "MatMul": _matmul,
+    "Add": _add,
+    "GlobalAveragePool": _global_average_pool,
+    "AveragePool": _average_pool,
+    **dict.fromkeys(PASS_THROUGH, _pass_through),
+}

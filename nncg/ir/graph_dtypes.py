@@ -1,0 +1,63 @@
+"""The dtypes of graph values: what each op reads and writes. Float ops read and write float32 only,
+so an int8 value can reach float arithmetic only through an explicit DequantizeLinear."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from .graph import Graph, Node
+from .kinds import DType
+
+FLOAT32, INT8, UINT8, INT16, INT32 = DType.FLOAT32, DType.INT8, DType.UINT8, DType.INT16, DType.INT32
+ACTIVATIONS = (INT8, UINT8)  # the types of quantized activations
+# Ops that move elements without computing on them: their output has their input's dtype.
+TYPE_PRESERVING = ("MaxPool", "Reshape", "Identity")
+# The quantized ops, with the dtypes each input slot may have.
+QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
+    "QuantizeLinear": ((FLOAT32,),),
+    "DequantizeLinear": (ACTIVATIONS,),
+    "QLinearConv": (ACTIVATIONS, (INT8, INT16), (INT32,), (FLOAT32,)),
+    "QLinearDense": (ACTIVATIONS, (INT8, INT16), (INT32,), (FLOAT32,)),
+    "QLinearAdd": (ACTIVATIONS, ACTIVATIONS),
+    "QLinearGlobalAveragePool": (ACTIVATIONS,),
+    "QLinearAveragePool": (ACTIVATIONS,),
+}
+
+
+def output_dtype(node: Node, dtype_of: Callable[[str], DType]) -> DType:
+    """The dtype of the node's outputs (every op here has one output type), given its inputs'."""
+    if node.op in TYPE_PRESERVING:
+        return dtype_of(node.inputs[0])
+    if node.op == "QuantizeLinear":
+        return node.attrs.dtype
+    if node.op in QUANTIZED_INPUTS and node.op != "DequantizeLinear":
+        return node.attrs.out.dtype
+    return FLOAT32
+
+
+def graph_dtype_problems(graph: Graph) -> list[str]:
+    """Every node reads the dtypes its op takes and its outputs have the dtype it writes."""
+    problems = []
+    for node in graph.nodes:
+        dtypes = [graph.dtype(name) for name in node.inputs]
+        if node.op in TYPE_PRESERVING:
+            allowed = [(dtypes[0],)] * len(dtypes) if dtypes else []
+        elif node.op in QUANTIZED_INPUTS:
+            allowed = list(QUANTIZED_INPUTS[node.op])
+            if node.op == "DequantizeLinear":
+                allowed = [(node.attrs.dtype,)]
+        else:
+            allowed = [(FLOAT32,)] * len(dtypes)
+        for name, dtype, ok in zip(node.inputs, dtypes, allowed, strict=False):
+            if dtype not in ok:
+                problems.append(f"node {node.name} ({node.op}) reads {name} of type {dtype}, not {'/'.join(ok)}")
+        expected = output_dtype(node, graph.dtype)
+        problems += [
+            f"node {node.name} ({node.op}) writes {out} of type {graph.dtype(out)}, not {expected}"
+            for out in node.outputs
+            if graph.dtype(out) != expected
+        ]
+    problems += [
+        f"graph {v} {v.name} is not float32" for v in (*graph.inputs, *graph.outputs) if graph.dtype(v.name) != FLOAT32
+    ]
+    return problems

@@ -1,0 +1,227 @@
+"""int8 test models: small float models built with onnx.helper (and the repository's own), quantized
+with onnxruntime.quantization.quantize_static (QDQ, per-channel weights, seeded random calibration
+data), and the comparison of NNCG's C with onnxruntime on the same quantized model, in quantization
+steps of each output."""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+from onnx import TensorProto, helper, numpy_helper
+from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+
+ROOT = Path(__file__).resolve().parent.parent
+OPSET = 17
+
+
+class _Calibration(CalibrationDataReader):
+    def __init__(self, feeds: list[dict[str, np.ndarray]]):
+        self.feeds = iter(feeds)
+
+    def get_next(self):
+        return next(self.feeds, None)
+
+
+def input_shapes(model: onnx.ModelProto) -> dict[str, tuple[int, ...]]:
+    initializers = {t.name for t in model.graph.initializer}
+    return {
+        v.name: tuple(d.dim_value or 1 for d in v.type.tensor_type.shape.dim)
+        for v in model.graph.input
+        if v.name not in initializers
+    }
+
+
+def random_feeds(model: onnx.ModelProto, count: int, seed: int) -> list[dict[str, np.ndarray]]:
+    rng = np.random.default_rng(seed)
+    shapes = input_shapes(model)
+    return [{n: rng.standard_normal(s).astype(np.float32) for n, s in shapes.items()} for _ in range(count)]
+
+
+def quantized(model: onnx.ModelProto, activations: str = "uint8", seed: int = 0) -> onnx.ModelProto:
+    """The QDQ model quantize_static writes: per-tensor activations of that type, per-channel int8 weights."""
+    with tempfile.TemporaryDirectory() as tmp:
+        src, dst = Path(tmp) / "float.onnx", Path(tmp) / "int8.onnx"
+        onnx.save(model, src)
+        quantize_static(
+            str(src),
+            str(dst),
+            _Calibration(random_feeds(model, 8, seed)),
+            quant_format=QuantFormat.QDQ,
+            per_channel=True,
+            activation_type=QuantType.QUInt8 if activations == "uint8" else QuantType.QInt8,
+            weight_type=QuantType.QInt8,
+        )
+        return onnx.load(dst)
+
+
+def _model(nodes, x_shape, initializers: dict[str, np.ndarray]) -> onnx.ModelProto:
+    graph = helper.make_graph(
+        nodes,
+        "int8_test",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, x_shape)],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
+        [numpy_helper.from_array(a.astype(np.float32), n) for n, a in initializers.items()],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
+
+
+def _weights(rng, *shape) -> np.ndarray:
+    return rng.standard_normal(shape) / np.sqrt(np.prod(shape[1:]))
+
+
+def conv_model(kind: str, seed: int = 1) -> onnx.ModelProto:
+    """One conv layer (and what follows it) of each geometry the tests cover."""
+    rng = np.random.default_rng(seed)
+    c = 6
+    convs = {  # name: (c_in, c_out, kernel, attributes)
+        "3x3": (3, 8, 3, {"pads": [1, 1, 1, 1]}),
+        "stride2": (3, 8, 3, {"pads": [1, 0, 1, 0], "strides": [2, 2]}),
+        "1x1": (c, 8, 1, {}),
+        "depthwise": (c, c, 3, {"pads": [1, 1, 1, 1], "group": c}),
+        "grouped": (c, 4, 3, {"pads": [1, 1, 1, 1], "group": 2, "dilations": [2, 2]}),
+    }
+    c_in, c_out, k, attrs = convs[kind]
+    w = _weights(rng, c_out, c_in // attrs.get("group", 1), k, k)
+    init = {"w": w, "b": rng.standard_normal(c_out) * 0.3}
+    nodes = [helper.make_node("Conv", ["x", "w", "b"], ["c"], **attrs), helper.make_node("Relu", ["c"], ["y"])]
+    return _model(nodes, [1, c_in, 9, 9], init)
+
+
+def clip_gemm_model(seed: int = 2) -> onnx.ModelProto:
+    """Conv + Clip(0, 6) (ReLU6), MaxPool, GlobalAveragePool, Flatten, Gemm."""
+    rng = np.random.default_rng(seed)
+    init = {
+        "w": _weights(rng, 8, 3, 3, 3),
+        "b": rng.standard_normal(8) * 0.3,
+        "lo": np.array(0.0),
+        "hi": np.array(1.0),
+        "wg": _weights(rng, 5, 8) * 2,
+        "bg": rng.standard_normal(5),
+    }
+    nodes = [
+        helper.make_node("Conv", ["x", "w", "b"], ["c"], pads=[1, 1, 1, 1]),
+        helper.make_node("Clip", ["c", "lo", "hi"], ["r"]),
+        helper.make_node("MaxPool", ["r"], ["m"], kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1]),
+        helper.make_node("GlobalAveragePool", ["m"], ["g"]),
+        helper.make_node("Flatten", ["g"], ["f"]),
+        helper.make_node("Gemm", ["f", "wg", "bg"], ["y"], transB=1),
+    ]
+    return _model(nodes, [1, 3, 10, 10], init)
+
+
+def residual_model(seed: int = 3) -> onnx.ModelProto:
+    """Conv, Relu, Conv, Add of the two (different scales), MaxPool, Reshape, MatMul."""
+    rng = np.random.default_rng(seed)
+    init = {
+        "w1": _weights(rng, 8, 4, 3, 3),
+        "b1": rng.standard_normal(8) * 0.2,
+        "w2": _weights(rng, 8, 8, 3, 3),
+        "b2": rng.standard_normal(8) * 0.2,
+        "shape": np.array([1, 8 * 4 * 4]),
+        "wm": _weights(rng, 8 * 4 * 4, 10),
+    }
+    nodes = [
+        helper.make_node("Conv", ["x", "w1", "b1"], ["c1"], pads=[1, 1, 1, 1]),
+        helper.make_node("Relu", ["c1"], ["r1"]),
+        helper.make_node("Conv", ["r1", "w2", "b2"], ["c2"], pads=[1, 1, 1, 1]),
+        helper.make_node("Add", ["c2", "r1"], ["a"]),
+        helper.make_node("MaxPool", ["a"], ["m"], kernel_shape=[2, 2], strides=[2, 2]),
+        helper.make_node("Reshape", ["m", "shape"], ["f"]),
+        helper.make_node("MatMul", ["f", "wm"], ["y"]),
+    ]
+    model = _model(nodes, [1, 4, 8, 8], init)
+    model.graph.initializer[-2].CopyFrom(numpy_helper.from_array(np.array([1, 128], np.int64), "shape"))
+    return model
+
+
+def add_model(seed: int = 4) -> onnx.ModelProto:
+    """Two Convs added (each input with its own scale and zero point), the sum the output."""
+    rng = np.random.default_rng(seed)
+    init = {"w1": _weights(rng, 8, 4, 3, 3), "w2": _weights(rng, 8, 4, 1, 1) * 3, "b2": rng.standard_normal(8)}
+    nodes = [
+        helper.make_node("Conv", ["x", "w1"], ["c1"], pads=[1, 1, 1, 1]),
+        helper.make_node("Conv", ["x", "w2", "b2"], ["c2"]),
+        helper.make_node("Add", ["c1", "c2"], ["y"]),
+    ]
+    return _model(nodes, [1, 4, 8, 8], init)
+
+
+def average_pool_model(seed: int = 5, whole_image: bool = False) -> onnx.ModelProto:
+    """Conv, then AveragePool with padding (windows of different counts), or of the whole image (a
+    global pool to onnxruntime), the output."""
+    rng = np.random.default_rng(seed)
+    window = {"kernel_shape": [9, 9]} if whole_image else {"kernel_shape": [3, 3], "strides": [2, 2], "pads": [1] * 4}
+    nodes = [
+        helper.make_node("Conv", ["x", "w"], ["c"], pads=[1, 1, 1, 1]),
+        helper.make_node("AveragePool", ["c"], ["y"], **window),
+    ]
+    return _model(nodes, [1, 4, 9, 9], {"w": _weights(rng, 8, 4, 3, 3)})
+
+
+def repository_model(path: str) -> onnx.ModelProto:
+    """One of the repository's float models, BatchNormalization folded into the Convs (onnxruntime's
+    quant_pre_process, the step its quantizer asks for) and a final Softmax removed: onnxruntime
+    computes a quantized Softmax with a lookup table of its own, which NNCG does not reproduce."""
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    model = onnx.load(ROOT / path)
+    last = model.graph.node[-1]
+    if last.op_type == "Softmax":
+        model.graph.node.remove(last)
+        model.graph.output[0].CopyFrom(helper.make_tensor_value_info(last.input[0], TensorProto.FLOAT, None))
+    with tempfile.TemporaryDirectory() as tmp:
+        src, dst = Path(tmp) / "model.onnx", Path(tmp) / "prepared.onnx"
+        onnx.save(model, src)
+        quant_pre_process(str(src), str(dst), skip_symbolic_shape=True)
+        return onnx.load(dst)
+
+
+@dataclass
+class Comparison:
+    """NNCG's outputs against onnxruntime's, per output: the largest difference in quantization
+    steps (the output's scale) and the share of bit-identical elements."""
+
+    max_steps: float
+    identical: float
+    elements: int
+
+    def __str__(self) -> str:
+        return f"max {self.max_steps:g} steps, {100 * self.identical:.2f} % of {self.elements} identical"
+
+
+def output_scales(model: onnx.ModelProto) -> dict[str, float]:
+    """The scale of the DequantizeLinear that computes each graph output."""
+    consts = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    outputs = {v.name for v in model.graph.output}
+    return {
+        n.output[0]: float(consts[n.input[1]])
+        for n in model.graph.node
+        if n.op_type == "DequantizeLinear" and n.output[0] in outputs
+    }
+
+
+def onnxruntime_outputs(model: onnx.ModelProto, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    return session.run(None, feeds)
+
+
+def compare(model: onnx.ModelProto, compiled, feeds: list[dict[str, np.ndarray]], **run) -> Comparison:
+    """Runs NNCG's C on every feed (run_compiled's options) and onnxruntime on the same model."""
+    from nncg.verify import run_compiled
+
+    scales = output_scales(model)
+    names = [v.name for v in model.graph.output]
+    steps, same, total = 0.0, 0, 0
+    for feed in feeds:
+        ours = run_compiled(compiled, [feed[n] for n in input_shapes(model)], **run)
+        for name, mine, ref in zip(names, ours, onnxruntime_outputs(model, feed), strict=True):
+            diff = np.abs(mine.astype(np.float64) - ref.reshape(mine.shape).astype(np.float64)) / scales[name]
+            steps = max(steps, float(diff.max()))
+            same += int((mine == ref.reshape(mine.shape)).sum())
+            total += mine.size
+    return Comparison(steps, same / total, total)
