@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import shlex
 import shutil
 import sys
 import tempfile
@@ -272,9 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     rows = run_int8_suite(models, args.targets, cpu=args.cpu, batches=args.batches)
     helpers = None if args.no_cortex_m4 else cross_helpers()
     m4_rows = cortex_m4_rows(helpers, models) if helpers else {}
-    command = "python3 -m benchmarks.int8_suite " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = shlex.join(["python3", "-m", "benchmarks.int8_suite", *(argv if argv is not None else sys.argv[1:])])
     today = datetime.date.today().isoformat()
-    section = section_markdown(rows, m4_rows, peaks, args.cpu, today, command.strip(), args.note)
+    section = section_markdown(rows, m4_rows, peaks, args.cpu, today, command, args.note)
     previous = args.out_dir / "RESULTS.md"
     document = previous.read_text() if previous.exists() else "# Benchmark results\n"
     write_results(args.out_dir, merge_section(document, SECTION, section))
