@@ -222,6 +222,30 @@ def cortex_m4_table(rows: dict[str, dict[str, object]]) -> str:
     return markdown_table(["model", *columns], cells)
 
 
+SSSE3_VS_FLOAT = 1.8  # issue 16's speed targets, one core, batch 1
+BEST_VS_ORT = 1.5
+
+
+def speed_targets(rows: list[Int8Row]) -> str:
+    """Issue 16's speed targets against the measured ratios, per model (reported, never asserted)."""
+    measured = [r for r in rows if r.errors is not None]
+    ssse3 = {r.model: r.float_us / r.int8_us for r in measured if r.target == "ssse3"}
+    best: dict[str, float] = {}
+    for r in measured:
+        best[r.model] = max(best.get(r.model, 0.0), r.ort_us / r.int8_us)
+    return (
+        f"- Issue 16's targets: ssse3 int8 >= {SSSE3_VS_FLOAT}x NNCG's ssse3 float: {_met(ssse3, SSSE3_VS_FLOAT)}; "
+        f"best x86 target >= {BEST_VS_ORT}x onnxruntime int8: {_met(best, BEST_VS_ORT)}."
+    )
+
+
+def _met(ratios: dict[str, float], target: float) -> str:
+    if not ratios:
+        return "not measured"
+    shown = ", ".join(f"{model} {value:.2f}x" for model, value in ratios.items())
+    return f"{shown} (met on {sum(v >= target for v in ratios.values())} of {len(ratios)})"
+
+
 def section_markdown(
     rows: list[Int8Row], m4_rows: dict, peaks: dict, cpu: int | None, date: str, command: str, note: str = ""
 ) -> str:
@@ -243,6 +267,7 @@ def section_markdown(
         "  table) and NNCG's float Softmax before the QuantizeLinear round differently; without the Softmax",
         "  the models match to the bit (tests/test_int8.py).",
         "- arena B: NAME_ARENA_BYTES; weights B: the constants at their type; text and rodata of the int8 object.",
+        speed_targets(rows),
         "",
         int8_table(rows),
     ]

@@ -78,6 +78,7 @@ def test_int8_suite_writes_its_section(tmp_path, capsys):
         assert row["target"] == "ssse3" and row["vs ORT int8"].endswith("x") and float(row["int8 µs"]) > 0
         assert float(row["max steps"]) <= 1, row
     assert x86["autoencoder"]["identical"].startswith("100.0 %")
+    assert "ssse3 int8 >= 1.8x NNCG's ssse3 float: autoencoder " in document and "(met on " in document
     if all(shutil.which(tool) for tool in CORTEX_M4_TOOLS):
         m4 = {row[0]: row for row in tables[1][1:]}
         assert sorted(m4) == ["autoencoder", "dscnn"] and all("steps" in row[-1] for row in m4.values())
