@@ -118,27 +118,33 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
     return "\n".join(lines) + "\n" + results_table(rows)
 
 
+RESULT_COLUMNS = (
+    "model", "target", "unroll", "NNCG µs", "ORT µs", "ORT run µs", "speed-up", "MACs", "GFLOP/s", "% peak",
+    "max abs err", "max rel err", "text B", "rodata B", "bss B", "arena B", "activations B", "gen s", "cc s",
+)  # fmt: skip
+
+
 def results_table(rows: list[Row]) -> str:
-    lines = [
-        "| model | target | unroll | NNCG µs | ORT µs | ORT run µs | speed-up | MACs | GFLOP/s | % peak | max abs err "
-        "| max rel err | text B | rodata B | bss B | arena B | activations B | gen s | cc s |",
-        "|" + "---|" * 19,
-    ]
-    for row in rows:
-        r = row.result
-        if r is None:
-            head = f"| {row.model} | {row.target} | {row.unroll} |"
-            lines.append(f"{head} {row.problem} |" + " |" * 15)
-            continue
-        pct = f"{r.percent_of_peak:.1f} ({r.peak_isa})" if r.percent_of_peak is not None else "n/a"
-        lines.append(
-            f"| {row.model} | {row.target} | {row.unroll} | {r.nncg_us:.2f} | {r.ort_bound_us:.2f} "
-            f"| {r.ort_run_us:.2f} "
-            f"| {r.speedup:.2f}x | {r.macs:,} | {r.gflops:.2f} | {pct} | {r.max_abs_err:.1e} | {r.max_rel_err:.1e} "
-            f"| {r.sizes.text:,} | {r.sizes.rodata:,} | {r.sizes.bss:,} | {r.arena_bytes:,} | {r.activation_bytes:,} "
-            f"| {r.generate_seconds:.2f} "
-            f"| {r.compile_seconds:.2f} |"
-        )
+    return markdown_table(RESULT_COLUMNS, [result_cells(row) for row in rows])
+
+
+def result_cells(row: Row) -> list[str]:
+    r = row.result
+    if r is None:
+        return [row.model, row.target, row.unroll, row.problem]
+    pct = f"{r.percent_of_peak:.1f} ({r.peak_isa})" if r.percent_of_peak is not None else "n/a"
+    return [
+        row.model, row.target, row.unroll, f"{r.nncg_us:.2f}", f"{r.ort_bound_us:.2f}", f"{r.ort_run_us:.2f}",
+        f"{r.speedup:.2f}x", f"{r.macs:,}", f"{r.gflops:.2f}", pct, f"{r.max_abs_err:.1e}", f"{r.max_rel_err:.1e}",
+        f"{r.sizes.text:,}", f"{r.sizes.rodata:,}", f"{r.sizes.bss:,}", f"{r.arena_bytes:,}",
+        f"{r.activation_bytes:,}", f"{r.generate_seconds:.2f}", f"{r.compile_seconds:.2f}",
+    ]  # fmt: skip
+
+
+def markdown_table(columns, rows) -> str:
+    """A Markdown table; a short row (the reason there are no figures) is padded with empty cells."""
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join([*row, *[""] * (len(columns) - len(row))]) + " |" for row in rows]
     return "\n".join(lines) + "\n"
 
 
@@ -162,7 +168,8 @@ def table_bars(markdown: str) -> list[Bar]:
         if not line.startswith("|"):
             columns = None
         elif cells[:2] == ["model", "target"]:
-            columns = {name: i for i, name in enumerate(cells)}
+            # Only tables of float speed-ups and % peak (the int8 table has neither: not charted).
+            columns = {name: i for i, name in enumerate(cells)} if "% peak" in cells else None
         elif columns and cells[columns["speed-up"]].endswith("x"):
             pct = cells[columns["% peak"]].split(" ")[0]
             bars.append(Bar(

@@ -19,6 +19,7 @@ import numpy as np
 import onnx
 
 import nncg
+from nncg.bench.steps import Comparison, compare_steps
 from nncg.c_harness import PrintedOutputs, harness_source
 from nncg.compiler import CompiledModel
 from nncg.tools import run_tool
@@ -87,6 +88,7 @@ CLANG_NEON_FLAGS = {
     "armhf-vfpv3": ("--target=arm-linux-gnueabihf", "-mfpu=neon", "-mfloat-abi=hard"),
 }
 CORTEX_M4_MODELS = ("ball", "pedestrian", "robot")
+CORTEX_M4_INT8_MODELS = tuple(MLPERF_TINY)  # quantised as tests/test_int8.py quantises the repository's models
 
 
 @functools.cache
@@ -288,6 +290,19 @@ def verify_on_cortex_m4(
     references = reference_outputs(nncg.load_model(MODELS[model]), compiled.inputs, inputs)
     stats = compare(result.outputs, references, [spec.name for spec in compiled.outputs])
     return VerifyReport(compiled.name, "cortex-m4", tuple(stats), TOLERANCE, SEED), result
+
+
+def verify_int8_on_cortex_m4(model: str, workdir: Path) -> tuple[Comparison, CortexM4Result, CompiledModel]:
+    """MLPERF_TINY[model] quantised (tests/int8_models.py), its ansi-c int8 C run on the Cortex-M4, the
+    outputs against onnxruntime on the same QDQ model in quantisation steps."""
+    from int8_models import onnxruntime_outputs, quantized, repository_model
+
+    qdq = quantized(repository_model(MLPERF_TINY[model].relative_to(ROOT)))
+    compiled = nncg.compile(qdq, target="ansi-c", verify_ir=True)
+    inputs = random_inputs(compiled.inputs, SEED)
+    result = run_cortex_m4(compiled, inputs, workdir)
+    reference = onnxruntime_outputs(qdq, {spec.name: x for spec, x in zip(compiled.inputs, inputs)})
+    return compare_steps(qdq, [(result.outputs, reference)]), result, compiled
 
 
 def size_row(result: CortexM4Result, arena_bytes: int) -> dict[str, int]:

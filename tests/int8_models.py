@@ -6,7 +6,6 @@ steps of each output."""
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +13,8 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+
+from nncg.bench.steps import Comparison, compare_steps, output_scales  # noqa: F401 - output_scales for the tests
 
 ROOT = Path(__file__).resolve().parent.parent
 OPSET = 17
@@ -231,30 +232,6 @@ def repository_model(path: str) -> onnx.ModelProto:
         return onnx.load(dst)
 
 
-@dataclass
-class Comparison:
-    """NNCG's outputs against onnxruntime's, per output: the largest difference in quantization
-    steps (the output's scale) and the share of bit-identical elements."""
-
-    max_steps: float
-    identical: float
-    elements: int
-
-    def __str__(self) -> str:
-        return f"max {self.max_steps:g} steps, {100 * self.identical:.2f} % of {self.elements} identical"
-
-
-def output_scales(model: onnx.ModelProto) -> dict[str, float]:
-    """The scale of the DequantizeLinear that computes each graph output."""
-    consts = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
-    outputs = {v.name for v in model.graph.output}
-    return {
-        n.output[0]: float(consts[n.input[1]])
-        for n in model.graph.node
-        if n.op_type == "DequantizeLinear" and n.output[0] in outputs
-    }
-
-
 def onnxruntime_outputs(model: onnx.ModelProto, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
     session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     return session.run(None, feeds)
@@ -264,14 +241,8 @@ def compare(model: onnx.ModelProto, compiled, feeds: list[dict[str, np.ndarray]]
     """Runs NNCG's C on every feed (run_compiled's options) and onnxruntime on the same model."""
     from nncg.verify import run_compiled
 
-    scales = output_scales(model)
-    names = [v.name for v in model.graph.output]
-    steps, same, total = 0.0, 0, 0
-    for feed in feeds:
-        ours = run_compiled(compiled, [feed[n] for n in input_shapes(model)], **run)
-        for name, mine, ref in zip(names, ours, onnxruntime_outputs(model, feed), strict=True):
-            diff = np.abs(mine.astype(np.float64) - ref.reshape(mine.shape).astype(np.float64)) / scales[name]
-            steps = max(steps, float(diff.max()))
-            same += int((mine == ref.reshape(mine.shape)).sum())
-            total += mine.size
-    return Comparison(steps, same / total, total)
+    names = list(input_shapes(model))
+    return compare_steps(
+        model,
+        ((run_compiled(compiled, [feed[n] for n in names], **run), onnxruntime_outputs(model, feed)) for feed in feeds),
+    )

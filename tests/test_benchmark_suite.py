@@ -1,5 +1,7 @@
 """The benchmark suite's report and chart are produced and well formed on a tiny run (no timing claims)."""
 
+import shutil
+
 from benchmarks.real_suite import select_cases
 from benchmarks.suite import merge_section, results_markdown, run_suite, table_bars, write_chart
 
@@ -54,3 +56,30 @@ def test_suite_cases_and_results_sections():
     assert document.count("real-models:begin") == 1 and "## old" not in document
     (bar,) = table_bars(document)
     assert (bar.label, bar.speedup, bar.percent_of_peak) == ("a_96\navx2", 1.5, 40.0)
+
+
+def test_int8_suite_writes_its_section(tmp_path, capsys):
+    """Two models (one behind a Softmax) on one vector target: every row measured, within one quantisation
+    step of onnxruntime; the Cortex-M4 table when its toolchain is installed."""
+    from cross_helpers import CORTEX_M4_TOOLS
+
+    from benchmarks.int8_suite import main
+
+    (tmp_path / "RESULTS.md").write_text("# Benchmark results\n\nthe float table\n")
+    argv = ["--models", "autoencoder", "dscnn", "--targets", "ssse3", "--batches", "2", "--out-dir", str(tmp_path)]
+    assert main([*argv, "--note", "a loaded machine"]) == 0
+    document = (tmp_path / "RESULTS.md").read_text()
+    assert "the float table" in document and "<!-- int8:begin -->" in document and "- a loaded machine" in document
+    tables = [[[cell.strip() for cell in line.strip("|").split("|")] for line in block.splitlines() if line[:2] == "| "]
+              for block in document.split("\n\n") if block.startswith("| model")]  # fmt: skip
+    x86 = {row[0]: dict(zip(tables[0][0], row)) for row in tables[0][1:]}
+    assert sorted(x86) == ["autoencoder", "dscnn"] and all(len(row) == 13 for row in tables[0])
+    for row in x86.values():
+        assert row["target"] == "ssse3" and row["vs ORT int8"].endswith("x") and float(row["int8 µs"]) > 0
+        assert float(row["max steps"]) <= 1, row
+    assert x86["autoencoder"]["identical"].startswith("100.0 %")
+    assert "ssse3 int8 >= 1.8x NNCG's ssse3 float: autoencoder " in document and "(met on " in document
+    if all(shutil.which(tool) for tool in CORTEX_M4_TOOLS):
+        m4 = {row[0]: row for row in tables[1][1:]}
+        assert sorted(m4) == ["autoencoder", "dscnn"] and all("steps" in row[-1] for row in m4.values())
+    assert "int8 µs" in capsys.readouterr().out

@@ -17,6 +17,7 @@ import pytest
 from cross_helpers import (
     CASES,
     CLANG_NEON_FLAGS,
+    CORTEX_M4_INT8_MODELS,
     CORTEX_M4_MODELS,
     CORTEX_M4_TOOLS,
     MODELS,
@@ -28,6 +29,7 @@ from cross_helpers import (
     missing_tools,
     runner,
     size_row,
+    verify_int8_on_cortex_m4,
     verify_on,
     verify_on_cortex_m4,
 )
@@ -108,6 +110,18 @@ def test_min_memory_model_runs_in_only_the_ram_its_plan_needs(model, tmp_path):
     assert report.ok, report.format()
     if model != "ball":  # ball's tensors are smaller than the program's stack
         assert ram < nncg.compile(MODELS[model], target="ansi-c").arena_bytes  # below the speed arena alone
+
+
+@pytest.mark.parametrize("model", CORTEX_M4_INT8_MODELS)
+def test_int8_model_matches_onnxruntime_on_cortex_m4(model, tmp_path):
+    """The int8 C (strict C89) on the Cortex-M4's FPU rounds as onnxruntime's x86 kernels: uint8
+    activations give the same bits (as tests/test_int8.py asserts on the host)."""
+    require([tool for tool in CORTEX_M4_TOOLS if shutil.which(tool) is None])
+    comparison, result, compiled = verify_int8_on_cortex_m4(model, tmp_path)
+    print(f"{model} int8 on cortex-m4: {comparison}\n{format_table({model: size_row(result, compiled.arena_bytes)})}")
+    assert comparison.max_steps <= 1 and comparison.identical == 1.0, comparison
+    assert result.model_sizes["bss"] >= compiled.arena_bytes
+    assert 0 < result.stack_bytes < result.image_sizes["stack"]
 
 
 def divide_by_tensor():
