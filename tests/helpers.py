@@ -99,22 +99,6 @@ def skip_unless_host_runs(target: str) -> None:
         pytest.skip(f"the host CPU lacks {', '.join(sorted(missing))}")
 
 
-INT8_REFUSAL = "which NNCG does not compile yet"  # the importer's refusal of QDQ/QLinear models (issue 16)
-
-
-def compile_int8_or_skip(model: Any, **options: Any) -> Any:
-    """nncg.compile(model, **options) for a quantised model; skips the test while NNCG refuses int8
-    models (the refusal goes when the int8 compute path lands, and with it the skip)."""
-    try:
-        return nncg.compile(model, **options)
-    except nncg.NncgError as exc:
-        if INT8_REFUSAL not in str(exc):
-            raise
-        import pytest
-
-        pytest.skip(f"NNCG does not compile quantised models yet: {exc}")
-
-
 def check_against_onnxruntime(
     model_proto: onnx.ModelProto,
     compiled: Any,

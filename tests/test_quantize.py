@@ -15,7 +15,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-from helpers import ROOT, compile_int8_or_skip, onnx_model, weights
+from helpers import ROOT, onnx_model, weights
 from onnx import helper, numpy_helper
 from test_cli_errors import old_files, snapshot
 
@@ -460,11 +460,11 @@ def test_nncg_onnx_refuses_to_quantise_a_quantised_model(robot_qdq, tmp_path, ca
     assert snapshot(out) == before
 
 
-# --- compiled: needs the int8 compute path (skipped while NNCG refuses QDQ models) -------------------
+# --- compiled: the int8 C against onnxruntime on the QDQ model -------------------------------------------
 
 
 def test_robot_c_matches_onnxruntime_int8_within_one_step(robot_qdq, tmp_path):
-    compiled = compile_int8_or_skip(robot_qdq, target="ansi-c")
+    compiled = nncg.compile(robot_qdq, target="ansi-c")
     built = build_model(compiled, tmp_path)
     test = robot_samples(4, RNG_SEED + 1)
     c_out = np.stack([built.run([x])[0] for x in test])
@@ -473,7 +473,7 @@ def test_robot_c_matches_onnxruntime_int8_within_one_step(robot_qdq, tmp_path):
 
 
 def test_nncg_onnx_calibration_writes_the_qdq_model_beside_the_c(robot_qdq, tmp_path):
-    compiled = compile_int8_or_skip(robot_qdq, name="robot")
+    compiled = nncg.compile(robot_qdq, name="robot")
     np.savez(tmp_path / "cal.npz", image=robot_samples(16, RNG_SEED))
     out = tmp_path / "out"
     assert cli.main([str(ROBOT), "--calibration", str(tmp_path / "cal.npz"), "-o", str(out)]) == 0

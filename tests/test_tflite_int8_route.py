@@ -2,7 +2,7 @@
 quantised to full integer by the TFLite converter with a representative dataset (float input and output,
 int8 inside), converted to ONNX by tf2onnx: a QDQ model (QuantizeLinear/DequantizeLinear around float
 operators, no QLinear operators) that onnxruntime runs like the TFLite interpreter, and whose C must give
-TFLite's class for every test image (skipped while NNCG refuses quantised models). The other route, the
+TFLite's class for every test image. The other route, the
 float ONNX of the Keras model quantised by nncg.quantize, is checked against Keras. Skipped without
 tensorflow, tf2onnx or scikit-learn (the keras extra)."""
 
@@ -15,7 +15,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-from helpers import compile_int8_or_skip, skip_unless_host_runs
+from helpers import skip_unless_host_runs
 
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # TensorFlow's C++ start-up log
 tf = pytest.importorskip("tensorflow")
@@ -135,7 +135,7 @@ def test_the_float_model_quantised_by_nncg_classifies_like_keras(digits):
 
 def test_nncg_c_gives_tflites_class_for_every_image(digits, tmp_path):
     skip_unless_host_runs("ssse3")
-    compiled = compile_int8_or_skip(digits["onnx"], target="ssse3")
+    compiled = nncg.compile(digits["onnx"], target="ssse3")
     built = build_model(compiled, tmp_path)
     c_out = np.concatenate([built.run([image[None]])[0] for image in digits["x"]])
     accuracy = np.mean(c_out.argmax(1) == digits["y"])
