@@ -115,6 +115,14 @@ def clip_gemm_model(seed: int = 2) -> onnx.ModelProto:
     return _model(nodes, [1, 3, 10, 10], init)
 
 
+def softmax_head_model(seed: int = 2) -> onnx.ModelProto:
+    """clip_gemm_model with a Softmax over its 5 outputs: a classifier's head (QLinearSoftmax to onnxruntime)."""
+    model = clip_gemm_model(seed)
+    model.graph.node[-1].output[0] = "logits"
+    model.graph.node.append(helper.make_node("Softmax", ["logits"], ["y"], axis=-1))
+    return model
+
+
 def residual_model(seed: int = 3) -> onnx.ModelProto:
     """Conv, Relu, Conv, Add of the two (different scales), MaxPool, Reshape, MatMul."""
     rng = np.random.default_rng(seed)
@@ -214,15 +222,14 @@ def hand_qdq_model(activation: str, seed: int = 6) -> onnx.ModelProto:
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)])
 
 
-def repository_model(path: str) -> onnx.ModelProto:
+def repository_model(path: str, softmax: bool = True) -> onnx.ModelProto:
     """One of the repository's float models, BatchNormalization folded into the Convs (onnxruntime's
-    quant_pre_process, the step its quantizer asks for) and a final Softmax removed: onnxruntime
-    computes a quantized Softmax with a lookup table of its own, which NNCG does not reproduce."""
+    quant_pre_process, the step its quantizer asks for); softmax=False removes a final Softmax."""
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     model = onnx.load(ROOT / path)
     last = model.graph.node[-1]
-    if last.op_type == "Softmax":
+    if last.op_type == "Softmax" and not softmax:
         model.graph.node.remove(last)
         model.graph.output[0].CopyFrom(helper.make_tensor_value_info(last.input[0], TensorProto.FLOAT, None))
     with tempfile.TemporaryDirectory() as tmp:

@@ -29,6 +29,7 @@ from int8_models import (
     random_feeds,
     repository_model,
     residual_model,
+    softmax_head_model,
 )
 from onnx import TensorProto, helper, numpy_helper
 
@@ -48,6 +49,7 @@ MODELS = {
     "residual": residual_model,
     "add": add_model,
     "average_pool": average_pool_model,
+    "softmax_head": softmax_head_model,
 }
 
 

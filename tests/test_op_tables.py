@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
-from int8_models import average_pool_model, clip_gemm_model, quantized, residual_model
+from int8_models import average_pool_model, quantized, residual_model, softmax_head_model
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg.onnx_backend
@@ -141,7 +141,8 @@ def _rare_conversions() -> Iterator[onnx.ModelProto]:
 def _int8_models() -> Iterator[onnx.ModelProto]:
     """QDQ models whose groups become every int8 op (int8_models.py), an AveragePool over the whole
     image among them (QLinearAveragePool falls back to the global pool)."""
-    for model in (residual_model(), clip_gemm_model(), average_pool_model(), average_pool_model(whole_image=True)):
+    models = (residual_model(), softmax_head_model(), average_pool_model(), average_pool_model(whole_image=True))
+    for model in models:
         yield quantized(model)
 
 

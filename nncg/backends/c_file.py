@@ -8,7 +8,7 @@ from dataclasses import replace
 
 from ..errors import NncgError
 from ..ir.kinds import BufferRole, DType
-from ..ir.loops import Kernel, Let, Load, Loop, Program, Store, stmt_exprs, walk_exprs, walk_stmts
+from ..ir.loops import Kernel, Let, Loop, Program, Store, read_buffer, stmt_exprs, walk_exprs, walk_stmts
 from ..ir.rename import rename_variables
 from .c_header import run_signature, signature
 from .c_integer import c_type
@@ -79,13 +79,7 @@ def _constants(program: Program) -> list[str]:
 def _kernel_params(program: Program, kernel: Kernel) -> list:
     """The buffers a kernel touches that are not constant arrays of the file, in program order."""
     used = {s.buffer for s in walk_stmts(kernel.body) if isinstance(s, Store)}
-    used |= {
-        e.buffer
-        for s in walk_stmts(kernel.body)
-        for top in stmt_exprs(s)
-        for e in walk_exprs(top)
-        if isinstance(e, Load)
-    }
+    used |= {read_buffer(e) for s in walk_stmts(kernel.body) for top in stmt_exprs(s) for e in walk_exprs(top)}
     return [
         b for b in program.buffers if b.name in used and (b.role != BufferRole.CONSTANT or external_weights(program))
     ]

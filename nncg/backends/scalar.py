@@ -22,6 +22,7 @@ from ..ir.loops import (
     Let,
     Load,
     LocalRef,
+    Lookup,
     Loop,
     Program,
     Requantize,
@@ -171,6 +172,9 @@ class ScalarPrinter:
 
     def _expr_Load(self, e: Load) -> str:
         return f"{e.buffer}[{c_affine(e.index)}]"
+
+    def _expr_Lookup(self, e: Lookup) -> str:
+        return f"{e.table}[{unparen(self.expr(e.index))}]"
 
     def _expr_LocalRef(self, e: LocalRef) -> str:
         return e.name

@@ -25,6 +25,8 @@ from nncg.safe_text import capped, escaped, shown
 ModelSource = str | os.PathLike | bytes | onnx.ModelProto
 MIN_OPSET = 7
 DEFAULT_DOMAINS = ("", "ai.onnx")
+# onnxruntime's contrib ops (domain com.microsoft) that a model may hold as they are
+CONTRIB_OPS = {"com.microsoft": ("QLinearSoftmax",)}
 
 
 def load_model(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] | None = None) -> onnx.ModelProto:
@@ -226,7 +228,7 @@ def _check_domains(model: onnx.ModelProto) -> None:
     foreign = [
         f"{capped(escaped(node.domain))}.{capped(escaped(node.op_type))} (node {shown(name)})"
         for node, name in zip(model.graph.node, names, strict=True)
-        if node.domain not in DEFAULT_DOMAINS
+        if node.domain not in DEFAULT_DOMAINS and node.op_type not in CONTRIB_OPS.get(node.domain, ())
     ]
     if foreign:
         raise UnsupportedOpsError(

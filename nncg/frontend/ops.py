@@ -39,6 +39,7 @@ from nncg.frontend.ops_nn import (
     convert_softmax,
 )
 from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
+from nncg.frontend.ops_qsoftmax import convert_qlinear_softmax
 from nncg.frontend.ops_quantized import (
     convert_dequantize_linear,
     convert_qgemm,
@@ -171,6 +172,7 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "QLinearGlobalAveragePool": ConvertedOp(
         convert_qlinear_global_average_pool, ("QLinearGlobalAveragePool",), (1, 2, 3, 4)
     ),
+    "QLinearSoftmax": ConvertedOp(convert_qlinear_softmax, ("QLinearSoftmax",), (1, 2, 3, 4)),
 }
 
 CONVERTERS: dict[str, Converter] = {name: op.convert for name, op in ONNX_OPS.items()}

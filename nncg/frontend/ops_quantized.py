@@ -75,11 +75,13 @@ def requantization(op: OnnxOp, scale: float, zero_point: int, dtype: DType) -> R
 
 def convert_quantize_linear(op: OnnxOp, ctx: Context) -> Node:
     scale, zero, dtype = quantization(op, ctx, 1, "output")
+    ctx.set_shape(op, op.node.output[0], ctx.shape(op.input(0)))  # after a contrib op, ONNX infers none
     return op.ir_node("QuantizeLinear", [op.input(0)], QuantAttrs(scale, zero, dtype))
 
 
 def convert_dequantize_linear(op: OnnxOp, ctx: Context) -> Node:
     scale, zero, dtype = quantization(op, ctx, 1, "input")
+    ctx.set_shape(op, op.node.output[0], ctx.shape(op.input(0)))  # after a contrib op, ONNX infers none
     return op.ir_node("DequantizeLinear", [op.input(0)], QuantAttrs(scale, zero, dtype))
 
 

@@ -4,8 +4,8 @@ QOperator op serves both formats.
 
 A float op whose inputs come from DequantizeLinear nodes and whose only reader is a QuantizeLinear
 computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm, Add QLinearAdd,
-GlobalAveragePool QLinearGlobalAveragePool and AveragePool QLinearAveragePool (the last four in
-onnxruntime's com.microsoft domain).
+GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool and Softmax
+QLinearSoftmax (the last five in onnxruntime's com.microsoft domain).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
 is monotonic, so clamping before it is clamping its result. MaxPool, Reshape, Flatten and Transpose between a
 DequantizeLinear and a QuantizeLinear of the same scale and zero point move the integers as they
@@ -236,6 +236,17 @@ def _pool(qop: str) -> Callable:
     return rewrite
 
 
+def _softmax(model: _Model, softmax: onnx.NodeProto):
+    """A Softmax between a DequantizeLinear and a QuantizeLinear as QLinearSoftmax (without its
+    opset attribute: the converter takes the model's)."""
+    dq_x = model.live_dq(softmax.input[0])
+    q = model.sole_reader(softmax.output[0], "QuantizeLinear")
+    if dq_x is None or q is None or not _per_tensor(model, q):
+        return None
+    inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
+    return _node("QLinearSoftmax", inputs, q.output[0], softmax, domain=CONTRIB), [q]
+
+
 def _pass_through(model: _Model, op: onnx.NodeProto):
     """MaxPool, Reshape, Flatten or Transpose of the integers, when the scale and zero point do not change."""
     dq_x = model.live_dq(op.input[0])
@@ -263,5 +274,6 @@ REWRITES: dict[str, Callable] = {
     "Add": _add,
     "GlobalAveragePool": _pool("QLinearGlobalAveragePool"),
     "AveragePool": _pool("QLinearAveragePool"),
+    "Softmax": _softmax,
     **dict.fromkeys(PASS_THROUGH, _pass_through),
 }

@@ -36,11 +36,12 @@ def check_wiring(graph: onnx.GraphProto) -> None:
 def check_operators(graph: onnx.GraphProto, opset: int, ir_version: int) -> None:
     """Every default-domain operator exists in `opset`, and every node fits its schema (input and
     output counts, attributes): one message naming the node instead of onnx.checker's. Nodes with
-    subgraphs are left to onnx.checker, which knows the outer values they may read."""
-    names = node_names(graph)
+    subgraphs are left to onnx.checker, which knows the outer values they may read; onnxruntime's
+    contrib ops (load.CONTRIB_OPS) to their converters."""
+    nodes = [(n, name) for n, name in zip(graph.node, node_names(graph), strict=True) if n.domain in ("", "ai.onnx")]
     unknown = [
         f"{capped(escaped(node.op_type))} (node {shown(name)})"
-        for node, name in zip(graph.node, names, strict=True)
+        for node, name in nodes
         if _schema(node.op_type, opset) is None or _schema(node.op_type, opset).deprecated
     ]
     if unknown:
@@ -52,7 +53,7 @@ def check_operators(graph: onnx.GraphProto, opset: int, ir_version: int) -> None
     context = onnx.checker.C.CheckerContext()
     context.ir_version = ir_version
     context.opset_imports = {"": opset, "ai.onnx": opset}
-    for node, name in zip(graph.node, names, strict=True):
+    for node, name in nodes:
         if any(a.type in (onnx.AttributeProto.GRAPH, onnx.AttributeProto.GRAPHS) for a in node.attribute):
             continue
         try:

@@ -19,11 +19,13 @@ from .loops import (
     Kernel,
     Load,
     LocalRef,
+    Lookup,
     Program,
     Requantize,
     RequantizeFixed,
     Select,
     Store,
+    read_buffer,
     stmt_exprs,
     walk_exprs,
     walk_stmts,
@@ -36,8 +38,8 @@ def expr_dtype(expr: Expr, buffers: Mapping[str, DType], locals_: Mapping[str, D
     """The dtype of an expression, given the dtypes of the buffers and of the locals in scope."""
     if isinstance(expr, Const | Cast | Requantize | RequantizeFixed):
         return expr.dtype
-    if isinstance(expr, Load):
-        return buffers.get(expr.buffer, FLOAT32)
+    if isinstance(expr, Load | Lookup):
+        return buffers.get(read_buffer(expr), FLOAT32)
     if isinstance(expr, LocalRef):
         return locals_.get(expr.name, FLOAT32)
     if isinstance(expr, Broadcast):

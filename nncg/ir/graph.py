@@ -392,12 +392,24 @@ class QAveragePoolAttrs:
     zero_point_offset: int = 0
 
 
+@dataclass(frozen=True)
+class QSoftmaxAttrs:
+    """onnxruntime's QLinearSoftmax (its second input is the float32 table of exp values, see
+    lowering/quantized_softmax.py): along `softmax` (its axis and opset meaning), each element's
+    table entry times y_multiplier (floor(1 / y_scale)) over the row's sum, rounded and offset by
+    the output zero point, saturated."""
+
+    softmax: SoftmaxAttrs
+    y_multiplier: float
+    out: Requantization
+
+
 # Every attribute record a node may carry.
 AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
     SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs, QuantAttrs, QConvAttrs,
-    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs,
+    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs,
 ]  # fmt: skip
 
 

@@ -21,6 +21,7 @@ QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QLinearAdd": (ACTIVATIONS, ACTIVATIONS),
     "QLinearGlobalAveragePool": (ACTIVATIONS,),
     "QLinearAveragePool": (ACTIVATIONS,),
+    "QLinearSoftmax": (ACTIVATIONS, (FLOAT32,)),
 }
 
 

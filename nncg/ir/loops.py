@@ -128,6 +128,15 @@ class Load:
 
 
 @dataclass(frozen=True)
+class Lookup:
+    """table[index]: one element of a constant table at a computed int32 index (in its range)."""
+
+    table: str
+    index: Expr
+    lanes: int = 1
+
+
+@dataclass(frozen=True)
 class LocalRef:
     name: str
     lanes: int = 1
@@ -250,7 +259,7 @@ class RequantizeFixed(_Converting):
     dtype: DType
 
 
-Expr = Union[Const, Load, LocalRef, Broadcast, Binary, Select, Call, Fma, Cast, Requantize, RequantizeFixed]
+Expr = Union[Const, Load, Lookup, LocalRef, Broadcast, Binary, Select, Call, Fma, Cast, Requantize, RequantizeFixed]
 
 BINARY_OPS = tuple(BinaryOp)
 COMPARISONS = tuple(Comparison)
@@ -441,6 +450,8 @@ def children(expr: Expr) -> tuple[Expr, ...]:
         return (expr.lhs, expr.rhs, expr.then, expr.otherwise)
     if isinstance(expr, Call):
         return (expr.arg,)
+    if isinstance(expr, Lookup):
+        return (expr.index,)
     if isinstance(expr, Fma):
         return (expr.a, expr.b, expr.c)
     if isinstance(expr, Cast | Requantize):
@@ -460,6 +471,8 @@ def with_children(expr: Expr, new: tuple[Expr, ...]) -> Expr:
         return Select(expr.cmp, *new)
     if isinstance(expr, Call):
         return Call(expr.fn, new[0])
+    if isinstance(expr, Lookup):
+        return replace(expr, index=new[0])
     if isinstance(expr, Fma):
         return Fma(*new)
     if isinstance(expr, Cast | Requantize):
@@ -475,6 +488,13 @@ def map_expr(expr: Expr, fn) -> Expr:
     if kids:
         expr = with_children(expr, tuple(map_expr(k, fn) for k in kids))
     return fn(expr)
+
+
+def read_buffer(expr: Expr) -> str | None:
+    """The buffer a Load or a Lookup reads (None for every other node)."""
+    if isinstance(expr, Load):
+        return expr.buffer
+    return expr.table if isinstance(expr, Lookup) else None
 
 
 def walk_exprs(expr: Expr):

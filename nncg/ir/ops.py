@@ -28,6 +28,7 @@ from .graph import (
     QConvAttrs,
     QDenseAttrs,
     QPoolAttrs,
+    QSoftmaxAttrs,
     QuantAttrs,
     ReduceAttrs,
     ReshapeAttrs,
@@ -163,4 +164,5 @@ IR_OPS: dict[str, IrOp] = {
     "QLinearAdd": IrOp(QAddAttrs, no_macs),
     "QLinearGlobalAveragePool": IrOp(QPoolAttrs, no_macs),
     "QLinearAveragePool": IrOp(QAveragePoolAttrs, no_macs),
+    "QLinearSoftmax": IrOp(QSoftmaxAttrs, no_macs),
 }

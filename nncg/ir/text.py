@@ -22,6 +22,7 @@ from .loops import (
     Let,
     Load,
     LocalRef,
+    Lookup,
     Loop,
     Program,
     Requantize,
@@ -146,6 +147,8 @@ def expr_to_text(expr: Expr) -> str:
     if isinstance(expr, Load):
         lanes = f":{expr.lanes}" if expr.lanes > 1 else ""
         return f"{expr.buffer}[{expr.index}{lanes}]"
+    if isinstance(expr, Lookup):
+        return f"{expr.table}[{expr_to_text(expr.index)}]"
     if isinstance(expr, LocalRef):
         return expr.name
     if isinstance(expr, Broadcast):

@@ -19,6 +19,7 @@ from ..ir.loops import (
     Let,
     Load,
     LocalRef,
+    Lookup,
     Loop,
     Program,
     Requantize,
@@ -167,6 +168,8 @@ def _check_expr(expr: Expr, scope: _Scope, problems: list[str], where: str) -> N
             if e.buffer not in scope.buffers:
                 problems.append(f"{where}: load from unknown buffer {e.buffer}")
             _check_access(e.buffer, e.index, e.lanes, scope, problems, where)
+        elif isinstance(e, Lookup) and e.table not in scope.buffers:
+            problems.append(f"{where}: lookup in unknown table {e.table}")
         elif isinstance(e, LocalRef) and scope.locals_.get(e.name) != e.lanes:
             problems.append(f"{where}: {e.name} read with {e.lanes} lanes, not declared so")
         elif isinstance(e, Binary) and e.a.lanes != e.b.lanes:
@@ -212,6 +215,8 @@ def _type_problems(e: Expr, dtypes: dict[str, DType]) -> list[str]:
             return [f"cast of {dtype(e.value)} to {e.dtype}: float to integer is a Requantize"]
     elif isinstance(e, Requantize | RequantizeFixed):
         return _requantize_problems(e, dtype)
+    elif isinstance(e, Lookup) and dtype(e.index) != INT32:
+        return [f"lookup at a {dtype(e.index)} index, not int32"]
     return []
 
 

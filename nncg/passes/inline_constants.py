@@ -8,7 +8,18 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..ir.kinds import BufferRole, DType
-from ..ir.loops import Const, Expr, Load, Program, map_body, map_stmt_exprs, stmt_exprs, walk_exprs, walk_stmts
+from ..ir.loops import (
+    Const,
+    Expr,
+    Load,
+    Program,
+    map_body,
+    map_stmt_exprs,
+    read_buffer,
+    stmt_exprs,
+    walk_exprs,
+    walk_stmts,
+)
 
 
 def inline_constants(program: Program) -> Program:
@@ -25,12 +36,7 @@ def inline_constants(program: Program) -> Program:
 
     kernels = tuple(replace(k, body=map_body(k.body, lambda s: map_stmt_exprs(s, literal))) for k in program.kernels)
     read = {
-        e.buffer
-        for k in kernels
-        for s in walk_stmts(k.body)
-        for top in stmt_exprs(s)
-        for e in walk_exprs(top)
-        if isinstance(e, Load)
+        read_buffer(e) for k in kernels for s in walk_stmts(k.body) for top in stmt_exprs(s) for e in walk_exprs(top)
     }
     buffers = tuple(b for b in program.buffers if b.role != BufferRole.CONSTANT or b.name in read)
     constants = {name: arr for name, arr in data.items() if name in read}
