@@ -103,11 +103,17 @@ def test_x86_targets_print_the_integer_kernels(model, target):
     [
         ("benchmarks/models/resnet8.onnx", "ansi-c"),
         ("benchmarks/models/dscnn.onnx", "avx2"),
+        ("benchmarks/models/mobilenet_v1_025.onnx", "ssse3"),
         ("examples/robot.onnx", "ansi-c"),
     ],
 )
 def test_repository_models(path, target):
+    """The classifiers with their final Softmax (onnxruntime's QLinearSoftmax), bit-identical."""
     check(repository_model(path), target)
+
+
+def test_repository_model_int8_activations():
+    check(repository_model("benchmarks/models/resnet8.onnx"), "avx512", "int8")
 
 
 # i686 computes float in x87 registers, where gcc evaluates float literals in long double: the

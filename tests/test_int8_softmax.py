@@ -10,7 +10,7 @@ import onnx
 import pytest
 from helpers import kernel_ops, onnx_model, skip_unless_host_runs
 from int8_models import onnxruntime_outputs
-from onnx import TensorProto, helper
+from onnx import TensorProto, helper, numpy_helper
 
 import nncg
 from nncg.verify import run_compiled
@@ -82,7 +82,9 @@ def check(model: onnx.ModelProto, target: str = "ansi-c") -> None:
 @pytest.mark.parametrize("activations", sorted(OUTPUTS))
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_qdq_softmax_matches_onnxruntime_to_the_bit(case, activations):
-    check(qdq_softmax_model(case, activations))
+    model = qdq_softmax_model(case, activations)
+    check(model)
+    assert "QLinearSoftmax" in _optimised_ops(model)
 
 
 @pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512"])
@@ -108,3 +110,25 @@ def test_softmax_between_other_quantizations_stays_float():
     model = onnx_model(nodes, inputs={"x": (1, 10)}, initializers=_params("uint8", 0.07))
     assert kernel_ops(nncg.compile(model)) == ["QuantizeLinear", "DequantizeLinear", "Softmax"]
     assert TensorProto.FLOAT == model.graph.output[0].type.tensor_type.elem_type
+
+
+def test_softmax_from_uint8_to_int8():
+    """onnxruntime makes the int8 output uint8 (+128) and fuses: the same saturated results."""
+    model = qdq_softmax_model("classes", "uint8")
+    model.graph.initializer[-1].CopyFrom(numpy_helper.from_array(np.int8(-128), "yz"))
+    assert "QLinearSoftmax" in _optimised_ops(model)
+    check(model)
+
+
+def _optimised_ops(model: onnx.ModelProto) -> list[str]:
+    """The ops of onnxruntime's optimised graph (its QDQ fusions applied)."""
+    import tempfile
+
+    import onnxruntime as ort
+
+    with tempfile.TemporaryDirectory() as tmp:
+        options = ort.SessionOptions()
+        options.optimized_model_filepath = f"{tmp}/optimised.onnx"
+        options.log_severity_level = 3
+        ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+        return [node.op_type for node in onnx.load(options.optimized_model_filepath).graph.node]

@@ -47,10 +47,8 @@ def convert_qlinear_softmax(op: OnnxOp, ctx: Context) -> Node:
     the axis rule (a Softmax that qdq.py rewrote has none: the model's opset)."""
     x = op.input(0)
     shape = ctx.shape(x)
-    x_scale, _, x_dtype = quantization(op, ctx, 1, "input")
+    x_scale = quantization(op, ctx, 1, "input")[0]  # either type: 255 - (max - x) indexes the table
     y_scale, y_zero, y_dtype = quantization(op, ctx, 3, "output")
-    if x_dtype != y_dtype:
-        raise op.error("mixes int8 and uint8; QLinearSoftmax's input and output have one type")
     softmax = softmax_axis(op, len(shape), int(op.attr("opset", ctx.opset)))
     reduced = math.prod(shape[softmax.axis :]) if softmax.coerce_2d else shape[softmax.axis]
     table = ctx.add_constant(f"{op.node.output[0]}_exp", exp_table(x_scale, reduced))
