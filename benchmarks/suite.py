@@ -63,11 +63,16 @@ def run_suite(
                     peaks=peaks, pipeline=pipeline,
                 )  # fmt: skip
                 rows.append(Row(model, target, result, unroll=level))
-            except NncgError as exc:
-                rows.append(Row(model, target, None, "not supported yet: " + short_problem(str(exc)), unroll=level))
             except Exception as exc:  # noqa: BLE001 - a C compiler or export failure on one model: report, go on
-                rows.append(Row(model, target, None, f"failed: {type(exc).__name__}: {first_line(exc)}", unroll=level))
+                rows.append(Row(model, target, None, problem_text(exc), unroll=level))
     return rows
+
+
+def problem_text(exc: Exception) -> str:
+    """Why a model has no result: what NNCG does not support, or how it failed."""
+    if isinstance(exc, NncgError):
+        return "not supported yet: " + short_problem(str(exc))
+    return f"failed: {type(exc).__name__}: {first_line(exc)}"
 
 
 def first_line(exc: Exception) -> str:
@@ -161,7 +166,7 @@ def table_bars(markdown: str) -> list[Bar]:
         cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
         if not line.startswith("|"):
             columns = None
-        elif cells[:2] == ["model", "target"]:
+        elif cells[:2] == ["model", "target"] and "speed-up" in cells:  # not e.g. the memory suite's table
             columns = {name: i for i, name in enumerate(cells)}
         elif columns and cells[columns["speed-up"]].endswith("x"):
             pct = cells[columns["% peak"]].split(" ")[0]
