@@ -80,14 +80,15 @@ def calibrate(timer, min_seconds: float) -> int:
 
 
 def interleaved_medians(timers: dict, batches: int, min_seconds: float) -> dict[str, float]:
-    """Median seconds per call of each timer, batches run in turn A B C A B C ... (a progress bar on
-    a terminal)."""
+    """Median seconds per call of each timer, batches run in turn A B C B C A C A B ... (a progress
+    bar on a terminal): the order rotates so no timer always runs after the same one."""
     calls = {key: calibrate(timer, min_seconds) for key, timer in timers.items()}
     samples: dict[str, list[float]] = {key: [] for key in timers}
+    keys = list(timers)
     with progress_bar(batches, "benchmark: batches") as bar:
-        for _ in range(batches):
-            for key, timer in timers.items():
-                samples[key].append(timer(calls[key]) / calls[key])
+        for batch in range(batches):
+            for key in keys[batch % len(keys) :] + keys[: batch % len(keys)]:
+                samples[key].append(timers[key](calls[key]) / calls[key])
             bar.update()
     return {key: statistics.median(values) for key, values in samples.items()}
 
