@@ -1,4 +1,4 @@
-"""The vectorised int8 kernels (issue 16): on avx2 and avx512 the integer convolutions and matrix
+"""The vectorised int8 kernels (issue 16): on ssse3, avx2 and avx512 the integer convolutions and matrix
 products run on int32 vectors over output channels, register-blocked, and still match onnxruntime to
 the bit. Tails: 12 channels are 8 + 4 lanes on avx2, 8 + an overlapping 8 on avx512; the Gemm's 5
 outputs end in a vector overlapping the one before. A depthwise or grouped Conv reads a channels-last
@@ -28,11 +28,24 @@ def check(float_model, target: str, **options) -> nncg.CompiledModel:
     return compiled
 
 
-@pytest.mark.parametrize("target", ["avx2", "avx512"])
+MULTIPLY = {"ssse3": "_mm_madd_epi16(", "avx2": "_mullo_epi32(", "avx512": "_mullo_epi32("}
+
+
+@pytest.mark.parametrize("target", sorted(MULTIPLY))
 @pytest.mark.parametrize("kind", sorted(MODELS))
 def test_vector_kernels_match_onnxruntime_to_the_bit(kind, target):
     compiled = check(MODELS[kind](), target)
-    assert "_mullo_epi32(" in compiled.source and "_cvtps_epi32(" in compiled.source
+    assert MULTIPLY[target] in compiled.source and "_cvtps_epi32(" in compiled.source
+
+
+@pytest.mark.parametrize("target", ["ssse3", "avx2"])
+def test_int8_activations(target):
+    """int8 activations and zero points: x - x_zero_point still within int16 (ssse3's pmaddwd)."""
+    skip_unless_host_runs(target)
+    float_model = stacked_conv_model("depthwise")
+    model = quantized(float_model, "int8")
+    result = compare(model, nncg.compile(model, target=target), random_feeds(float_model, 2, 7))
+    assert result.max_steps <= 1 and result.identical >= 0.99, result
 
 
 def test_tails_are_vectors():

@@ -1,8 +1,8 @@
 """Backend: the int8 kernels' int32 vectors on x86 (SSE4.1, AVX2, AVX-512F intrinsics, which every
 avx2 and avx512 target CPU has): widening byte loads (pmovzxbd/pmovsxbd), 32-bit multiply (pmulld),
-and requantisation as onnxruntime's MLAS does it per vector: clamp in float, cvtps2dq (round half to
-even in the default rounding mode), add the zero point, pack to bytes (the lanes are in range, so
-the saturating packs change nothing)."""
+or, on ssse3 (no SSE4.1), byte unpacks and pmaddwd (below); and requantisation as onnxruntime's
+MLAS does it per vector: clamp in float, cvtps2dq (round half to even in the default rounding mode),
+add the zero point, pack to bytes (the lanes are in range, so the saturating packs change nothing)."""
 
 from __future__ import annotations
 
@@ -35,6 +35,25 @@ def x86_integer(lanes: int) -> dict:
         "store_int8": f"{name}_int8({{address}}, {{value}})",
     }
     return {"ints": ints, "int_helpers": _stores(lanes, name, vt)}
+
+
+# SSSE3 has neither pmovzxbd nor pmulld. The bytes are unpacked with zeros (a signed byte lands in
+# the top byte of its lane, then shifts down arithmetically), and the product is pmaddwd of the lanes'
+# low halves, the second operand's high halves cleared: exact because the int8 kernels multiply
+# (x - x_zero_point) in [-255, 255] by a weight in [-128, 127], both int16 values.
+ZERO = "_mm_setzero_si128()"
+SSE2_BYTES = "_mm_loadu_si32((const void *)({address}))"
+SSE2 = {
+    "widen_uint8": f"_mm_unpacklo_epi16(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {ZERO})",
+    "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
+    "*": "_mm_madd_epi16({a}, _mm_and_si128({b}, _mm_set1_epi32(0xFFFF)))",
+}
+
+
+def sse2_integer() -> dict:
+    """x86_integer(4) in SSE2 intrinsics, for the ssse3 target."""
+    fields = x86_integer(4)
+    return {**fields, "ints": {**fields["ints"], **SSE2}}
 
 
 def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:
