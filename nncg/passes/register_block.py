@@ -104,6 +104,7 @@ def chosen_blocks(
     layers = layers or {}
     blocks = {}
     for kernel in program.kernels:
+        # an int8 kernel is blocked once vectorised (int32 vector accumulators), a scalar one is not
         scalar_integer = is_integer_kernel(kernel, program) and not any(
             e.lanes > 1 for s in walk_stmts(kernel.body) for top in stmt_exprs(s) for e in walk_exprs(top)
         )
