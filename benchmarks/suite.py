@@ -63,11 +63,16 @@ def run_suite(
                     peaks=peaks, pipeline=pipeline,
                 )  # fmt: skip
                 rows.append(Row(model, target, result, unroll=level))
-            except NncgError as exc:
-                rows.append(Row(model, target, None, "not supported yet: " + short_problem(str(exc)), unroll=level))
             except Exception as exc:  # noqa: BLE001 - a C compiler or export failure on one model: report, go on
-                rows.append(Row(model, target, None, f"failed: {type(exc).__name__}: {first_line(exc)}", unroll=level))
+                rows.append(Row(model, target, None, problem_text(exc), unroll=level))
     return rows
+
+
+def problem_text(exc: Exception) -> str:
+    """Why a model has no result: what NNCG does not support, or how it failed."""
+    if isinstance(exc, NncgError):
+        return "not supported yet: " + short_problem(str(exc))
+    return f"failed: {type(exc).__name__}: {first_line(exc)}"
 
 
 def first_line(exc: Exception) -> str:
@@ -168,8 +173,8 @@ def table_bars(markdown: str) -> list[Bar]:
         if not line.startswith("|"):
             columns = None
         elif cells[:2] == ["model", "target"]:
-            # Only tables of float speed-ups and % peak (the int8 table has neither: not charted).
-            columns = {name: i for i, name in enumerate(cells)} if "% peak" in cells else None
+            # Only tables of float speed-ups and % peak (not the int8 or memory suites' tables).
+            columns = {name: i for i, name in enumerate(cells)} if {"speed-up", "% peak"} <= set(cells) else None
         elif columns and cells[columns["speed-up"]].endswith("x"):
             pct = cells[columns["% peak"]].split(" ")[0]
             bars.append(Bar(

@@ -93,6 +93,25 @@ def conv_model(kind: str, seed: int = 1) -> onnx.ModelProto:
     return _model(nodes, [1, c_in, 9, 9], init)
 
 
+def stacked_conv_model(kind: str, channels: int = 12, seed: int = 3) -> onnx.ModelProto:
+    """A 1x1 Conv to `channels` (its output is channels-last), then a padded 3x3 depthwise or
+    grouped (2 groups, dilated) Conv of them: the geometries that read a channels-last input."""
+    rng = np.random.default_rng(seed)
+    group = channels if kind == "depthwise" else 2
+    init = {
+        "w1": _weights(rng, channels, 3, 1, 1),
+        "w": _weights(rng, channels, channels // group, 3, 3),
+        "b": rng.standard_normal(channels) * 0.3,
+    }
+    attrs = {"pads": [1, 1, 1, 1], "group": group, **({} if kind == "depthwise" else {"dilations": [2, 2]})}
+    nodes = [
+        helper.make_node("Conv", ["x", "w1"], ["p"]),
+        helper.make_node("Relu", ["p"], ["r"]),
+        helper.make_node("Conv", ["r", "w", "b"], ["y"], **attrs),
+    ]
+    return _model(nodes, [1, 3, 9, 9], init)
+
+
 def clip_gemm_model(seed: int = 2) -> onnx.ModelProto:
     """Conv + Clip(0, 6) (ReLU6), MaxPool, GlobalAveragePool, Flatten, Gemm."""
     rng = np.random.default_rng(seed)

@@ -98,3 +98,10 @@ def test_interleaved_timing_is_quiet_when_stderr_is_not_a_terminal(capsys):
     medians = interleaved_medians({"a": lambda calls: 1.0, "b": lambda calls: 2.0}, batches=4, min_seconds=0.5)
     assert medians == {"a": 1.0, "b": 2.0}
     assert capsys.readouterr().err == ""
+
+
+def test_interleaved_batches_rotate_the_order():
+    order = []
+    timers = {key: (lambda calls, key=key: order.append(key) or 1.0) for key in "abc"}
+    interleaved_medians(timers, batches=3, min_seconds=0.5)
+    assert "".join(order) == "abc" + "abcbcacab"  # calibration, then each batch starting one later

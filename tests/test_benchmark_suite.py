@@ -1,11 +1,17 @@
 """The benchmark suite's report and chart are produced and well formed on a tiny run (no timing claims)."""
 
 import shutil
+from dataclasses import replace
 
+from benchmarks.memory_suite import MemoryRow, memory_table, run_memory_suite, section_markdown
 from benchmarks.real_suite import select_cases
-from benchmarks.suite import merge_section, results_markdown, run_suite, table_bars, write_chart
+from benchmarks.suite import merge_section, model_path, results_markdown, run_suite, table_bars, write_chart
+from nncg.bench.benchmark import BenchResult
+from nncg.bench.harness import ObjectSizes
 
 PEAKS = {"sse": 10.0, "avx2-fma": None, "avx512-fma": None}
+PLAIN = BenchResult("m", "avx2", 10.0, 20.0, 25.0, 0.0, 0.0, ObjectSizes(0, 0, 0, 0), 0, "avx2-fma", None, 0.0, 0.0,
+                    arena_bytes=1000)  # fmt: skip
 
 
 def test_suite_report_lists_results_and_unsupported_models(tmp_path, monkeypatch):
@@ -83,3 +89,42 @@ def test_int8_suite_writes_its_section(tmp_path, capsys):
         m4 = {row[0]: row for row in tables[1][1:]}
         assert sorted(m4) == ["autoencoder", "dscnn"] and all("steps" in row[-1] for row in m4.values())
     assert "int8 µs" in capsys.readouterr().out
+
+
+def test_memory_suite_rows_set_each_setting_against_speed(tmp_path):
+    bad = tmp_path / "broken.onnx"
+    bad.write_text("not a model")
+
+    def path_of(name):
+        return bad if name == "broken" else model_path(name)
+
+    rows = run_memory_suite(["ball", "broken"], ["ssse3"], batches=2, min_batch_seconds=0.001, peaks=PEAKS,
+                            progress=lambda _: None, path_of=path_of)  # fmt: skip
+    settings = ["speed", "balanced", "min", "speed again"]
+    assert [(r.model, r.setting, r.result is not None) for r in rows] == [
+        *(("ball", s, True) for s in settings), *(("broken", s, False) for s in settings),
+    ]  # fmt: skip
+    speed, balanced, small, again = (r.result for r in rows[:4])
+    assert rows[0].ratio == 1.0 and rows[0].arena_cut == 1.0 and again.arena_bytes == speed.arena_bytes
+    assert all(r.speed is speed for r in rows[:4])  # timed in one run: one onnxruntime figure for all four
+    assert speed.ort_bound_us == balanced.ort_bound_us == small.ort_bound_us == again.ort_bound_us
+    assert small.arena_bytes <= balanced.arena_bytes <= speed.arena_bytes
+    assert small.arena_bytes < small.layer_bound_bytes and "in bands" in small.plan
+    assert speed.plan == "every layer computed whole" and speed.all_activation_bytes == small.all_activation_bytes
+    assert all(r.max_rel_err < 1e-4 for r in (speed, balanced, small))  # --verify's default tolerance
+    text = section_markdown(rows, PEAKS, cpu=0, date="2026-01-01", batches=2, command="python3 -m x")
+    table = [line for line in text.splitlines() if line.startswith("| ")]
+    assert table[0].startswith("| model | target | memory | NNCG µs | x speed") and len(table) == 1 + len(rows)
+    assert all(line.count("|") == table[0].count("|") for line in table)
+    assert "| broken | ssse3 | min | not supported yet: " in text and "2026-01-01" in text
+    assert "- ball / ssse3 / min: " in text and "- ball / ssse3 / speed again" not in text  # the targets list
+    assert table_bars(merge_section("# Benchmark results\n", "memory", text)) == []  # not a speed-up table
+
+
+def test_memory_table_escapes_the_plan():
+    speed = replace(PLAIN, plan="every layer computed whole")
+    banded = replace(PLAIN, plan="'a|b<i>'..'c' in bands of 1 output row(s)", arena_bytes=500)
+    table = memory_table([MemoryRow("m", "avx2", "speed", speed, speed), MemoryRow("m", "avx2", "min", banded, speed)])
+    lines = table.splitlines()
+    assert all(line.count("|") - line.count("\\|") == lines[0].count("|") for line in lines)
+    assert "'a\\|b\\<i\\>'" in lines[-1] and "| 2.00x |" in lines[-1]

@@ -4,21 +4,26 @@ on the comparison's mask.
 
 Both also print narrower blocks, so a loop too short for a full vector still runs on vectors
 (12 channels on avx512: one __m256 and one __m128 block): every AVX-512F CPU has AVX2 and FMA, and
-with -mavx2 -mfma the 4-lane SSE intrinsics are VEX-encoded and have fmadd and blendv too."""
+with -mavx2 -mfma the 4-lane SSE intrinsics are VEX-encoded and have fmadd and blendv too. Both
+vectorise the int8 convolutions and matrix products on int32 lanes (x86_integer.py)."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 from ..ir.target import Target
 from .simd import SimdPrinter
 from .x86 import X86_L1, X86_L2, x86_width
+from .x86_integer import x86_integer
 
-AVX_128 = x86_width("_mm", "__m128", select="blendv", fma=True)
-AVX_256 = x86_width("_mm256", "__m256", select="blendv", fma=True)
-AVX_512 = x86_width("_mm512", "__m512", select="mask", fma=True)
+AVX_128 = replace(x86_width("_mm", "__m128", select="blendv", fma=True), **x86_integer(4))
+AVX_256 = replace(x86_width("_mm256", "__m256", select="blendv", fma=True), **x86_integer(8))
+AVX_512 = replace(x86_width("_mm512", "__m512", select="mask", fma=True), **x86_integer(16))
+X86 = {"registers": 16, "fma": True, "l1_bytes": X86_L1, "l2_bytes": X86_L2, "integer_vectors": True}
 
 
 class Avx2(SimdPrinter):
-    target = Target("avx2", vector_widths=(8, 4), registers=16, fma=True, l1_bytes=X86_L1, l2_bytes=X86_L2)
+    target = Target("avx2", vector_widths=(8, 4), **X86)
     widths = {8: AVX_256, 4: AVX_128}
     cflags = ("-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
@@ -26,7 +31,7 @@ class Avx2(SimdPrinter):
 
 
 class Avx512(SimdPrinter):
-    target = Target("avx512", vector_widths=(16, 8, 4), registers=32, fma=True, l1_bytes=X86_L1, l2_bytes=X86_L2)
+    target = Target("avx512", vector_widths=(16, 8, 4), **{**X86, "registers": 32})
     widths = {16: AVX_512, 8: AVX_256, 4: AVX_128}
     cflags = ("-mavx512f", "-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")

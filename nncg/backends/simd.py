@@ -6,16 +6,17 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from ..ir.loops import Affine, Binary, Broadcast, Call, Const, Expr, Fma, Load, LocalRef, Program, Select
+from ..ir.loops import Affine, Binary, Broadcast, Call, Const, Expr, Fma, Load, LocalRef, Program, Select, Store
 from .c_text import INDENT, c_affine, c_float
 from .scalar import ScalarPrinter
 from .scalar_math import scalar_calls
+from .simd_integer import IntegerVectors
 from .simd_needs import Needs, collect_needs
 from .vector_math import has_vector_math, vector_math_helper, with_callees
 from .vector_width import VectorWidth
 
 
-class SimdPrinter(ScalarPrinter):
+class SimdPrinter(IntegerVectors, ScalarPrinter):
     """A SIMD target: a subclass declares `target` and fills `widths` (lanes -> VectorWidth, one per
     width of target.vector_widths); it overrides hooks only where a table cannot say it."""
 
@@ -35,7 +36,8 @@ class SimdPrinter(ScalarPrinter):
         math, which call the scalar function on each lane."""
         needs = collect_needs(program, self.widths)
         lane_wise = {fn for lanes, fn in needs.math if not has_vector_math(self.widths[lanes])}
-        return type(self)(needs, scalar_calls(program) | lane_wise).typed_for(program)
+        printer = type(self)(needs, scalar_calls(program) | lane_wise).typed_for(program)
+        return printer.with_integer_stores(program, printer.dtypes)
 
     # ------------------------------------------------------------------ dispatch, once
 
@@ -47,10 +49,17 @@ class SimdPrinter(ScalarPrinter):
     def type_of(self, lanes: int) -> str:
         return super().type_of(lanes) if lanes == 1 else self.width(lanes).type
 
+    def local_type(self, init: Expr) -> str:
+        if init.lanes > 1 and self.is_integer_vector(init):
+            return self.width(init.lanes).ints["type"]
+        return super().local_type(init)
+
     def store(self, buffer: str, index: Affine, value: Expr) -> str:
         if value.lanes == 1:
             return super().store(buffer, index, value)
         width = self.width(value.lanes)
+        if self.dtypes[buffer].is_integer:
+            return self.integer_store(Store(buffer, index, value), width)
         return width.spell("store", address=f"&{buffer}[{c_affine(index)}]", value=self.expr(value))
 
     def assign(self, name: str, value: Expr) -> str:
@@ -62,6 +71,8 @@ class SimdPrinter(ScalarPrinter):
     def expr(self, e: Expr) -> str:
         if e.lanes == 1:
             return super().expr(e)
+        if self.is_integer_vector(e):
+            return self.integer_vector(e, self.width(e.lanes))
         return getattr(self, f"_vector_{type(e).__name__}")(e, self.width(e.lanes))
 
     # ------------------------------------------------------------------ vector expressions
@@ -119,7 +130,8 @@ class SimdPrinter(ScalarPrinter):
                 blocks += [vector_math_helper(fn, width) for fn in with_callees(called)]
             else:
                 blocks += [self.lane_wise_helper(fn, lanes) for fn in sorted(called)]
-        return super().preamble() + [line for block in blocks for line in ("", *block)]
+        lines = super().preamble() + self.integer_helpers()
+        return lines + [line for block in blocks for line in ("", *block)]
 
     def constant_table(self, lanes: int, rows: tuple[tuple[float, ...], ...]) -> tuple[str, ...]:
         """The static table of the constant vectors of one width that are not splats, a row each:

@@ -1,17 +1,23 @@
 """Backend: x86 SSE/SSSE3 intrinsics, 4 float lanes. max/min (ReLU, leaky ReLU, max-pool) are single
 _mm_max_ps/_mm_min_ps instructions; SSE has no blend (a select is and/andnot/or on the comparison),
-no fused multiply-add, and no exp, log or tanh (a vector call calls math.h once per lane)."""
+no fused multiply-add, and no exp, log or tanh (a vector call calls math.h once per lane). The int8
+convolutions and matrix products run on SSE2's int32 vectors (x86_integer.py)."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 from ..ir.target import Target
 from .simd import SimdPrinter
 from .x86 import X86_L1, X86_L2, x86_width
+from .x86_integer import sse2_integer
 
 
 class Ssse3(SimdPrinter):
-    target = Target("ssse3", vector_widths=(4,), registers=16, fma=False, l1_bytes=X86_L1, l2_bytes=X86_L2)
-    widths = {4: x86_width("_mm", "__m128", select="bitwise", fma=False)}
+    target = Target(
+        "ssse3", vector_widths=(4,), registers=16, fma=False, l1_bytes=X86_L1, l2_bytes=X86_L2, integer_vectors=True
+    )
+    widths = {4: replace(x86_width("_mm", "__m128", select="bitwise", fma=False), **sse2_integer())}
     cflags = ("-mssse3",)
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<tmmintrin.h>")

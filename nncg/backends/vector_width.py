@@ -36,6 +36,22 @@ BIT_OPERATIONS = {
     **{op: ("a", "n") for op in ("<<", ">>")},  # shift by the constant n; >> is arithmetic
 }
 
+# The operations of the int8 kernels on vectors of int32 lanes (the vectorize pass makes them where
+# Target.integer_vectors says the width has them).
+INTEGER_OPERATIONS = {
+    "type": (),  # the C type of a vector of int32 lanes
+    "load": ("address",),  # int32 lanes
+    "widen_uint8": ("address",),  # one uint8 per lane, widened to int32
+    "widen_int8": ("address",),
+    "splat": ("value",),
+    "vector": ("values",),  # a constant vector lane by lane
+    **{op: ("a", "b") for op in ("+", "-", "*")},
+    "convert": ("a",),  # the float value of each lane
+    "requantize": ("value", "low", "high", "zero_point"),  # float lanes clamped, rounded half to even, + zp
+    "store_uint8": ("address", "value"),  # int32 lanes already in the type's range, stored as bytes
+    "store_int8": ("address", "value"),
+}
+
 
 @dataclass(frozen=True)
 class VectorWidth:
@@ -45,12 +61,17 @@ class VectorWidth:
     ops: operation -> C template (see OPERATIONS), e.g. `_mm256_add_ps({a}, {b})`.
     helpers: operation -> the lines defining what its template calls beyond the ISA's intrinsics
     (NEON's division on ARMv7), printed once before the kernels when the program uses it.
-    bits: operation -> C template of BIT_OPERATIONS (all or none)."""
+    bits: operation -> C template of BIT_OPERATIONS (all or none).
+    ints: operation -> C template of INTEGER_OPERATIONS (all or none), with `int_helpers`: stored
+    dtype -> the lines defining the narrowing store, printed once for a program that stores that
+    dtype from vectors of this width (simd_integer.py)."""
 
     type: str
     ops: Mapping[str, str]
     helpers: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     bits: Mapping[str, str] = field(default_factory=dict)
+    ints: Mapping[str, str] = field(default_factory=dict)
+    int_helpers: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
 
     def spell(self, op: str, **fields: str) -> str:
         return self.ops[op].format(**fields)
@@ -65,4 +86,7 @@ class VectorWidth:
         if self.bits:
             missing += [f"bits {op}" for op in BIT_OPERATIONS if op not in self.bits]
             unknown += [f"bits {op}" for op in self.bits if op not in BIT_OPERATIONS]
+        if self.ints:
+            missing += [f"ints {op}" for op in INTEGER_OPERATIONS if op not in self.ints]
+            unknown += [f"ints {op}" for op in self.ints if op not in INTEGER_OPERATIONS]
         return [f"no template for {op}" for op in missing] + [f"unknown operation {op}" for op in unknown]

@@ -8,7 +8,7 @@ import os
 import statistics
 import tempfile
 import time
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +40,7 @@ class BenchResult:
     arena_bytes: int = 0  # the planned activation memory (NAME_ARENA_BYTES)
     activation_bytes: int = 0  # all activations side by side, without reuse
     layer_bound_bytes: int = 0  # the most one layer computed whole needs (the arena at --memory speed, about)
+    all_activation_bytes: int = 0  # every activation of the model computed whole, side by side (the plan aside)
     plan: str = ""  # the layers run in bands (--memory, --ram-budget)
     ort_version: str = ""  # onnxruntime's, as the report names the opponent
     ort_threads: int = THREADS
@@ -79,14 +80,15 @@ def calibrate(timer, min_seconds: float) -> int:
 
 
 def interleaved_medians(timers: dict, batches: int, min_seconds: float) -> dict[str, float]:
-    """Median seconds per call of each timer, batches run in turn A B C A B C ... (a progress bar on
-    a terminal)."""
+    """Median seconds per call of each timer, batches run in turn A B C B C A C A B ... (a progress
+    bar on a terminal): the order rotates so no timer always runs after the same one."""
     calls = {key: calibrate(timer, min_seconds) for key, timer in timers.items()}
     samples: dict[str, list[float]] = {key: [] for key in timers}
+    keys = list(timers)
     with progress_bar(batches, "benchmark: batches") as bar:
-        for _ in range(batches):
-            for key, timer in timers.items():
-                samples[key].append(timer(calls[key]) / calls[key])
+        for batch in range(batches):
+            for key in keys[batch % len(keys) :] + keys[: batch % len(keys)]:
+                samples[key].append(timers[key](calls[key]) / calls[key])
             bar.update()
     return {key: statistics.median(values) for key, values in samples.items()}
 
@@ -106,47 +108,98 @@ def benchmark(
 ) -> BenchResult:
     """Compiles `model` (compile_options go to nncg.compile), then times it and onnxruntime side by
     side. `peaks` (GFLOP/s per ISA, from nncg.bench.peak.measure_peaks) is measured here when not given."""
+    timing = Timing(batches, min_batch_seconds, cc, cpu, peaks)
+    variants = {"": compile_options}
+    return benchmark_variants(model, target, variants, unroll, timing, input_shapes=input_shapes)[""]
+
+
+@dataclass(frozen=True)
+class Timing:
+    """How benchmark_variants times: `batches` medians of batches lasting `min_batch_seconds`, built
+    with `cc`, on core `cpu`; `peaks` as benchmark() takes them."""
+
+    batches: int = 15
+    min_batch_seconds: float = 0.02
+    cc: str | None = None
+    cpu: int | None = None
+    peaks: dict[str, float | None] | None = None
+
+
+def benchmark_variants(
+    model, target: str, variants: dict[str, dict], unroll="auto", timing: Timing = Timing(), input_shapes=None
+) -> dict[str, BenchResult]:
+    """Compiles `model` once per variant (its nncg.compile options, e.g. {"min": {"memory": "min"}}),
+    then times every variant and onnxruntime in one interleaved run, so the variants' ratios to each
+    other are measured side by side, on the same inputs."""
     from .peak import TARGET_ISA, measure_peak
 
     if target not in TARGET_ISA:  # neon: ARM code, which the x86 host neither builds nor has a peak for
         raise NncgError(f"--benchmark times x86 targets ({', '.join(TARGET_ISA)}) on this host, not {target}")
-    cc = find_c_compiler(cc)
+    cc, peaks = find_c_compiler(timing.cc), timing.peaks
     proto = load_model(model, input_shapes)
-    start = time.perf_counter()
-    compiled = compile_model(model, target=target, unroll=unroll, input_shapes=input_shapes, **compile_options)
-    generate_seconds = time.perf_counter() - start
-    figures = memory_figures(compiled)
-    inputs = random_inputs(compiled.inputs, seed=0)
+    builds = {
+        name: _generate(model, target, unroll, input_shapes=input_shapes, **options)
+        for name, options in variants.items()
+    }
+    first = next(iter(builds.values()))[0]
+    inputs = random_inputs(first.inputs, seed=0)
     isa = TARGET_ISA[target]
     peak = peaks[isa] if peaks is not None else measure_peak(isa, cc)
-    with pinned(cpu), tempfile.TemporaryDirectory(prefix="nncg-bench-") as tmp:
-        harness = CompiledHarness(compiled, Path(tmp), cc, inputs)
-        try:
-            ort = OnnxruntimeTimer(proto, [p.name for p in compiled.inputs], inputs)
-            timers = {"nncg": harness.run, "ort_bound": ort.run_bound, "ort_run": ort.run_plain}
-            medians = interleaved_medians(timers, batches, min_batch_seconds)
-            stats = compare(harness.outputs(), ort.outputs(), [p.name for p in compiled.outputs])
-        finally:
-            harness.close()
+    with pinned(timing.cpu), tempfile.TemporaryDirectory(prefix="nncg-bench-") as tmp, ExitStack() as running:
+        harnesses = {name: _start(compiled, Path(tmp) / str(i), cc, inputs, running)
+                     for i, (name, (compiled, _)) in enumerate(builds.items())}  # fmt: skip
+        ort = OnnxruntimeTimer(proto, [p.name for p in first.inputs], inputs)
+        timers = {("nncg", name): harness.run for name, harness in harnesses.items()}
+        timers |= {"ort_bound": ort.run_bound, "ort_run": ort.run_plain}
+        medians = interleaved_medians(timers, timing.batches, timing.min_batch_seconds)
+        names = [p.name for p in first.outputs]
+        stats = {name: compare(harness.outputs(), ort.outputs(), names) for name, harness in harnesses.items()}
+    return {
+        name: _result(build, medians["nncg", name], medians, stats[name], harnesses[name], peak, ort.version)
+        for name, build in builds.items()
+    }
+
+
+def _start(compiled, workdir: Path, cc: str, inputs, running: ExitStack) -> CompiledHarness:
+    """A harness in its own folder (the variants share the model's file names), closed with `running`."""
+    workdir.mkdir()
+    harness = CompiledHarness(compiled, workdir, cc, inputs)
+    running.callback(harness.close)
+    return harness
+
+
+def _generate(model, target: str, unroll, **options):
+    """The compiled model and the seconds its generation took."""
+    start = time.perf_counter()
+    compiled = compile_model(model, target=target, unroll=unroll, **options)
+    return compiled, time.perf_counter() - start
+
+
+def _result(build, nncg_seconds, medians, stats, harness, peak, ort_version) -> BenchResult:
+    from .peak import TARGET_ISA
+
+    compiled, generate_seconds = build
+    figures = memory_figures(compiled)
     return BenchResult(
         model=compiled.name,
-        target=target,
-        nncg_us=medians["nncg"] * 1e6,
+        target=compiled.target,
+        nncg_us=nncg_seconds * 1e6,
         ort_bound_us=medians["ort_bound"] * 1e6,
         ort_run_us=medians["ort_run"] * 1e6,
         max_abs_err=max(s.max_abs for s in stats),
         max_rel_err=max(s.max_rel for s in stats),
         sizes=harness.sizes,
         macs=compiled.macs,
-        peak_isa=isa,
+        peak_isa=TARGET_ISA[compiled.target],
         peak_gflops=peak,
         generate_seconds=generate_seconds,
         compile_seconds=harness.compile_seconds,
         arena_bytes=compiled.arena_bytes,
         activation_bytes=compiled.activation_bytes,
         layer_bound_bytes=figures.layer_bound_bytes,
+        all_activation_bytes=figures.all_activation_bytes,
         plan=figures.plan,
-        ort_version=ort.version,
+        ort_version=ort_version,
     )
 
 

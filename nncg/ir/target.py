@@ -15,7 +15,9 @@ class Target:
     registers: vector registers (float registers for scalar C) register blocking may fill.
     fma: a multiply feeding an add can be one fused multiply-add (one rounding).
     l1_bytes, l2_bytes: the data caches of one core the cache-block pass sizes weight panels for, the
-    smallest of the CPUs the backend serves (0: no data cache, as on a Cortex-M; nothing is blocked)."""
+    smallest of the CPUs the backend serves (0: no data cache, as on a Cortex-M; nothing is blocked).
+    integer_vectors: its widths also hold int32 lanes with a 32-bit multiply, widening 8-bit loads and
+    narrowing 8-bit stores, so the vectorize pass vectorises the int8 kernels too."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -23,6 +25,7 @@ class Target:
     fma: bool = False
     l1_bytes: int = 0
     l2_bytes: int = 0
+    integer_vectors: bool = False
 
     @property
     def lanes(self) -> int:

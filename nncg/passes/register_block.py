@@ -104,7 +104,11 @@ def chosen_blocks(
     layers = layers or {}
     blocks = {}
     for kernel in program.kernels:
-        shape = None if is_integer_kernel(kernel, program) else block_shape(kernel.body)
+        # an int8 kernel is blocked once vectorised (int32 vector accumulators), a scalar one is not
+        scalar_integer = is_integer_kernel(kernel, program) and not any(
+            e.lanes > 1 for s in walk_stmts(kernel.body) for top in stmt_exprs(s) for e in walk_exprs(top)
+        )
+        shape = None if scalar_integer else block_shape(kernel.body)
         if shape is None:
             continue
         pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers)

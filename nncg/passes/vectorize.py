@@ -9,7 +9,11 @@ several widths, widest first (avx512: 16/8/4), the extent is split greedily: blo
 width that fits, the remainder in the next narrower width, and so on; only what is left after the
 narrowest is scalar (12 channels at 16/8/4: one 8-lane and one 4-lane block). Loads that do not
 depend on the loop become broadcasts. A call (exp, ...) becomes a vector call: backends without a
-vector version call the function per lane."""
+vector version call the function per lane.
+
+The int8 kernels are vectorised the same way on targets with integer vectors (Target.integer_vectors):
+int32 accumulators over output channels, an invariant integer operand (the input value minus its
+zero point) broadcast whole, requantised per vector. A kernel in the fixed-point form stays scalar."""
 
 from __future__ import annotations
 
@@ -24,14 +28,18 @@ from ..ir.loops import (
     Binary,
     Broadcast,
     Call,
+    Cast,
     Const,
     Expr,
     If,
+    Kernel,
     Let,
     Load,
     LocalRef,
     Loop,
     Program,
+    Requantize,
+    RequantizeFixed,
     Select,
     Stmt,
     Store,
@@ -53,7 +61,7 @@ def vectorize(program: Program, target: Target) -> Program:
         raise ValueError(f"vector widths {widths} are not strictly decreasing")
     kernels = []
     for kernel in program.kernels:
-        if is_integer_kernel(kernel, program):  # the int8 kernels stay scalar in this version
+        if is_integer_kernel(kernel, program) and not _integer_vectorizable(kernel, target):
             kernels.append(kernel)
             continue
         body = mark_vector_loop(kernel.body, widths)
@@ -64,6 +72,18 @@ def vectorize(program: Program, target: Target) -> Program:
         body = map_body(body, lambda s: materialize(s, widths))
         kernels.append(replace(kernel, body=body, overlapping_stores=kernel.overlapping_stores or overlaps))
     return replace(program, kernels=tuple(kernels))
+
+
+INTEGER_OPS = ("QLinearConv", "QLinearDense")  # the multiply-accumulate kernels; the other int8 kernels stay scalar
+
+
+def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
+    """A convolution or matrix product of int8 on a target with integer vectors, requantised in the
+    float form."""
+    fixed = any(
+        isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
+    )
+    return target.integer_vectors and kernel.op in INTEGER_OPS and not fixed
 
 
 # ---------------------------------------------------------------------------- choice
@@ -199,7 +219,11 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
     if isinstance(e, Load):
         return Load(e.buffer, e.index, lanes) if e.index.coeff(var) else Broadcast(e, lanes)
     if isinstance(e, Const):
-        return Const.splat(e.values[0], lanes)
+        return Const(e.values * lanes, e.dtype) if e.dtype.is_integer else Const.splat(e.values[0], lanes)
+    if isinstance(e, Cast | Binary) and _invariant_integer(e, var, vector_locals):
+        return Broadcast(e, lanes)  # x - x_zero_point: one broadcast, not a vector subtraction
+    if isinstance(e, Cast | Requantize):
+        return replace(e, value=_vector(e.value, var, lanes, vector_locals))
     if isinstance(e, LocalRef):
         return LocalRef(e.name, lanes) if e.name in vector_locals else Broadcast(e, lanes)
     if isinstance(e, Binary):
@@ -210,3 +234,13 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
     if isinstance(e, Call):
         return Call(e.fn, _vector(e.arg, var, lanes, vector_locals))
     raise TypeError(f"cannot vectorize {e!r}")
+
+
+def _invariant_integer(e: Expr, var: str, vector_locals: set[str]) -> bool:
+    """An integer expression (it holds a Cast: float kernels reach here without one) that does not
+    depend on the vectorised loop."""
+    nodes = list(walk_exprs(e))
+    return any(isinstance(n, Cast) for n in nodes) and not any(
+        (isinstance(n, Load) and n.index.coeff(var)) or (isinstance(n, LocalRef) and n.name in vector_locals)
+        for n in nodes
+    )

@@ -1,0 +1,181 @@
+"""The memory suite: each model at every --memory setting, latency against the arena it needs (issue 18).
+
+    python3 -m benchmarks.memory_suite [--models robot ...] [--targets ssse3 avx2] [--cpu 0] [--batches 15]
+
+For the paper's models and the MLPerf-Tiny-shaped ones, per x86 target, the three settings (speed, balanced,
+min) and onnxruntime (one thread) are timed in one interleaved run (nncg.bench.benchmark_variants), so each
+setting's latency ratio to speed's is measured side by side. Next to it: the arena (NAME_ARENA_BYTES), the
+layer-by-layer bound and all activations side by side (nncg.compiler.memory_figures), the plan and the error
+against onnxruntime. Writes the "memory" section of benchmarks/RESULTS.md and prints it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import shlex
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from nncg.bench.benchmark import BenchResult, Timing, benchmark_variants
+from nncg.bench.peak import measure_peaks
+from nncg.lowering.band_plan import MEMORY_MODES
+from nncg.safe_text import markdown_text
+
+from .suite import (
+    MLPERF_TINY,
+    PAPER,
+    ROOT,
+    cpu_model,
+    merge_section,
+    model_path,
+    peaks_text,
+    problem_text,
+    write_results,
+)
+
+SECTION = "memory"
+# Issue 18's arena targets at --memory min (float32, bytes).
+MIN_TARGETS = {"robot": 48_000, "mobilenet_v1_025": 73_728, "resnet8": 65_536, "pedestrian": 16_384}
+PLAN_LIMIT = 400  # characters of a plan shown in a cell
+# A second build of speed, timed in the same run: its ratio to speed's is the noise floor of the others.
+CONTROL = "speed again"
+SETTINGS = {**{mode: mode for mode in MEMORY_MODES}, CONTROL: "speed"}  # row name: --memory
+
+
+@dataclass(frozen=True)
+class MemoryRow:
+    model: str
+    target: str
+    setting: str
+    result: BenchResult | None
+    speed: BenchResult | None  # the same model and target at --memory speed, timed in the same run
+    problem: str = ""
+
+    @property
+    def ratio(self) -> float:
+        """Latency relative to speed's, both medians of the same interleaved run."""
+        return self.result.nncg_us / self.speed.nncg_us
+
+    @property
+    def arena_cut(self) -> float:
+        """How many times smaller the arena is than speed's."""
+        return self.speed.arena_bytes / self.result.arena_bytes
+
+
+def run_memory_suite(
+    models, targets, *, cpu=None, batches=15, min_batch_seconds=0.02, peaks=None, progress=print, path_of=None,
+) -> list[MemoryRow]:  # fmt: skip
+    """A row per model, target and setting; a model that fails is one row per setting with the reason."""
+    path_of = path_of or model_path
+    peaks = peaks if peaks is not None else measure_peaks()
+    variants = {row: {"memory": memory} for row, memory in SETTINGS.items()}
+    timing = Timing(batches, min_batch_seconds, cpu=cpu, peaks=peaks)
+    rows = []
+    for model in models:
+        for target in targets:
+            progress(f"{model} / {target} ...")
+            try:
+                results = benchmark_variants(path_of(model), target, variants, timing=timing)
+            except Exception as exc:  # noqa: BLE001 - one model's failure is a row, not an abort
+                rows += [MemoryRow(model, target, s, None, None, problem_text(exc)) for s in SETTINGS]
+                continue
+            rows += [MemoryRow(model, target, s, results[s], results["speed"]) for s in SETTINGS]
+    return rows
+
+
+HEADER = (
+    "| model | target | memory | NNCG µs | x speed | ORT µs | arena B | arena cut | layer bound B | activations B "
+    "| max abs err | max rel err | plan |"
+)
+
+
+def memory_table(rows: list[MemoryRow]) -> str:
+    lines = [HEADER, "|" + "---|" * HEADER.count(" | ") + "---|"]
+    for row in rows:
+        head = f"| {row.model} | {row.target} | {row.setting} |"
+        r = row.result
+        if r is None:
+            lines.append(f"{head} {markdown_text(row.problem, PLAN_LIMIT)} |" + " |" * 9)
+            continue
+        lines.append(
+            f"{head} {r.nncg_us:.2f} | {row.ratio:.2f}x | {r.ort_bound_us:.2f} | {r.arena_bytes:,} "
+            f"| {row.arena_cut:.2f}x | {r.layer_bound_bytes:,} | {r.all_activation_bytes:,} | {r.max_abs_err:.1e} "
+            f"| {r.max_rel_err:.1e} | {markdown_text(r.plan, PLAN_LIMIT)} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def target_lines(rows: list[MemoryRow]) -> list[str]:
+    """Issue 18's targets against the measurements: balanced within 1.3x of speed with >= 2x less arena,
+    and min's arena under the figure the issue names (a model without one: its arena only)."""
+    lines = []
+    for row in rows:
+        if row.result is None or row.setting in ("speed", CONTROL):
+            continue
+        what = f"{row.model} / {row.target} / {row.setting}: {row.ratio:.2f}x speed's latency, "
+        what += f"{row.arena_cut:.2f}x less arena"
+        if row.setting == "balanced":
+            met = row.ratio <= 1.3 and row.arena_cut >= 2
+            lines.append(f"- {what} ({'meets' if met else 'misses'} <= 1.3x and >= 2x)")
+        elif row.model in MIN_TARGETS:
+            goal = MIN_TARGETS[row.model]
+            met = row.result.arena_bytes <= goal
+            lines.append(f"- {what}; arena {row.result.arena_bytes:,} B ({'meets' if met else 'misses'} <= {goal:,} B)")
+        else:
+            lines.append(f"- {what}; arena {row.result.arena_bytes:,} B")
+    return lines
+
+
+def section_markdown(rows: list[MemoryRow], peaks: dict, cpu: int | None, date: str, batches: int, command: str):
+    lines = [
+        "## Memory settings (issue 18)",
+        "",
+        f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'}); date: {date}",
+        f"- Measured peak: {peaks_text(peaks)}",
+        f"- Command: `{command}`",
+        "- The machine was shared with one other job while this ran: absolute µs are noisy, the ratios less so",
+        "  (the settings and onnxruntime are timed in turn within each batch); the speed again rows show how much.",
+        "- NNCG untuned defaults (unroll auto) at `--memory speed|balanced|min`; NNCG µs: the median of",
+        f"  {batches} batches of >= 20 ms each; x speed: that median over speed's, same run; ORT µs: onnxruntime",
+        "  (one thread, IOBinding), timed in the same run: one figure for all the settings.",
+        "- arena B: NAME_ARENA_BYTES; arena cut: speed's arena over this one; layer bound B: the most one layer",
+        "  computed whole needs; activations B: every activation side by side, no reuse. Both leave scratch",
+        "  buffers (Winograd's) out, which the arena holds: speed's arena can exceed them.",
+        "- errors: against onnxruntime on the same fixed-seed inputs; plan: the layers run in bands of rows.",
+        f"- {CONTROL}: speed built a second time and timed in the same run, the same C: its x speed is the noise",
+        "  of the others' ratios (balanced and min print the same C as speed where their plan is speed's).",
+        "",
+        memory_table(rows),
+        "Against issue 18's targets:",
+        "",
+        *target_lines(rows),
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--models", nargs="+", default=PAPER + MLPERF_TINY)
+    parser.add_argument("--targets", nargs="+", default=["ssse3", "avx2"], help="x86 targets (default: ssse3 avx2)")
+    parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
+    parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
+    parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
+    args = parser.parse_args(argv)
+    peaks = measure_peaks()
+    rows = run_memory_suite(args.models, args.targets, cpu=args.cpu, batches=args.batches, peaks=peaks)
+    command = shlex.join(["python3", "-m", "benchmarks.memory_suite", *argv])
+    date = datetime.date.today().isoformat()
+    section = section_markdown(rows, peaks, args.cpu, date, args.batches, command)
+    previous = args.out_dir / "RESULTS.md"
+    document = previous.read_text() if previous.exists() else "# Benchmark results\n"
+    write_results(args.out_dir, merge_section(document, SECTION, section))
+    print(section)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

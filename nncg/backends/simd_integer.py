@@ -1,0 +1,71 @@
+"""Backend: the SIMD printer's int8 part — int32 vectors of the vectorised int8 convolutions and
+matrix products, printed from each width's `ints` table (vector_width.INTEGER_OPERATIONS): int32
+loads and arithmetic, 8-bit loads widened to int32, the conversion to float, the float form of
+requantisation and the narrowing 8-bit stores."""
+
+from __future__ import annotations
+
+from ..ir.dtypes import expr_dtype
+from ..ir.kinds import DType
+from ..ir.loops import Binary, Broadcast, Cast, Const, Expr, Load, LocalRef, Program, Requantize, Store, walk_stmts
+from .c_text import c_affine, c_float, c_int
+from .vector_width import VectorWidth
+
+
+class IntegerVectors:
+    """Mixed into SimdPrinter, which has `dtypes`, `expr` and `width`."""
+
+    integer_stores: frozenset[tuple[int, str]] = frozenset()  # (lanes, dtype) of the 8-bit vector stores
+
+    def with_integer_stores(self, program: Program, buffer_dtypes: dict[str, DType]):
+        self.integer_stores = frozenset(
+            (s.value.lanes, buffer_dtypes[s.buffer].value)
+            for k in program.kernels
+            for s in walk_stmts(k.body)
+            if isinstance(s, Store) and s.value.lanes > 1 and buffer_dtypes[s.buffer].is_integer
+        )
+        return self
+
+    def integer_helpers(self) -> list[str]:
+        blocks = [self.widths[lanes].int_helpers[dtype] for lanes, dtype in sorted(self.integer_stores, reverse=True)]
+        return [line for block in blocks for line in ("", *block)]
+
+    def is_integer_vector(self, e: Expr) -> bool:
+        return isinstance(e, Cast | Requantize) or expr_dtype(e, self.dtypes, self.dtypes).is_integer
+
+    def integer_store(self, store: Store, width: VectorWidth) -> str:
+        op = f"store_{self.dtypes[store.buffer].value}"
+        return width.ints[op].format(address=f"&{store.buffer}[{c_affine(store.index)}]", value=self.expr(store.value))
+
+    def integer_vector(self, e: Expr, width: VectorWidth) -> str:
+        ints = width.ints
+        if isinstance(e, Load):
+            return ints["load"].format(address=f"&{e.buffer}[{c_affine(e.index)}]")
+        if isinstance(e, LocalRef):
+            return e.name
+        if isinstance(e, Const):
+            return _integer_const(e.values, ints)
+        if isinstance(e, Broadcast):
+            return ints["splat"].format(value=self.expr(e.value))
+        if isinstance(e, Binary):
+            return ints[e.op].format(a=self.expr(e.a), b=self.expr(e.b))
+        if isinstance(e, Requantize):
+            low, high = (c_float(float(v - e.zero_point)) for v in (e.low, e.high))
+            return ints["requantize"].format(value=self.expr(e.value), low=low, high=high, zero_point=e.zero_point)
+        return self._integer_cast(e, width)
+
+    def _integer_cast(self, e: Cast, width: VectorWidth) -> str:
+        if e.dtype == DType.FLOAT32:
+            return width.ints["convert"].format(a=self.expr(e.value))
+        if isinstance(e.value, Const):  # weights the unroll pass inlined
+            return _integer_const(e.value.values, width.ints)
+        if isinstance(e.value, Load):  # an 8-bit load widened to int32
+            source = self.dtypes[e.value.buffer].value
+            return width.ints[f"widen_{source}"].format(address=f"&{e.value.buffer}[{c_affine(e.value.index)}]")
+        raise TypeError(f"cannot print {e!r} on vectors")
+
+
+def _integer_const(values: tuple[int, ...], ints: dict[str, str]) -> str:
+    if all(v == values[0] for v in values):
+        return ints["splat"].format(value=c_int(values[0]))
+    return ints["vector"].format(values=", ".join(c_int(v) for v in values))

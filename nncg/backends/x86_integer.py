@@ -1,0 +1,74 @@
+"""Backend: the int8 kernels' int32 vectors on x86 (SSE4.1, AVX2, AVX-512F intrinsics, which every
+avx2 and avx512 target CPU has): widening byte loads (pmovzxbd/pmovsxbd), 32-bit multiply (pmulld),
+or, on ssse3 (no SSE4.1), byte unpacks and pmaddwd (below); and requantisation as onnxruntime's
+MLAS does it per vector: clamp in float, cvtps2dq (round half to even in the default rounding mode),
+add the zero point, pack to bytes (the lanes are in range, so the saturating packs change nothing)."""
+
+from __future__ import annotations
+
+# lanes -> (prefix, vector type, the load of `lanes` bytes as a __m128i, int32 load/store suffix)
+SHAPES = {
+    4: ("_mm", "__m128i", "_mm_loadu_si32((const void *)({address}))", "si128"),
+    8: ("_mm256", "__m256i", "_mm_loadl_epi64((const __m128i *)({address}))", "si256"),
+    16: ("_mm512", "__m512i", "_mm_loadu_si128((const __m128i *)({address}))", "si512"),
+}
+
+
+def x86_integer(lanes: int) -> dict:
+    """VectorWidth fields `ints` and `int_helpers` of one x86 width."""
+    p, vt, bytes_load, si = SHAPES[lanes]
+    name = f"nncg{p.removeprefix('_mm')}_store"
+    ints = {
+        "type": vt,
+        "load": f"{p}_loadu_{si}((const void *)({{address}}))",
+        "widen_uint8": f"{p}_cvtepu8_epi32({bytes_load})",
+        "widen_int8": f"{p}_cvtepi8_epi32({bytes_load})",
+        "splat": f"{p}_set1_epi32({{value}})",
+        "vector": f"{p}_setr_epi32({{values}})",
+        "+": f"{p}_add_epi32({{a}}, {{b}})",
+        "-": f"{p}_sub_epi32({{a}}, {{b}})",
+        "*": f"{p}_mullo_epi32({{a}}, {{b}})",
+        "convert": f"{p}_cvtepi32_ps({{a}})",
+        "requantize": f"{p}_add_epi32({p}_cvtps_epi32({p}_min_ps({p}_max_ps({{value}}, {p}_set1_ps({{low}})), "
+        f"{p}_set1_ps({{high}}))), {p}_set1_epi32({{zero_point}}))",
+        "store_uint8": f"{name}_uint8({{address}}, {{value}})",
+        "store_int8": f"{name}_int8({{address}}, {{value}})",
+    }
+    return {"ints": ints, "int_helpers": _stores(lanes, name, vt)}
+
+
+# SSSE3 has neither pmovzxbd nor pmulld. The bytes are unpacked with zeros (a signed byte lands in
+# the top byte of its lane, then shifts down arithmetically), and the product is pmaddwd of the lanes'
+# low halves, the second operand's high halves cleared: exact because the int8 kernels multiply
+# (x - x_zero_point) in [-255, 255] by a weight in [-128, 127], both int16 values.
+ZERO = "_mm_setzero_si128()"
+SSE2_BYTES = "_mm_loadu_si32((const void *)({address}))"
+SSE2 = {
+    "widen_uint8": f"_mm_unpacklo_epi16(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {ZERO})",
+    "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
+    "*": "_mm_madd_epi16({a}, _mm_and_si128({b}, _mm_set1_epi32(0xFFFF)))",
+}
+
+
+def sse2_integer() -> dict:
+    """x86_integer(4) in SSE2 intrinsics, for the ssse3 target."""
+    fields = x86_integer(4)
+    return {**fields, "ints": {**fields["ints"], **SSE2}}
+
+
+def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:
+    """The narrowing stores, by the stored type: the lanes are already in the type's range."""
+    stores = {}
+    for dtype, pack in (("uint8", "_mm_packus_epi16"), ("int8", "_mm_packs_epi16")):
+        head = [f"static void {name}_{dtype}(nncg_{dtype} *p, {vt} v)", "{"]
+        if lanes == 4:
+            body = [f"    _mm_storeu_si32((void *)p, {pack}(_mm_packs_epi32(v, v), v));"]
+        elif lanes == 8:
+            body = [
+                "    __m128i h = _mm_packs_epi32(_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1));",
+                f"    _mm_storel_epi64((__m128i *)p, {pack}(h, h));",
+            ]
+        else:  # vpmovdb truncates, exact for lanes in range
+            body = ["    _mm_storeu_si128((__m128i *)p, _mm512_cvtepi32_epi8(v));"]
+        stores[dtype] = (*head, *body, "}")
+    return stores
