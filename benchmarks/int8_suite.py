@@ -44,10 +44,9 @@ from .suite import (
     cpu_model,
     first_line,
     markdown_table,
-    merge_section,
     model_path,
     peaks_text,
-    write_results,
+    write_section,
 )
 
 SECTION = "int8"
@@ -299,9 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     command = shlex.join(["python3", "-m", "benchmarks.int8_suite", *(argv if argv is not None else sys.argv[1:])])
     today = datetime.date.today().isoformat()
     section = section_markdown(rows, m4_rows, peaks, args.cpu, today, command, args.note)
-    previous = args.out_dir / "RESULTS.md"
-    document = previous.read_text() if previous.exists() else "# Benchmark results\n"
-    write_results(args.out_dir, merge_section(document, SECTION, section))
+    write_section(args.out_dir, SECTION, section)
     print(section)
     return 0
 

@@ -28,11 +28,10 @@ from .suite import (
     PAPER,
     ROOT,
     cpu_model,
-    merge_section,
     model_path,
     peaks_text,
     problem_text,
-    write_results,
+    write_section,
 )
 
 SECTION = "memory"
@@ -170,9 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     command = shlex.join(["python3", "-m", "benchmarks.memory_suite", *argv])
     date = datetime.date.today().isoformat()
     section = section_markdown(rows, peaks, args.cpu, date, args.batches, command)
-    previous = args.out_dir / "RESULTS.md"
-    document = previous.read_text() if previous.exists() else "# Benchmark results\n"
-    write_results(args.out_dir, merge_section(document, SECTION, section))
+    write_section(args.out_dir, SECTION, section)
     print(section)
     return 0
 

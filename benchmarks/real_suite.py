@@ -21,7 +21,7 @@ from nncg.bench.benchmark import format_profile, profile
 from nncg.bench.peak import TARGET_ISA, measure_peaks
 
 from .real_models import DEFAULT_CASES, MODELS, case_name, ensure
-from .suite import ROOT, Row, cpu_model, first_line, merge_section, peaks_text, results_table, run_suite, write_results
+from .suite import ROOT, Row, cpu_model, first_line, peaks_text, results_table, run_suite, write_section
 
 SECTION = "real-models"
 
@@ -79,9 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = run_suite(list(cases), args.targets, cpu=args.cpu, batches=args.batches, peaks=peaks,
                      path_of=lambda name: ensure(*cases[name]))  # fmt: skip
     section = section_markdown(rows, peaks, args.cpu, datetime.date.today().isoformat(), args.batches)
-    previous = args.out_dir / "RESULTS.md"
-    document = previous.read_text() if previous.exists() else "# Benchmark results\n"
-    write_results(args.out_dir, merge_section(document, SECTION, section))
+    write_section(args.out_dir, SECTION, section)
     print(section)
     if args.profile:
         print_profiles(cases, args.targets, args.cpu)

@@ -222,6 +222,13 @@ def merge_section(document: str, name: str, section: str) -> str:
     return document.rstrip("\n") + "\n\n" + block
 
 
+def write_section(out_dir: Path, name: str, section: str) -> Path:
+    """out_dir/RESULTS.md with its section `name` replaced (or added), and the chart redrawn."""
+    previous = out_dir / "RESULTS.md"
+    document = previous.read_text() if previous.exists() else "# Benchmark results\n"
+    return write_results(out_dir, merge_section(document, name, section))
+
+
 def write_results(out_dir: Path, document: str) -> Path:
     """RESULTS.md and results.png (every table's measured rows) in `out_dir`."""
     out_dir.mkdir(parents=True, exist_ok=True)
