@@ -230,6 +230,10 @@ def test_model_tensorflow_cannot_trace_is_one_error():
     assert "\n" not in message
     assert message.startswith("tf2onnx cannot convert the Keras model 'my model': ValueError: ")
     assert "not a valid root scope name" in message
+    trained = keras.Sequential([keras.Input((2,)), keras.layers.Dense(1)], name="after")  # Keras is unharmed
+    trained.compile(optimizer="sgd", loss="mse")
+    trained.fit(np.zeros((2, 2), np.float32), np.zeros((2, 1), np.float32), verbose=0)
+    assert trained.layers[0].kernel.path.startswith("after/dense")  # not under "my model"
 
 
 def test_bad_input_layout_argument():

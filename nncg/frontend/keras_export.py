@@ -56,7 +56,7 @@ def keras_to_onnx(model) -> onnx.ModelProto:
     inputs with a dynamic batch dim). Raises NncgError."""
     tf = _require("tensorflow")
     tf2onnx = _require("tf2onnx")
-    with _quiet():
+    with _quiet(), _keras_name_scopes_kept():
         if is_keras_model(model):
             function, signature, name = _model_function(tf, model)
         else:
@@ -219,6 +219,20 @@ def _root_cause(exc: BaseException) -> str:
         exc = exc.__cause__
     lines = [line for line in str(exc).splitlines() if line.strip()]
     return f"{type(exc).__name__}: {one_line(lines[-1] if lines else exc, 200)}"
+
+
+@contextmanager
+def _keras_name_scopes_kept() -> Iterator[None]:
+    """Keras 3 keeps its name-scope stack in process-wide state, and a trace that fails inside a model
+    leaves the model's scope pushed: every Keras model built afterwards in the process would be named
+    under it (and a scope named with a space breaks their training). The stack is put back as it was."""
+    from keras.src.backend.common import global_state
+
+    stack = list(global_state.get_global_attribute("name_scope_stack") or [])
+    try:
+        yield
+    finally:
+        global_state.set_global_attribute("name_scope_stack", stack)
 
 
 @contextmanager
