@@ -24,8 +24,8 @@ PROGRAM = "\n".join(
         "int main(void)",
         "{",
         "    long x, m, s, zp, low, high;",
-        "    while (scanf(\"%ld %ld %ld %ld %ld %ld\", &x, &m, &s, &zp, &low, &high) == 6)",
-        "        printf(\"%ld\\n\", (long)nncg_requantize_fixed((nncg_int32)x, (nncg_int32)m, (nncg_int32)s,",
+        '    while (scanf("%ld %ld %ld %ld %ld %ld", &x, &m, &s, &zp, &low, &high) == 6)',
+        '        printf("%ld\\n", (long)nncg_requantize_fixed((nncg_int32)x, (nncg_int32)m, (nncg_int32)s,',
         "                                                     (nncg_int32)zp, (nncg_int32)low, (nncg_int32)high));",
         "    return 0;",
         "}",
@@ -48,7 +48,7 @@ def cases() -> list[tuple[int, ...]]:
         for m in (2**30, 2**30 + 1, 2**31 - 1, 1518500250):
             for s in range(32):
                 rows.append((x, m, s, 0, INT32_MIN, INT32_MAX))
-    for s in range(1, 32):  # |x| * m exactly on a half: x = 2^s + 2^(s-1) ... with m = 2^30 and s >= 1
+    for s in range(1, 32):  # m = 2^30: x * m / 2^(31+s) = x / 2^(s+1), exactly 1.5 for x = 3 * 2^s
         for x in (3 * 2**s, -3 * 2**s, 2**s + 1, -(2**s) - 1):
             if INT32_MIN <= x <= INT32_MAX:
                 rows.append((x, 2**30, s, 0, INT32_MIN, INT32_MAX))
@@ -73,7 +73,9 @@ def test_fixed_point_helper_is_exact(toolchain, tmp_path):
         cc, flags, prefix = tc.cc, tc.flags, runner(tc)
     source, program = tmp_path / "fixed.c", tmp_path / "fixed"
     source.write_text(PROGRAM)
-    run_tool([cc, *flags, "-std=c89", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2", source, "-o", program], "build")
+    run_tool(
+        [cc, *flags, "-std=c89", "-pedantic", "-Wall", "-Wextra", "-Werror", "-O2", source, "-o", program], "build"
+    )
     rows = cases()
     stdin = "".join(" ".join(map(str, r)) + "\n" for r in rows).encode()
     out = run_tool([*prefix, program], "run", stdin=stdin, text=False, timeout=300).stdout.decode().split()
