@@ -17,7 +17,7 @@ from nncg.frontend.folding import Folded, NamedNode, fold_constants
 from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, real_inputs
 from nncg.frontend.names import node_reads, value_names
 from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
-from nncg.frontend.qdq import fuse_qdq
+from nncg.frontend.qdq import QdqNotes, fuse_qdq
 from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
 from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, float_ops_reading_integers, output_dtype
@@ -29,9 +29,10 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     """The graph IR of an ONNX model (path, bytes, ModelProto or load_model's result)."""
     proto, shapes = load_with_shapes(model, input_shapes)
     folded = fold_constants(proto, shapes)
-    folded = replace(folded, nodes=fuse_qdq(folded, [v.name for v in proto.graph.output]))
+    nodes, notes = fuse_qdq(folded, [v.name for v in proto.graph.output])
+    folded = replace(folded, nodes=nodes)
     check_supported(folded.nodes)
-    ctx = _context(proto, folded)
+    ctx = _context(proto, folded, notes)
     computed = [(name, node.op_type, node.output) for node, name in folded.nodes]
     check_computed_shapes(computed, ctx.shapes, ctx.is_used)  # before converters size anything by them
     nodes = tuple(ir_node for node, name in folded.nodes for ir_node in _converted(OnnxOp.of(node, name), ctx))
@@ -93,7 +94,7 @@ def _converted(op: OnnxOp, ctx: Context) -> tuple[Node, ...]:
     return converted if isinstance(converted, tuple) else (converted,)
 
 
-def _context(model: onnx.ModelProto, folded: Folded) -> Context:
+def _context(model: onnx.ModelProto, folded: Folded, notes: QdqNotes) -> Context:
     used = {i for node, _ in folded.nodes for i in node_reads(node)}
     used |= {v.name for v in model.graph.output}
     return Context(
@@ -102,6 +103,8 @@ def _context(model: onnx.ModelProto, folded: Folded) -> Context:
         shapes=dict(folded.shapes),
         used=used,
         taken=value_names(model.graph) | set(folded.constants),
+        output_ranges=notes.output_ranges,
+        uint8_pools=notes.uint8_pools,
     )
 
 

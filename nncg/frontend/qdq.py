@@ -7,7 +7,8 @@ computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm
 GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool and Softmax
 QLinearSoftmax (the last five in onnxruntime's com.microsoft domain).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
-is monotonic, so clamping before it is clamping its result. MaxPool, Reshape, Flatten and Transpose between a
+is monotonic, so clamping before it is clamping its result; the real bounds travel beside the nodes
+(QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten and Transpose between a
 DequantizeLinear and a QuantizeLinear of the same scale and zero point move the integers as they
 are. Weights and biases are the constants that folding dequantized (Folded.dequantized keeps the
 DequantizeLinear they came from). Every QuantizeLinear and DequantizeLinear left over stays: an
@@ -17,7 +18,7 @@ explicit quantise or dequantise kernel.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import onnx
@@ -30,11 +31,22 @@ PASS_THROUGH = ("MaxPool", "Reshape", "Flatten", "Transpose")
 ACTIVATION_TYPES = (np.int8, np.uint8)
 
 
+@dataclass
+class QdqNotes:
+    """What the rewritten nodes need beyond their ONNX inputs and attributes, by the node's output:
+    the real range of the Relu and Clip nodes folded into it, and which int8 pools onnxruntime
+    computes in uint8 (see QAveragePoolAttrs)."""
+
+    output_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    uint8_pools: set[str] = field(default_factory=set)
+
+
 class _Model:
     """The live nodes with their producers and readers, and the names the rewrite adds."""
 
-    def __init__(self, folded: Folded, outputs: list[str]):
+    def __init__(self, folded: Folded, outputs: list[str], notes: QdqNotes):
         self.folded = folded
+        self.notes = notes
         self.outputs = set(outputs)
         self.nodes = list(folded.nodes)
         self.producer = {o: (node, name) for node, name in self.nodes for o in node.output}
@@ -106,12 +118,14 @@ def _dequantized(model: _Model, value: str, dtypes: tuple) -> onnx.NodeProto | N
     return node
 
 
-def fuse_qdq(folded: Folded, outputs: list[str]) -> list[NamedNode]:
-    """The live nodes with every QDQ group that computes in integers replaced by its QOperator node."""
+def fuse_qdq(folded: Folded, outputs: list[str]) -> tuple[list[NamedNode], QdqNotes]:
+    """The live nodes with every QDQ group that computes in integers replaced by its QOperator node,
+    and the notes on those nodes."""
     changed = True
     nodes = folded.nodes
+    notes = QdqNotes()
     while changed:
-        model = _Model(replace(folded, nodes=nodes), outputs)
+        model = _Model(replace(folded, nodes=nodes), outputs, notes)
         changed = False
         for node, name in model.nodes:
             rewrite = REWRITES.get(node.op_type)
@@ -124,26 +138,22 @@ def fuse_qdq(folded: Folded, outputs: list[str]) -> list[NamedNode]:
             nodes = live_nodes(nodes, outputs)
             changed = True
             break
-    return nodes
+    return nodes, notes
 
 
 def _q_output(model: _Model, op: onnx.NodeProto) -> tuple[onnx.NodeProto, list] | None:
     return _output_q(model, op.output[0])
 
 
-def _with_clamps(model: _Model, q: onnx.NodeProto, clamps: list[onnx.NodeProto]) -> list[onnx.AttributeProto]:
-    """The folded Relu and Clip bounds, as attributes nncg_low/nncg_high of the output's real range
-    (NNCG's own: an onnx QOperator node has no such attributes; the converter reads them)."""
+def _fused(model: _Model, node: onnx.NodeProto, q: onnx.NodeProto, clamps: list[onnx.NodeProto]):
+    """The rewrite's result: `node` replacing q and the clamps, whose real range is noted."""
     low, high = -np.inf, np.inf
-    for node in clamps:
-        lo, hi = _clip_bounds(model, node)
+    for clamp in clamps:
+        lo, hi = _clip_bounds(model, clamp)
         low, high = max(low, lo), min(high, hi)
-    attrs = []
-    if low > -np.inf:
-        attrs.append(helper.make_attribute("nncg_low", float(low)))
-    if high < np.inf:
-        attrs.append(helper.make_attribute("nncg_high", float(high)))
-    return attrs
+    if clamps:
+        model.notes.output_ranges[node.output[0]] = (float(low), float(high))
+    return node, [q, *clamps]
 
 
 def _clip_bounds(model: _Model, node: onnx.NodeProto) -> tuple[float, float]:
@@ -156,12 +166,11 @@ def _clip_bounds(model: _Model, node: onnx.NodeProto) -> tuple[float, float]:
     return tuple(float(b) if b is not None else default for b, default in zip(bounds, (-np.inf, np.inf)))
 
 
-def _node(op_type: str, inputs: list[str], output: str, source: onnx.NodeProto, extra=(), domain: str = ""):
+def _node(op_type: str, inputs: list[str], output: str, source: onnx.NodeProto, domain: str = ""):
     """The QOperator node with the float op's attributes (but Gemm's transA and beta, which QGemm
-    lacks: only transA=0 and beta=1 are rewritten) and `extra` ones."""
+    lacks: only transA=0 and beta=1 are rewritten)."""
     node = helper.make_node(op_type, inputs, [output], domain=domain)
     node.attribute.extend([a for a in source.attribute if a.name not in ("transA", "beta")])
-    node.attribute.extend(extra)
     return node
 
 
@@ -174,7 +183,7 @@ def _conv(model: _Model, conv: onnx.NodeProto):
         return None
     q, clamps = out
     inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], *_quantize_params(q)] + ([b.input[0]] if b else [])
-    return _node("QLinearConv", inputs, q.output[0], conv, _with_clamps(model, q, clamps)), [q, *clamps]
+    return _fused(model, _node("QLinearConv", inputs, q.output[0], conv), q, clamps)
 
 
 def _gemm(model: _Model, gemm: onnx.NodeProto):
@@ -192,7 +201,7 @@ def _gemm(model: _Model, gemm: onnx.NodeProto):
         return None
     q, clamps = out
     inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], b.input[0] if b else "", *_quantize_params(q)]
-    return _node("QGemm", inputs, q.output[0], gemm, _with_clamps(model, q, clamps), CONTRIB), [q, *clamps]
+    return _fused(model, _node("QGemm", inputs, q.output[0], gemm, CONTRIB), q, clamps)
 
 
 def _matmul(model: _Model, matmul: onnx.NodeProto):
@@ -203,7 +212,7 @@ def _matmul(model: _Model, matmul: onnx.NodeProto):
         return None
     q, clamps = out
     inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], *_quantize_params(q)]
-    return _node("QLinearMatMul", inputs, q.output[0], matmul, _with_clamps(model, q, clamps)), [q, *clamps]
+    return _fused(model, _node("QLinearMatMul", inputs, q.output[0], matmul), q, clamps)
 
 
 def _add(model: _Model, add: onnx.NodeProto):
@@ -214,12 +223,12 @@ def _add(model: _Model, add: onnx.NodeProto):
         return None  # a broadcast Add stays a float Add between explicit (de)quantise layers
     q, clamps = out
     inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
-    return _node("QLinearAdd", inputs, q.output[0], add, _with_clamps(model, q, clamps), CONTRIB), [q, *clamps]
+    return _fused(model, _node("QLinearAdd", inputs, q.output[0], add, CONTRIB), q, clamps)
 
 
 def _pool(qop: str) -> Callable:
     """GlobalAveragePool or AveragePool between a DequantizeLinear and a QuantizeLinear as `qop`;
-    an int8 one marked nncg_u8_offset=128: onnxruntime computes it in uint8 (see QAveragePoolAttrs)."""
+    an int8 one noted in uint8_pools: onnxruntime computes it in uint8 (see QAveragePoolAttrs)."""
 
     def rewrite(model: _Model, pool: onnx.NodeProto):
         dq_x = model.live_dq(pool.input[0])
@@ -229,9 +238,9 @@ def _pool(qop: str) -> Callable:
         q = out[0]
         inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
         zero = model.const(_quantize_params(q)[1])
-        signed = zero is not None and zero.dtype == np.int8
-        extra = [helper.make_attribute("nncg_u8_offset", 128)] if signed else []
-        return _node(qop, inputs, q.output[0], pool, extra, CONTRIB), [q]
+        if zero is not None and zero.dtype == np.int8:
+            model.notes.uint8_pools.add(q.output[0])
+        return _node(qop, inputs, q.output[0], pool, CONTRIB), [q]
 
     return rewrite
 
@@ -244,7 +253,7 @@ def _softmax(model: _Model, softmax: onnx.NodeProto):
     if dq_x is None or q is None or not _per_tensor(model, q):
         return None
     inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
-    return _node("QLinearSoftmax", inputs, q.output[0], softmax, domain=CONTRIB), [q]
+    return _node("QLinearSoftmax", inputs, q.output[0], softmax, CONTRIB), [q]
 
 
 def _pass_through(model: _Model, op: onnx.NodeProto):
