@@ -26,7 +26,16 @@ ModelSource = str | os.PathLike | bytes | onnx.ModelProto
 MIN_OPSET = 7
 DEFAULT_DOMAINS = ("", "ai.onnx")
 # onnxruntime's contrib ops (domain com.microsoft) that a model may hold as they are
-CONTRIB_OPS = {"com.microsoft": ("QLinearAdd", "QLinearAveragePool", "QLinearGlobalAveragePool", "QLinearSoftmax")}
+CONTRIB_OPS = {
+    "com.microsoft": (
+        "QLinearAdd",
+        "QLinearAveragePool",
+        "QLinearGlobalAveragePool",
+        "QLinearLeakyRelu",
+        "QLinearSigmoid",
+        "QLinearSoftmax",
+    )
+}
 
 
 def load_model(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] | None = None) -> onnx.ModelProto:

@@ -5,7 +5,9 @@ QOperator op serves both formats.
 A float op whose inputs come from DequantizeLinear nodes and whose only reader is a QuantizeLinear
 computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm, Add QLinearAdd,
 GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool and Softmax
-QLinearSoftmax (the last five in onnxruntime's com.microsoft domain).
+QLinearSoftmax, LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid (the last seven in
+onnxruntime's com.microsoft domain), HardSwish NNCG's own QLinearHardSwish (table lookups, see
+ops_qlookup.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
 is monotonic, so clamping before it is clamping its result; the real bounds travel beside the nodes
 (QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten and Transpose between a
@@ -27,6 +29,7 @@ from onnx import helper
 from nncg.frontend.folding import Folded, NamedNode, live_nodes
 
 CONTRIB = "com.microsoft"
+NNCG_DOMAIN = "nncg"  # the domain of NNCG's own QOperator nodes (a model cannot import it)
 PASS_THROUGH = ("MaxPool", "Reshape", "Flatten", "Transpose")
 ACTIVATION_TYPES = (np.int8, np.uint8)
 
@@ -256,6 +259,20 @@ def _softmax(model: _Model, softmax: onnx.NodeProto):
     return _node("QLinearSoftmax", inputs, q.output[0], softmax, CONTRIB), [q]
 
 
+def _lookup(qop: str, domain: str = CONTRIB) -> Callable:
+    """A unary op between a DequantizeLinear and a QuantizeLinear as `qop`, a table lookup."""
+
+    def rewrite(model: _Model, op: onnx.NodeProto):
+        dq_x = model.live_dq(op.input[0])
+        q = model.sole_reader(op.output[0], "QuantizeLinear")
+        if dq_x is None or q is None or not _per_tensor(model, q):
+            return None
+        inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
+        return _node(qop, inputs, q.output[0], op, domain), [q]
+
+    return rewrite
+
+
 def _pass_through(model: _Model, op: onnx.NodeProto):
     """MaxPool, Reshape, Flatten or Transpose of the integers, when the scale and zero point do not change."""
     dq_x = model.live_dq(op.input[0])
@@ -284,5 +301,8 @@ REWRITES: dict[str, Callable] = {
     "GlobalAveragePool": _pool("QLinearGlobalAveragePool"),
     "AveragePool": _pool("QLinearAveragePool"),
     "Softmax": _softmax,
+    "LeakyRelu": _lookup("QLinearLeakyRelu"),
+    "Sigmoid": _lookup("QLinearSigmoid"),
+    "HardSwish": _lookup("QLinearHardSwish", NNCG_DOMAIN),
     **dict.fromkeys(PASS_THROUGH, _pass_through),
 }

@@ -22,6 +22,7 @@ QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QLinearGlobalAveragePool": (ACTIVATIONS,),
     "QLinearAveragePool": (ACTIVATIONS,),
     "QLinearSoftmax": (ACTIVATIONS, (FLOAT32,)),
+    "QLinearLookup": (ACTIVATIONS, ACTIVATIONS),
 }
 
 
@@ -29,7 +30,7 @@ def output_dtype(node: Node, dtype_of: Callable[[str], DType]) -> DType:
     """The dtype of the node's outputs (every op here has one output type), given its inputs'."""
     if node.op in TYPE_PRESERVING:
         return dtype_of(node.inputs[0])
-    if node.op == "QuantizeLinear":
+    if node.op in ("QuantizeLinear", "QLinearLookup"):
         return node.attrs.dtype
     if node.op in QUANTIZED_INPUTS and node.op != "DequantizeLinear":
         return node.attrs.out.dtype

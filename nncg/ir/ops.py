@@ -27,6 +27,7 @@ from .graph import (
     QAveragePoolAttrs,
     QConvAttrs,
     QDenseAttrs,
+    QLookupAttrs,
     QPoolAttrs,
     QSoftmaxAttrs,
     QuantAttrs,
@@ -165,4 +166,5 @@ IR_OPS: dict[str, IrOp] = {
     "QLinearGlobalAveragePool": IrOp(QPoolAttrs, no_macs),
     "QLinearAveragePool": IrOp(QAveragePoolAttrs, no_macs),
     "QLinearSoftmax": IrOp(QSoftmaxAttrs, no_macs),
+    "QLinearLookup": IrOp(QLookupAttrs, no_macs),
 }
