@@ -32,6 +32,7 @@ CONTRIB_OPS = {
         "QLinearAveragePool",
         "QLinearGlobalAveragePool",
         "QLinearLeakyRelu",
+        "QLinearMul",
         "QLinearSigmoid",
         "QLinearSoftmax",
     )

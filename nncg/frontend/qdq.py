@@ -4,8 +4,8 @@ QOperator op serves both formats.
 
 A float op whose inputs come from DequantizeLinear nodes and whose only reader is a QuantizeLinear
 computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm, Add QLinearAdd,
-GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool and Softmax
-QLinearSoftmax, LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid (the last seven in
+Mul QLinearMul, GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool, Softmax
+QLinearSoftmax, LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid (the last eight in
 onnxruntime's com.microsoft domain), HardSwish NNCG's own QLinearHardSwish (table lookups, see
 ops_qlookup.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
@@ -229,6 +229,24 @@ def _add(model: _Model, add: onnx.NodeProto):
     return _fused(model, _node("QLinearAdd", inputs, q.output[0], add, CONTRIB), q, clamps)
 
 
+def _mul(model: _Model, mul: onnx.NodeProto):
+    """A Mul of two DequantizeLinear outputs (or one and a constant folded from one), broadcast."""
+    operands = [model.live_dq(i) or _dequantized_per_tensor(model, i) for i in mul.input]
+    out = _q_output(model, mul)
+    if None in operands or out is None:
+        return None
+    q, clamps = out
+    a, b = operands
+    inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
+    return _fused(model, _node("QLinearMul", inputs, q.output[0], mul, CONTRIB), q, clamps)
+
+
+def _dequantized_per_tensor(model: _Model, value: str) -> onnx.NodeProto | None:
+    """The per-tensor DequantizeLinear an 8-bit constant operand was folded from."""
+    node = _dequantized(model, value, ACTIVATION_TYPES)
+    return node if node is not None and _per_tensor(model, node) else None
+
+
 def _pool(qop: str) -> Callable:
     """GlobalAveragePool or AveragePool between a DequantizeLinear and a QuantizeLinear as `qop`;
     an int8 one noted in uint8_pools: onnxruntime computes it in uint8 (see QAveragePoolAttrs)."""
@@ -298,6 +316,7 @@ REWRITES: dict[str, Callable] = {
     "Gemm": _gemm,
     "MatMul": _matmul,
     "Add": _add,
+    "Mul": _mul,
     "GlobalAveragePool": _pool("QLinearGlobalAveragePool"),
     "AveragePool": _pool("QLinearAveragePool"),
     "Softmax": _softmax,

@@ -366,6 +366,19 @@ class QAddAttrs:
 
 
 @dataclass(frozen=True)
+class QMulAttrs:
+    """QLinearMul of two tensors, NumPy-broadcast: (a - a_zp) (b - b_zp) a_scale b_scale / y_scale
+    + y_zp, computed as onnxruntime's x86 kernel does (lowering/quantized_mul.py)."""
+
+    a_scale: float
+    a_zero_point: int
+    b_scale: float
+    b_zero_point: int
+    y_scale: float
+    out: Requantization
+
+
+@dataclass(frozen=True)
 class QPoolAttrs:
     """QLinearGlobalAveragePool: the int32 sum of each channel minus N * x_zero_point, times
     x_scale / (y_scale * N) (N: the pixels of a channel), requantized."""
@@ -423,7 +436,7 @@ AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
     SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs, QuantAttrs, QConvAttrs,
-    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs,
+    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs, QMulAttrs,
 ]  # fmt: skip
 
 

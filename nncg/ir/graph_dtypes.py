@@ -23,6 +23,7 @@ QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QLinearAveragePool": (ACTIVATIONS,),
     "QLinearSoftmax": (ACTIVATIONS, (FLOAT32,)),
     "QLinearLookup": (ACTIVATIONS, ACTIVATIONS),
+    "QLinearMul": (ACTIVATIONS, ACTIVATIONS),
 }
 
 

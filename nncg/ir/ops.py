@@ -28,6 +28,7 @@ from .graph import (
     QConvAttrs,
     QDenseAttrs,
     QLookupAttrs,
+    QMulAttrs,
     QPoolAttrs,
     QSoftmaxAttrs,
     QuantAttrs,
@@ -167,4 +168,5 @@ IR_OPS: dict[str, IrOp] = {
     "QLinearAveragePool": IrOp(QAveragePoolAttrs, no_macs),
     "QLinearSoftmax": IrOp(QSoftmaxAttrs, no_macs),
     "QLinearLookup": IrOp(QLookupAttrs, no_macs),
+    "QLinearMul": IrOp(QMulAttrs, no_macs),
 }

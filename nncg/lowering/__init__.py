@@ -44,6 +44,7 @@ from .quantized import (
 )
 from .quantized_add import lower_qlinear_add
 from .quantized_lookup import lower_qlinear_lookup
+from .quantized_mul import lower_qlinear_mul
 from .quantized_softmax import lower_qlinear_softmax
 from .reduce import lower_arg_extreme, lower_reduce
 from .reshape import copy_nest, lower_reshape
@@ -145,6 +146,7 @@ LOWERINGS = {
     "QLinearAveragePool": lower_qlinear_average_pool,
     "QLinearSoftmax": lower_qlinear_softmax,
     "QLinearLookup": lower_qlinear_lookup,
+    "QLinearMul": lower_qlinear_mul,
 }
 
 
