@@ -20,7 +20,7 @@ from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
 from nncg.frontend.qdq import QdqNotes, fuse_qdq
 from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
-from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, float_ops_reading_integers, output_dtype
+from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, TYPE_PRESERVING, float_ops_reading_integers, output_dtype
 from nncg.ir.kinds import DType
 from nncg.safe_text import shown
 
@@ -120,8 +120,9 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
         for name in node.inputs:
             if name in ctx.constants:
                 array = ctx.constants[name]
+                moved = node.op in TYPE_PRESERVING and array.dtype in (np.int8, np.uint8)  # a QLinearConcat's
                 constants[name] = (
-                    np.ascontiguousarray(array) if node.op in QUANTIZED_INPUTS else _float32(node, name, array)
+                    np.ascontiguousarray(array) if node.op in QUANTIZED_INPUTS or moved else _float32(node, name, array)
                 )
     return Graph(
         graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes, _dtypes(nodes, constants)

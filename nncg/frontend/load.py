@@ -30,6 +30,7 @@ CONTRIB_OPS = {
     "com.microsoft": (
         "QLinearAdd",
         "QLinearAveragePool",
+        "QLinearConcat",
         "QLinearGlobalAveragePool",
         "QLinearLeakyRelu",
         "QLinearMul",

@@ -39,6 +39,7 @@ from nncg.frontend.ops_nn import (
     convert_softmax,
 )
 from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
+from nncg.frontend.ops_qconcat import convert_qlinear_concat
 from nncg.frontend.ops_qlookup import convert_qlinear_hard_swish, convert_qlinear_leaky_relu, convert_qlinear_sigmoid
 from nncg.frontend.ops_qmul import convert_qlinear_mul
 from nncg.frontend.ops_qsoftmax import convert_qlinear_softmax
@@ -175,6 +176,7 @@ ONNX_OPS: dict[str, ConvertedOp] = {
         convert_qlinear_global_average_pool, ("QLinearGlobalAveragePool",), (1, 2, 3, 4)
     ),
     "QLinearSoftmax": ConvertedOp(convert_qlinear_softmax, ("QLinearSoftmax",), (1, 2, 3, 4)),
+    "QLinearConcat": ConvertedOp(convert_qlinear_concat, ("QLinearLookup", "Concat")),
     "QLinearMul": ConvertedOp(convert_qlinear_mul, ("QLinearMul",), (1, 2, 4, 5, 6, 7)),
     "QLinearLeakyRelu": ConvertedOp(convert_qlinear_leaky_relu, ("QLinearLookup",), (1, 2, 3, 4)),
     "QLinearSigmoid": ConvertedOp(convert_qlinear_sigmoid, ("QLinearLookup",), (1, 2, 3, 4)),

@@ -46,7 +46,11 @@ RESIZE_MODES = ("nearest", "linear", "cubic")
 
 
 def convert_concat(op: OnnxOp, ctx: Context) -> Node:
-    inputs = [name for name in op.node.input if name]
+    return concat_node(op, ctx, [name for name in op.node.input if name])
+
+
+def concat_node(op: OnnxOp, ctx: Context, inputs: list[str]) -> Node:
+    """The Concat of `inputs` along op's axis attribute (Concat's, or QLinearConcat's)."""
     shapes = [ctx.shape(name) for name in inputs]
     if op.attr("axis") is None:
         raise op.error("has no axis attribute, which Concat requires: add the axis to concatenate along")

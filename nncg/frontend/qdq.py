@@ -4,8 +4,8 @@ QOperator op serves both formats.
 
 A float op whose inputs come from DequantizeLinear nodes and whose only reader is a QuantizeLinear
 computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm, Add QLinearAdd,
-Mul QLinearMul, GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool, Softmax
-QLinearSoftmax, LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid (the last eight in
+Mul QLinearMul, Concat QLinearConcat, GlobalAveragePool QLinearGlobalAveragePool, AveragePool
+QLinearAveragePool, Softmax QLinearSoftmax, LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid (the last nine in
 onnxruntime's com.microsoft domain), HardSwish NNCG's own QLinearHardSwish (table lookups, see
 ops_qlookup.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
@@ -241,6 +241,23 @@ def _mul(model: _Model, mul: onnx.NodeProto):
     return _fused(model, _node("QLinearMul", inputs, q.output[0], mul, CONTRIB), q, clamps)
 
 
+def _concat(model: _Model, concat: onnx.NodeProto):
+    """A Concat of DequantizeLinear outputs (or constants folded from them) of one 8-bit type."""
+    parts = [model.live_dq(i) or _dequantized_per_tensor(model, i) for i in concat.input]
+    q = model.sole_reader(concat.output[0], "QuantizeLinear")
+    if None in parts or q is None or not _per_tensor(model, q):
+        return None
+    if len({_zero_point_type(model, node) for node in (*parts, q)}) != 1:
+        return None
+    inputs = [*_quantize_params(q)] + [name for dq in parts for name in (dq.input[0], *_quantize_params(dq))]
+    return _node("QLinearConcat", inputs, q.output[0], concat, CONTRIB), [q]
+
+
+def _zero_point_type(model: _Model, node: onnx.NodeProto):
+    zero = model.const(_quantize_params(node)[1])
+    return np.dtype(np.uint8) if zero is None else zero.dtype
+
+
 def _dequantized_per_tensor(model: _Model, value: str) -> onnx.NodeProto | None:
     """The per-tensor DequantizeLinear an 8-bit constant operand was folded from."""
     node = _dequantized(model, value, ACTIVATION_TYPES)
@@ -317,6 +334,7 @@ REWRITES: dict[str, Callable] = {
     "MatMul": _matmul,
     "Add": _add,
     "Mul": _mul,
+    "Concat": _concat,
     "GlobalAveragePool": _pool("QLinearGlobalAveragePool"),
     "AveragePool": _pool("QLinearAveragePool"),
     "Softmax": _softmax,

@@ -11,7 +11,7 @@ from .kinds import DType
 FLOAT32, INT8, UINT8, INT16, INT32 = DType.FLOAT32, DType.INT8, DType.UINT8, DType.INT16, DType.INT32
 ACTIVATIONS = (INT8, UINT8)  # the types of quantized activations
 # Ops that move elements without computing on them: their output has their input's dtype.
-TYPE_PRESERVING = ("MaxPool", "Reshape", "Identity", "Transpose")
+TYPE_PRESERVING = ("MaxPool", "Reshape", "Identity", "Transpose", "Concat")
 # The quantized ops, with the dtypes each input slot may have.
 QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QuantizeLinear": ((FLOAT32,),),
