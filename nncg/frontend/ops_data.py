@@ -211,9 +211,10 @@ def _pad_params(op: OnnxOp, ctx: Context, rank: int) -> tuple[list[int], float |
         value = op.input(2)
     elif op.input(2):
         constant = ctx.const(op.input(2))
-        if constant.size != 1 or constant.dtype.kind != "f":
+        if constant.size != 1 or constant.dtype not in (np.float32, np.float64, np.float16, np.int8, np.uint8):
             raise op.error(
-                f"has constant_value of type {constant.dtype.name} and size {constant.size}; it must be one float"
+                f"has constant_value of type {constant.dtype.name} and size {constant.size}; it must be one float "
+                "(or one int8 or uint8, padding integers)"
             )
         value = float(constant.reshape(-1)[0])
     axes = list(range(rank))

@@ -3,18 +3,19 @@ QOperator models, as onnxruntime's own QDQ transformer rewrites them, so that on
 QOperator op serves both formats.
 
 A float op whose inputs come from DequantizeLinear nodes and whose only reader is a QuantizeLinear
-computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm, Add QLinearAdd,
-Mul QLinearMul, Concat QLinearConcat, GlobalAveragePool QLinearGlobalAveragePool, AveragePool
-QLinearAveragePool, Softmax QLinearSoftmax, LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid (the last nine in
-onnxruntime's com.microsoft domain), HardSwish NNCG's own QLinearHardSwish (table lookups, see
-ops_qlookup.py).
+computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, and in onnxruntime's
+com.microsoft domain Gemm QGemm, Add QLinearAdd, Mul QLinearMul, Concat QLinearConcat,
+GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool, Softmax QLinearSoftmax,
+LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid; HardSwish becomes NNCG's own
+QLinearHardSwish (these three are table lookups, see ops_qlookup.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
 is monotonic, so clamping before it is clamping its result; the real bounds travel beside the nodes
-(QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten and Transpose between a
-DequantizeLinear and a QuantizeLinear of the same scale and zero point move the integers as they
-are. Weights and biases are the constants that folding dequantized (Folded.dequantized keeps the
-DequantizeLinear they came from). Every QuantizeLinear and DequantizeLinear left over stays: an
-explicit quantise or dequantise kernel.
+(QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten,
+Transpose, Pad and nearest Resize between a DequantizeLinear and a QuantizeLinear of the same scale
+and zero point move the integers as they are (Pad's constant value quantised). Weights and biases
+are the constants that folding dequantized (Folded.dequantized keeps the DequantizeLinear they came
+from). Every QuantizeLinear and DequantizeLinear left over stays: an explicit quantise or
+dequantise kernel.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import onnx
 from onnx import helper
 
 from nncg.frontend.folding import Folded, NamedNode, live_nodes
+from nncg.ir.names import fresh_name
 
 CONTRIB = "com.microsoft"
 NNCG_DOMAIN = "nncg"  # the domain of NNCG's own QOperator nodes (a model cannot import it)
@@ -319,6 +321,44 @@ def _pass_through(model: _Model, op: onnx.NodeProto):
     return node, [q]
 
 
+def _resize(model: _Model, resize: onnx.NodeProto):
+    """A nearest-neighbour Resize of the integers (it picks elements), when the scale and zero point
+    do not change; tf_crop_and_resize, which can write an extrapolation value, stays float."""
+    attrs = {a.name: helper.get_attribute_value(a) for a in resize.attribute}
+    if (
+        attrs.get("mode", b"nearest") != b"nearest"
+        or attrs.get("coordinate_transformation_mode") == b"tf_crop_and_resize"
+    ):
+        return None
+    return _pass_through(model, resize)
+
+
+def _pad(model: _Model, pad: onnx.NodeProto):
+    """A Pad (opset 11 on: pads and value are inputs) of the integers, when the scale and zero point
+    do not change; the constant value becomes the integer QuantizeLinear gives it (0: the zero point)."""
+    value = model.const(pad.input[2]) if len(pad.input) > 2 and pad.input[2] else np.zeros((), np.float32)
+    found = _pass_through(model, pad)
+    if found is None or len(pad.input) < 2 or value is None or value.size != 1:
+        return None
+    node, removed = found
+    scale, zero = (model.const(i) for i in _quantize_params(removed[0]))
+    dtype = np.dtype(np.uint8) if zero is None else zero.dtype
+    integer = _quantized(float(value.reshape(())), float(scale.reshape(())), 0 if zero is None else int(zero), dtype)
+    name = fresh_name(f"{node.output[0]}_pad_value", model.folded.constants, model.folded.shapes, model.producer)
+    model.folded.constants[name] = np.array(integer, dtype)
+    del node.input[2:]
+    node.input.extend([name, *pad.input[3:]])
+    return node, removed
+
+
+def _quantized(value: float, scale: float, zero: int, dtype: np.dtype) -> int:
+    """QuantizeLinear of one value: divided in float32, rounded half to even, saturated."""
+    info = np.iinfo(dtype)
+    with np.errstate(over="ignore"):
+        q = np.rint(np.float32(value) / np.float32(scale))
+    return int(np.clip(q + zero, info.min, info.max)) if np.isfinite(q) else (info.min if q < 0 else info.max)
+
+
 def _same_quantization(model: _Model, a: onnx.NodeProto, b: onnx.NodeProto) -> bool:
     def params(node):
         scale, zero = (model.const(i) for i in _quantize_params(node))
@@ -342,4 +382,6 @@ REWRITES: dict[str, Callable] = {
     "Sigmoid": _lookup("QLinearSigmoid"),
     "HardSwish": _lookup("QLinearHardSwish", NNCG_DOMAIN),
     **dict.fromkeys(PASS_THROUGH, _pass_through),
+    "Pad": _pad,
+    "Resize": _resize,
 }
