@@ -1,4 +1,4 @@
-"""Unary ops on int8/uint8 as generation-time tables (issue 16): LeakyRelu, Sigmoid and HardSwish
+"""Unary ops on int8/uint8 as generation-time tables (issue 16): LeakyRelu, Sigmoid, HardSwish and Tanh
 between DequantizeLinear and QuantizeLinear, and onnxruntime's QLinearLeakyRelu and QLinearSigmoid
 (com.microsoft), compared with onnxruntime running the same model: every table entry, and every
 output element of the compiled C, bit-identical; int8 and uint8, zero points other than 0, inputs
@@ -15,18 +15,30 @@ from onnx import TensorProto, helper, numpy_helper
 
 import nncg
 from nncg.errors import UnsupportedOpsError
-from nncg.frontend.ops_qlookup import hard_swish, leaky_relu, logistic, lookup_table
+from nncg.frontend.ops_qlookup import hard_swish, leaky_relu, logistic, lookup_table, tanh
 from nncg.ir.kinds import DType
 from nncg.verify import run_compiled
 
 CONTRIB = "com.microsoft"
 SHAPE = (2, 3, 5, 7)
-FUNCTIONS = {"LeakyRelu": leaky_relu(0.13), "Sigmoid": logistic, "HardSwish": hard_swish}
-ATTRS = {"LeakyRelu": {"alpha": 0.13}, "Sigmoid": {}, "HardSwish": {}}
+FUNCTIONS = {"LeakyRelu": leaky_relu(0.13), "Sigmoid": logistic, "HardSwish": hard_swish, "Tanh": tanh}
+ATTRS = {"LeakyRelu": {"alpha": 0.13}, "Sigmoid": {}, "HardSwish": {}, "Tanh": {}}
 # activation type: x zero point, y scale, y zero point per op (Sigmoid's output in [0, 1])
 PARAMS = {
-    "uint8": {"x_zero": 140, "LeakyRelu": (0.03, 90), "Sigmoid": (1 / 300, 12), "HardSwish": (0.02, 30)},
-    "int8": {"x_zero": -11, "LeakyRelu": (0.03, -40), "Sigmoid": (1 / 300, -120), "HardSwish": (0.02, -100)},
+    "uint8": {
+        "x_zero": 140,
+        "LeakyRelu": (0.03, 90),
+        "Sigmoid": (1 / 300, 12),
+        "HardSwish": (0.02, 30),
+        "Tanh": (1 / 150, 120),
+    },
+    "int8": {
+        "x_zero": -11,
+        "LeakyRelu": (0.03, -40),
+        "Sigmoid": (1 / 300, -120),
+        "HardSwish": (0.02, -100),
+        "Tanh": (1 / 150, -5),
+    },
 }
 
 
@@ -118,7 +130,7 @@ def _onnxruntime_table(op: str, activations: str, x: tuple, y: tuple) -> np.ndar
 @pytest.mark.parametrize("op", FUNCTIONS)
 def test_every_table_entry_matches_onnxruntime(op):
     """All 256 entries, over random scales and zero points (the QDQ group, which onnxruntime fuses
-    into its QLinear op for LeakyRelu and Sigmoid and runs in float for HardSwish)."""
+    into its QLinear op for LeakyRelu and Sigmoid and runs in float for HardSwish and Tanh)."""
     rng = np.random.default_rng(11)
     for trial in range(40):
         activations = ("uint8", "int8")[trial % 2]

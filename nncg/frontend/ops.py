@@ -40,7 +40,12 @@ from nncg.frontend.ops_nn import (
 )
 from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
 from nncg.frontend.ops_qconcat import convert_qlinear_concat
-from nncg.frontend.ops_qlookup import convert_qlinear_hard_swish, convert_qlinear_leaky_relu, convert_qlinear_sigmoid
+from nncg.frontend.ops_qlookup import (
+    convert_qlinear_hard_swish,
+    convert_qlinear_leaky_relu,
+    convert_qlinear_sigmoid,
+    convert_qlinear_tanh,
+)
 from nncg.frontend.ops_qmul import convert_qlinear_mul
 from nncg.frontend.ops_qsoftmax import convert_qlinear_softmax
 from nncg.frontend.ops_quantized import (
@@ -180,8 +185,9 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "QLinearMul": ConvertedOp(convert_qlinear_mul, ("QLinearMul",), (1, 2, 4, 5, 6, 7)),
     "QLinearLeakyRelu": ConvertedOp(convert_qlinear_leaky_relu, ("QLinearLookup",), (1, 2, 3, 4)),
     "QLinearSigmoid": ConvertedOp(convert_qlinear_sigmoid, ("QLinearLookup",), (1, 2, 3, 4)),
-    # NNCG's own, written only by qdq.py for a QDQ HardSwish (onnxruntime computes that one in float)
+    # NNCG's own, written only by qdq.py for a QDQ HardSwish or Tanh (onnxruntime computes those in float)
     "QLinearHardSwish": ConvertedOp(convert_qlinear_hard_swish, ("QLinearLookup",), (1, 2, 3, 4)),
+    "QLinearTanh": ConvertedOp(convert_qlinear_tanh, ("QLinearLookup",), (1, 2, 3, 4)),
 }
 
 CONVERTERS: dict[str, Converter] = {name: op.convert for name, op in ONNX_OPS.items()}

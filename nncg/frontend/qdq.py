@@ -6,8 +6,8 @@ A float op whose inputs come from DequantizeLinear nodes and whose only reader i
 computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, and in onnxruntime's
 com.microsoft domain Gemm QGemm, Add QLinearAdd, Mul QLinearMul, Concat QLinearConcat,
 GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool, Softmax QLinearSoftmax,
-LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid; HardSwish becomes NNCG's own
-QLinearHardSwish (these three are table lookups, see ops_qlookup.py).
+LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid; HardSwish and Tanh become NNCG's own
+QLinearHardSwish and QLinearTanh (these four are table lookups, see ops_qlookup.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
 is monotonic, so clamping before it is clamping its result; the real bounds travel beside the nodes
 (QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten,
@@ -381,6 +381,7 @@ REWRITES: dict[str, Callable] = {
     "LeakyRelu": _lookup("QLinearLeakyRelu"),
     "Sigmoid": _lookup("QLinearSigmoid"),
     "HardSwish": _lookup("QLinearHardSwish", NNCG_DOMAIN),
+    "Tanh": _lookup("QLinearTanh", NNCG_DOMAIN),
     **dict.fromkeys(PASS_THROUGH, _pass_through),
     "Pad": _pad,
     "Resize": _resize,
