@@ -44,8 +44,9 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     return graph
 
 
-# Integer operators NNCG does not compile yet, named in the error; dynamic quantisation (scales
-# computed per inference) never will be in generated C.
+# Integer operators with int32 output tensors, refused by name: an int32 tensor would have to live in
+# memory (the verifier keeps int16/int32 in locals), and these usually come with dynamic quantisation
+# (scales computed per inference), which never will be in generated C.
 QUANTIZED_OPS = {"ConvInteger", "MatMulInteger"}
 DYNAMIC_QUANTIZATION = "DynamicQuantizeLinear"
 
@@ -62,8 +63,10 @@ def check_supported(nodes: list[NamedNode]) -> None:
     if types & QUANTIZED_OPS:
         found = ", ".join(sorted(types & QUANTIZED_OPS))
         raise UnsupportedOpsError(
-            f"the model computes in int8 with {found}, which NNCG does not compile yet: quantize it with "
-            "onnxruntime.quantization (QDQ or QOperator format), or compile the float model"
+            f"the model computes in int8 with {found}, whose int32 output tensors NNCG does not compile (its "
+            "int32 values live in registers only): quantize the float model statically with "
+            "onnxruntime.quantization.quantize_static (QDQ, or QOperator: QLinearConv, QLinearMatMul), or "
+            "compile the float model"
         )
     if bad:
         raise UnsupportedOpsError(
