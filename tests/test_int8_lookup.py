@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 import onnx
 import pytest
+from cross_helpers import TOOLCHAINS, missing_tools, runner
 from helpers import kernel_ops, onnx_model, skip_unless_host_runs
-from int8_models import onnxruntime_outputs
+from int8_models import compare, onnxruntime_outputs, random_feeds
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg
@@ -105,6 +106,19 @@ def test_contrib_unary_ops_match_onnxruntime_to_the_bit(op, activations):
 def test_simd_targets(target):
     check(qdq_model("Sigmoid", "int8"), target)
     check(contrib_model("LeakyRelu", "uint8"), target)
+
+
+@pytest.mark.parametrize("toolchain", ["aarch64-neon", "armhf"])
+def test_cross_toolchains(toolchain):
+    """The tables read on ARM (neon, and ansi-c under armhf) under qemu-user: bit-identical too."""
+    tc = TOOLCHAINS[toolchain]
+    if missing_tools(tc):
+        pytest.skip(f"{', '.join(missing_tools(tc))} not installed (scripts/install-test-deps.sh installs it)")
+    for model in (qdq_model("Sigmoid", "int8"), qdq_model("Tanh", "uint8")):
+        compiled = nncg.compile(model, target=tc.target)
+        run = {"cc": tc.cc, "extra_cflags": tc.flags, "runner": runner(tc)}
+        result = compare(model, compiled, random_feeds(model, 3, 1), **run)
+        assert result.max_steps == 0 and result.identical == 1.0, result
 
 
 def _onnxruntime_table(op: str, activations: str, x: tuple, y: tuple) -> np.ndarray:
