@@ -88,3 +88,18 @@ def test_contrib_qlinear_concat(activations):
 @pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512"])
 def test_simd_targets(target):
     check(qdq_model("int8"), target)
+
+
+def test_concat_of_integers_in_a_qoperator_model_moves_them():
+    """A plain Concat of uint8 tensors (QOperator format): the integers are copied."""
+    nodes = [
+        helper.make_node("QuantizeLinear", ["a", "as", "az"], ["q"]),
+        helper.make_node("Concat", ["q", "q"], ["t"], axis=1),
+        helper.make_node("DequantizeLinear", ["t", "as", "az"], ["y"]),
+    ]
+    model = onnx_model(nodes, inputs={"a": SHAPES["a"]}, initializers=_params("uint8", False))
+    compiled = nncg.compile(model, target="ansi-c", verify_ir=True)
+    assert kernel_ops(compiled) == ["QuantizeLinear", "Concat", "DequantizeLinear"]
+    x = (np.random.default_rng(1).standard_normal(SHAPES["a"]) * 8).astype(np.float32)
+    expected = onnxruntime_outputs(model, {"a": x})[0]
+    np.testing.assert_array_equal(run_compiled(compiled, [x])[0].reshape(expected.shape), expected)
