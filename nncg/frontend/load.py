@@ -296,7 +296,7 @@ def _check_shape_keys(graph: onnx.GraphProto, inputs: list, input_shapes: dict) 
 
 def index_outputs(graph: onnx.GraphProto) -> set[str]:
     """Graph outputs declared int64 that an ArgMax or ArgMin computes: the one int64 result NNCG
-    produces (its indices written as float32, see ops_reduce.convert_arg_extreme)."""
+    produces (its indices written as int32, see ops_reduce.convert_arg_extreme)."""
     declared = {v.name for v in graph.output if v.type.tensor_type.elem_type == onnx.TensorProto.INT64}
     arg_extremes = [node for node in graph.node if node.op_type in ("ArgMax", "ArgMin") and not node.domain]
     produced = {node.output[0] for node in arg_extremes if node.output}
