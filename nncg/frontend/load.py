@@ -15,6 +15,7 @@ import onnx.inliner
 from onnx.external_data_helper import load_external_data_for_model, uses_external_data
 
 from nncg.errors import NncgError, NncgWarning, UnsupportedOpsError
+from nncg.frontend.empty_reductions import reduced_empty_inputs
 from nncg.frontend.names import node_names
 from nncg.frontend.shapes import dtype_name, format_shape, inferred_shapes, one_line, static_shape
 from nncg.frontend.wiring import check_operators, check_wiring
@@ -271,6 +272,7 @@ def fix_input_shapes(graph: onnx.GraphProto, input_shapes: dict[str, tuple[int, 
     """Check every real input is float32 and make its shape static, from input_shapes if given."""
     inputs = real_inputs(graph)
     _check_shape_keys(graph, inputs, input_shapes)
+    reduced_away = reduced_empty_inputs(graph)
     for value in inputs:
         _check_float32(value, "input")
         if value.name in input_shapes:
@@ -278,7 +280,7 @@ def fix_input_shapes(graph: onnx.GraphProto, input_shapes: dict[str, tuple[int, 
         elif _only_batch_is_dynamic(value):
             _default_batch(value)
         else:
-            _require_static(value)
+            _require_static(value, value.name in reduced_away)
         check_tensor_size(f"input {shown(value.name)}", static_shape(value))
 
 
@@ -350,9 +352,11 @@ def _default_batch(value: onnx.ValueInfoProto) -> None:
     dims[0].dim_value = 1
 
 
-def _require_static(value: onnx.ValueInfoProto) -> None:
+def _require_static(value: onnx.ValueInfoProto, may_be_empty: bool = False) -> None:
+    """A static shape of sizes >= 1; 0 too for an input only reductions over that axis read."""
     ttype = value.type.tensor_type
-    if ttype.HasField("shape") and all(_is_static(d) for d in ttype.shape.dim):
+    sizes_ok = [_is_static(d) or (may_be_empty and d.HasField("dim_value") and d.dim_value == 0) for d in ttype.shape.dim]
+    if ttype.HasField("shape") and all(sizes_ok):
         return
     declared = format_shape(value.name, value)
     if ttype.HasField("shape") and all(d.HasField("dim_value") for d in ttype.shape.dim):

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
+
 from nncg.frontend.context import SHAPE_HINT, Context, OnnxOp
+from nncg.frontend.empty_reductions import EMPTY_VALUES
 from nncg.frontend.ops_nn import convert_global_pool
 from nncg.ir.graph import ArgMaxAttrs, Node, ReduceAttrs, Shape
 from nncg.limits import INT32_MAX
@@ -28,11 +31,23 @@ def convert_reduce(op: OnnxOp, ctx: Context) -> Node:
     else:
         axes = axes or tuple(range(rank))  # no axes: reduce them all
     keepdims = bool(op.attr("keepdims", 1))
+    if any(shape[a] == 0 for a in axes):
+        return _over_nothing(op, ctx, _reduced_shape(shape, axes, keepdims))
     if op.type == "ReduceMean" and keepdims and rank >= 3 and axes == tuple(range(2, rank)):
         # convert_global_pool names the op after the ONNX type without "Global": set the pool here.
         return replace(convert_global_pool(op, ctx), op="AveragePool")
     ctx.set_shape(op, op.node.output[0], _reduced_shape(shape, axes, keepdims))
     return op.ir_node(op.type, [x], ReduceAttrs(axes, keepdims))
+
+
+def _over_nothing(op: OnnxOp, ctx: Context, shape: Shape) -> Node:
+    """A reduction over an empty axis: its value over no elements, a constant (load_model admits an
+    empty input only for this)."""
+    if op.type not in EMPTY_VALUES:
+        raise op.error("reduces an empty axis, which NNCG compiles only for " + ", ".join(EMPTY_VALUES))
+    ctx.set_shape(op, op.node.output[0], shape)
+    value = ctx.add_constant(f"{op.node.output[0]}_empty", np.full(shape, EMPTY_VALUES[op.type], np.float32))
+    return op.ir_node("Identity", [value])
 
 
 def convert_arg_extreme(op: OnnxOp, ctx: Context) -> Node:
