@@ -40,10 +40,11 @@ def harness_source(
 
     Inputs are read from the files named first on the command line (raw little-endian float32),
     or, given as arrays, compiled in. Outputs are written to the files named next (same format; an
-    int32 output, ArgMax's indices, as little-endian int32), or printed as `outputs` says. Outputs start as all-ones bytes (a NaN), so an element the model
-    never writes shows up. The model runs once, or with `commands` (POSIX) as lines on stdin say:
-    "run N" times N calls and answers nanoseconds, "profile" answers seconds per layer (a profile
-    build, with `profile`), "outputs" writes the outputs and answers "ok", anything else quits."""
+    int32 output, ArgMax's indices, as little-endian int32), or printed as `outputs` says. Outputs
+    start as all-ones bytes (a NaN; index -1), so an element the model never writes shows up. The
+    model runs once, or with `commands` (POSIX) as lines on stdin say: "run N" times N calls and
+    answers nanoseconds, "profile" answers seconds per layer (a profile build, with `profile`),
+    "outputs" writes the outputs and answers "ok", anything else quits."""
     if commands and outputs is not None:
         raise NncgError("a harness driven by commands writes its outputs to files")
     parts = _Parts(compiled, inputs, outputs, commands, profile)
@@ -103,7 +104,9 @@ class _Parts:
         else:
             lines = [f"static const float nncg_in{i}[{max(a.size, 1)}] = {{\n{_c_floats(a)}\n}};"
                      for i, a in enumerate(self.baked)]  # fmt: skip
-        lines += [f"static {t} nncg_out{i}[{max(n, 1)}];" for i, (t, n) in enumerate(zip(self.out_types, self.out_sizes))]
+        lines += [
+            f"static {t} nncg_out{i}[{max(n, 1)}];" for i, (t, n) in enumerate(zip(self.out_types, self.out_sizes))
+        ]
         if self.weights_file:
             lines.append("static const void *nncg_weights;")
         if self.profile:

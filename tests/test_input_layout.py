@@ -40,7 +40,9 @@ def test_tf2onnx_transpose_at_the_input_means_nhwc_whatever_the_producer():
 
 def test_producer_name_alone_says_nothing():
     conv = helper.make_node("Conv", ["x", "w"], ["y"])
-    model = onnx_model([conv], inputs={"x": [1, 3, 5, 6]}, outputs={"y": [1, 2, 5, 6]}, initializers={"w": weights(2, 3, 1, 1)})
+    model = onnx_model(
+        [conv], inputs={"x": [1, 3, 5, 6]}, outputs={"y": [1, 2, 5, 6]}, initializers={"w": weights(2, 3, 1, 1)}
+    )
     model.producer_name = "tf2onnx"
     assert graph_layout(model) == "nchw"
     assert "NHWC" not in nncg.compile(model).header
@@ -49,10 +51,16 @@ def test_producer_name_alone_says_nothing():
 def test_one_channel_reshape_and_axis_blind_ops_before_the_transpose():
     reshape = helper.make_node("Reshape", ["x", "shape"], ["t"])
     assert graph_layout(conv_after([reshape], channels=1, shape=(1, 5, 6, 1))) == "nhwc"
-    rescale = [helper.make_node("Mul", ["x", "half"], ["m"]), helper.make_node("Transpose", ["m"], ["t"], perm=[0, 3, 1, 2])]
+    rescale = [
+        helper.make_node("Mul", ["x", "half"], ["m"]),
+        helper.make_node("Transpose", ["m"], ["t"], perm=[0, 3, 1, 2]),
+    ]
     assert graph_layout(conv_after(rescale)) == "nhwc"
     # A per-channel Mul depends on the layout: the graph no longer shows it, ONNX's NCHW is assumed.
-    per_channel = [helper.make_node("Mul", ["x", "per_c"], ["m"]), helper.make_node("Transpose", ["m"], ["t"], perm=[0, 3, 1, 2])]
+    per_channel = [
+        helper.make_node("Mul", ["x", "per_c"], ["m"]),
+        helper.make_node("Transpose", ["m"], ["t"], perm=[0, 3, 1, 2]),
+    ]
     assert graph_layout(conv_after(per_channel)) == "nchw"
     assert model_layout(conv_after(per_channel), default="nhwc") == "nchw"
 

@@ -37,7 +37,9 @@ def header(program: Program, first_line: str, input_layout: str | None = None) -
         layout = "row-major as in ONNX"
         if input_layout and buf.role == BufferRole.INPUT and len(buf.shape) == 4:
             layout = LAYOUT_NOTES[input_layout]
-        lines.append(f"/* {buf.role} {comment_name(buf.onnx_name)}: {buf.dtype}[{shape}], {layout}{_index_note(buf)} */")
+        lines.append(
+            f"/* {buf.role} {comment_name(buf.onnx_name)}: {buf.dtype}[{shape}], {layout}{_index_note(buf)} */"
+        )
         lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
     lines += [
         "",

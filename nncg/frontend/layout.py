@@ -47,7 +47,7 @@ _TO_NCHW = (0, 3, 1, 2)
 
 
 def graph_layout(model: onnx.ModelProto) -> str | None:
-    """"nhwc" when the graph converts each 4-D input to NCHW before computing on it (a Transpose by
+    """ "nhwc" when the graph converts each 4-D input to NCHW before computing on it (a Transpose by
     (0, 3, 1, 2); with one channel, tf2onnx's Reshape of (N, H, W, 1) to (N, 1, H, W)), past ops blind
     to axes; "nchw" when one input goes to any other op first (a Conv, or the Transpose by (0, 2, 3, 1)
     with_input_layout inserts for "nchw" before tf2onnx's own); None without 4-D inputs."""
@@ -107,7 +107,6 @@ def _constant(graph: onnx.GraphProto, name: str) -> list[int] | None:
         if node.op_type == "Constant" and node.output[0] == name and node.attribute[0].HasField("t"):
             return numpy_helper.to_array(node.attribute[0].t).tolist()
     return None
-
 
 
 def image_inputs(model: onnx.ModelProto) -> list[onnx.ValueInfoProto]:

@@ -355,7 +355,9 @@ def _default_batch(value: onnx.ValueInfoProto) -> None:
 def _require_static(value: onnx.ValueInfoProto, may_be_empty: bool = False) -> None:
     """A static shape of sizes >= 1; 0 too for an input only reductions over that axis read."""
     ttype = value.type.tensor_type
-    sizes_ok = [_is_static(d) or (may_be_empty and d.HasField("dim_value") and d.dim_value == 0) for d in ttype.shape.dim]
+    sizes_ok = [
+        _is_static(d) or (may_be_empty and d.HasField("dim_value") and d.dim_value == 0) for d in ttype.shape.dim
+    ]
     if ttype.HasField("shape") and all(sizes_ok):
         return
     declared = format_shape(value.name, value)
