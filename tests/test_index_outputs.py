@@ -108,3 +108,12 @@ def test_cortex_m4_prints_int32_indices(tmp_path):
     result = run_cortex_m4(compiled, inputs, tmp_path)
     assert result.outputs[0].dtype == np.int32
     np.testing.assert_array_equal(result.outputs[0], reference_outputs(model, compiled.inputs, inputs)[0])
+
+
+@needs_cc
+def test_per_layer_verification_compares_the_indices_too():
+    from nncg.verify_layers import verify_per_layer
+
+    report = verify_per_layer(_model("ArgMin"), "ansi-c")
+    assert report.ok
+    assert [(layer.stat.name, layer.stat.indices) for layer in report.layers] == [("t", False), ("y", True)]
