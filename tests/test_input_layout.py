@@ -65,6 +65,16 @@ def test_one_channel_reshape_and_axis_blind_ops_before_the_transpose():
     assert model_layout(conv_after(per_channel), default="nhwc") == "nchw"
 
 
+def test_axis_blind_ops_alone_say_nothing():
+    """Relu then the output: no conversion anywhere, so the input is ONNX's NCHW."""
+    relu = onnx_model([helper.make_node("Relu", ["x"], ["y"])], inputs={"x": [1, 2, 3, 4]}, outputs={"y": [1, 2, 3, 4]})
+    assert graph_layout(relu) == "nchw"
+    branch = [NHWC_TO_NCHW, helper.make_node("Relu", ["x"], ["r"])]  # x also read as it is
+    model = conv_after(branch)
+    model.graph.output.append(helper.make_tensor_value_info("r", onnx.TensorProto.FLOAT, [1, 5, 6, 3]))
+    assert graph_layout(model) == "nchw"
+
+
 def test_no_image_inputs_leave_the_default():
     relu = onnx_model([helper.make_node("Relu", ["x"], ["y"])], inputs={"x": [2, 3]}, outputs={"y": [2, 3]})
     assert graph_layout(relu) is None

@@ -63,11 +63,13 @@ def _input_layout(graph: onnx.GraphProto, value: onnx.ValueInfoProto) -> str:
     for node in graph.node:
         for name in set(node.input):
             readers.setdefault(name, []).append(node)
-    values = _single_values(graph)
+    values, returned = _single_values(graph), {v.name for v in graph.output}
     frontier, seen = [value.name], set()
     while frontier:
         name = frontier.pop()
-        for node in readers.get(name, []):
+        if name in returned or name not in readers:
+            return "nchw"  # a path that never converts: nothing says the layout is not ONNX's own
+        for node in readers[name]:
             if id(node) in seen:
                 continue
             seen.add(id(node))
@@ -76,7 +78,7 @@ def _input_layout(graph: onnx.GraphProto, value: onnx.ValueInfoProto) -> str:
                 frontier += [o for o in node.output if o]
             elif not _to_nchw(node, dims, graph):
                 return "nchw"
-    return "nhwc" if seen else "nchw"
+    return "nhwc"
 
 
 def _to_nchw(node: onnx.NodeProto, dims: list[int | None], graph: onnx.GraphProto) -> bool:
