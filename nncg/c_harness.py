@@ -18,7 +18,8 @@ INDENT = "    "
 
 @dataclass(frozen=True)
 class PrintedOutputs:
-    """Outputs printed as the 8 hex digits of each float's bits, one per line, through the C function
+    """Outputs printed as the 8 hex digits of each element's 32 bits (a float's, or an int32 index's
+    two's complement), one per line, through the C function
     `put` (takes a string; semihosting on bare metal) declared in `include`; then the C statements
     `after` run (a stack report, say)."""
 
@@ -38,11 +39,12 @@ def harness_source(
     """A C89 program calling `compiled` (a CompiledModel, or anything with its name, inputs, outputs).
 
     Inputs are read from the files named first on the command line (raw little-endian float32),
-    or, given as arrays, compiled in. Outputs are written to the files named next (same format), or
-    printed as `outputs` says. Outputs start as all-ones bytes (a NaN), so an element the model
-    never writes shows up. The model runs once, or with `commands` (POSIX) as lines on stdin say:
-    "run N" times N calls and answers nanoseconds, "profile" answers seconds per layer (a profile
-    build, with `profile`), "outputs" writes the outputs and answers "ok", anything else quits."""
+    or, given as arrays, compiled in. Outputs are written to the files named next (same format; an
+    int32 output, ArgMax's indices, as little-endian int32), or printed as `outputs` says. Outputs
+    start as all-ones bytes (a NaN; index -1), so an element the model never writes shows up. The
+    model runs once, or with `commands` (POSIX) as lines on stdin say: "run N" times N calls and
+    answers nanoseconds, "profile" answers seconds per layer (a profile build, with `profile`),
+    "outputs" writes the outputs and answers "ok", anything else quits."""
     if commands and outputs is not None:
         raise NncgError("a harness driven by commands writes its outputs to files")
     parts = _Parts(compiled, inputs, outputs, commands, profile)
@@ -63,6 +65,7 @@ class _Parts:
         self.name = compiled.name
         self.in_sizes = [_element_count(spec.shape) for spec in compiled.inputs]
         self.out_sizes = [_element_count(spec.shape) for spec in compiled.outputs]
+        self.out_types = [C_TYPES[getattr(spec, "dtype", "float32")] for spec in compiled.outputs]
         self.baked = None if inputs is None else list(inputs)
         self.printed = outputs
         self.commands = commands
@@ -101,7 +104,9 @@ class _Parts:
         else:
             lines = [f"static const float nncg_in{i}[{max(a.size, 1)}] = {{\n{_c_floats(a)}\n}};"
                      for i, a in enumerate(self.baked)]  # fmt: skip
-        lines += [f"static float nncg_out{i}[{max(n, 1)}];" for i, n in enumerate(self.out_sizes)]
+        lines += [
+            f"static {t} nncg_out{i}[{max(n, 1)}];" for i, (t, n) in enumerate(zip(self.out_types, self.out_sizes))
+        ]
         if self.weights_file:
             lines.append("static const void *nncg_weights;")
         if self.profile:
@@ -121,7 +126,8 @@ class _Parts:
         if self.printed is None and self.out_sizes:
             pieces.append(WRITE_FLOATS)
         if self.printed is not None:
-            pieces.append(PRINT_FLOATS.format(put=self.printed.put))
+            pieces.append(PRINT_HEX.format(put=self.printed.put))
+            pieces += [PRINT_WORDS[t] for t in C_TYPES.values() if t in self.out_types]
         return pieces
 
     # --- main
@@ -153,10 +159,14 @@ class _Parts:
 
     def deliver_outputs(self) -> list[str]:
         if self.printed is not None:
-            return [f"nncg_print_floats(nncg_out{i}, {n}UL);" for i, n in enumerate(self.out_sizes)]
+            return [
+                f"nncg_print_{PRINTED[t]}(nncg_out{i}, {n}UL);"
+                for i, (t, n) in enumerate(zip(self.out_types, self.out_sizes))
+            ]
         first = 1 + len(self.files) - len(self.out_sizes)
         return [
-            f"if (!nncg_write(argv[{first + i}], nncg_out{i}, {n}UL)) return 1;" for i, n in enumerate(self.out_sizes)
+            f"if (!nncg_write(argv[{first + i}], nncg_out{i}, sizeof nncg_out{i}[0], {n}UL)) return 1;"
+            for i, n in enumerate(self.out_sizes)
         ]
 
     def after(self) -> list[str]:
@@ -237,9 +247,12 @@ static const void *nncg_load_weights(void)
 }}
 """
 
+# The C type of an output array, by the output's dtype; nncg_int32 comes from the model's header.
+C_TYPES = {"float32": "float", "int32": "nncg_int32"}
+
 SWAP_IF_BIG_ENDIAN = """\
-/* Converts between little-endian file data and native floats (a no-op on little-endian hosts). */
-static void nncg_swap_if_big_endian(float *data, unsigned long count)
+/* Converts between little-endian file data and native 4-byte words (a no-op on little-endian hosts). */
+static void nncg_swap_if_big_endian(void *data, unsigned long count)
 {
     unsigned int one = 1;
     unsigned char *p = (unsigned char *)data;
@@ -270,9 +283,10 @@ static int nncg_read(const char *path, float *data, unsigned long count)
 }
 """
 
-# Swaps the outputs in place on a big-endian machine, so it swaps them back after writing.
+# Swaps the outputs (4-byte floats or int32s) in place on a big-endian machine, so it swaps them back
+# after writing.
 WRITE_FLOATS = """\
-static int nncg_write(const char *path, float *data, unsigned long count)
+static int nncg_write(const char *path, void *data, size_t size, unsigned long count)
 {
     FILE *f = fopen(path, "wb");
     int ok;
@@ -281,7 +295,7 @@ static int nncg_write(const char *path, float *data, unsigned long count)
         return 0;
     }
     nncg_swap_if_big_endian(data, count);
-    ok = fwrite(data, sizeof(float), count, f) == count;
+    ok = fwrite(data, size, count, f) == count;
     nncg_swap_if_big_endian(data, count);
     ok = fclose(f) == 0 && ok;
     if (!ok) fprintf(stderr, "harness: cannot write %s\\n", path);
@@ -289,7 +303,7 @@ static int nncg_write(const char *path, float *data, unsigned long count)
 }
 """
 
-PRINT_FLOATS = """\
+PRINT_HEX = """\
 static void nncg_print_hex(uint32_t value)
 {{
     static const char digits[] = "0123456789abcdef";
@@ -300,14 +314,27 @@ static void nncg_print_hex(uint32_t value)
     line[9] = 0;
     {put}(line);
 }}
+"""
 
+# The print function of each output C type (its name's suffix, then its definition).
+PRINTED = {"float": "floats", "nncg_int32": "int32s"}
+PRINT_WORDS = {
+    "float": """\
 static void nncg_print_floats(const float *data, unsigned long count)
-{{
+{
     unsigned long i;
     uint32_t bits;
-    for (i = 0; i < count; ++i) {{
+    for (i = 0; i < count; ++i) {
         memcpy(&bits, &data[i], sizeof bits);
         nncg_print_hex(bits);
-    }}
-}}
-"""
+    }
+}
+""",
+    "nncg_int32": """\
+static void nncg_print_int32s(const nncg_int32 *data, unsigned long count)
+{
+    unsigned long i;
+    for (i = 0; i < count; ++i) nncg_print_hex((uint32_t)data[i]);
+}
+""",
+}

@@ -23,8 +23,8 @@ from .bench.macs import macs_by_layer
 from .cmake import CMAKE_LISTS, cmake_file
 from .errors import NncgError
 from .frontend import import_onnx
-from .frontend.keras_export import is_keras_model, is_keras_path, keras_to_onnx
-from .frontend.layout import model_layout, with_input_layout
+from .frontend.keras_export import is_keras_model, is_keras_path, keras_layout, keras_to_onnx
+from .frontend.layout import graph_layout, model_layout, with_input_layout
 from .frontend.load import read_model
 from .frontend.torch_export import DEFAULT_EXPORTER, export_onnx, is_torch_module
 from .ir.c_names import program_name
@@ -47,11 +47,13 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class Param:
-    """A parameter of the generated function: the ONNX tensor name, its C name and shape."""
+    """A parameter of the generated function: the ONNX tensor name, its C name, shape and element
+    type (numpy's name: float32, or int32 for ArgMax/ArgMin indices)."""
 
     name: str
     c_name: str
     shape: tuple[int, ...]
+    dtype: str = "float32"
 
 
 @dataclass(frozen=True)
@@ -223,17 +225,21 @@ def onnx_model(model, input_layout: str | None = None, example_inputs=None, expo
     """What compile() imports: `model` as ONNX (a torch or Keras model exported, a Keras file converted;
     an ONNX source as it is unless `input_layout` changes it) and the layout its header names for the
     4-D inputs (None: as in ONNX). Raises NncgError."""
+    keras = is_keras_model(model) or is_keras_path(model)
     if is_torch_module(model):
         model = export_onnx(model, example_inputs, exporter)
-    elif is_keras_model(model) or is_keras_path(model):
+    elif keras:
         model = keras_to_onnx(model)
     if input_layout is not None:
         proto = model if isinstance(model, onnx.ModelProto) else read_model(model)
-        if model_layout(proto) != input_layout:  # else a path stays a path: its name and hash
-            model = with_input_layout(proto, input_layout)
+        own = model_layout(proto, keras_layout() if keras else "nchw")
+        if own != input_layout:  # else a path stays a path: its name and hash
+            model = with_input_layout(proto, input_layout, own)
         return model, input_layout
-    tf2onnx = isinstance(model, onnx.ModelProto) and model.producer_name.startswith("tf2onnx")
-    return model, (model_layout(model) if tf2onnx else None)
+    if keras:  # the graph may not show it (one channel and a Reshape); Keras says it then
+        return model, model_layout(model, keras_layout())
+    shows_nhwc = isinstance(model, onnx.ModelProto) and graph_layout(model) == "nhwc"  # (a path is not read twice)
+    return model, ("nhwc" if shows_nhwc else None)
 
 
 def emit(
@@ -259,7 +265,7 @@ def emit(
     params = {b.name: b for b in program.buffers if b.role in ("input", "output")}
 
     def param(role: str) -> tuple[Param, ...]:
-        return tuple(Param(b.onnx_name, b.name, b.shape) for b in params.values() if b.role == role)
+        return tuple(Param(b.onnx_name, b.name, b.shape, str(b.dtype)) for b in params.values() if b.role == role)
 
     return CompiledModel(
         name=program.name,

@@ -23,7 +23,8 @@ from typing import Any
 import onnx
 
 from nncg.frontend.folding import NONDETERMINISTIC
-from nncg.frontend.ops import SUPPORTED_OPS
+from nncg.frontend.load import index_outputs
+from nncg.frontend.ops import PARAMETER_INPUTS, SUPPORTED_OPS
 
 # Ops whose result is known at compile time from static shapes alone.
 _SHAPE_OPS = {"Shape", "Size"}
@@ -61,8 +62,11 @@ EXCLUDED: dict[str, str] = {
     "test_reshape_allowzero_reordered": f"empty input (a 0-sized dim): {_EMPTY}",
     "test_slice_start_out_of_bounds": f"empty output (start past the end of the axis): {_EMPTY}",
     r"test_split_zero_size_splits_opset\d+": f"empty tensors (zero-size splits): {_EMPTY}",
-    r"test_reduce_.*_empty_set(_expanded)?": f"empty input (a 0-sized reduced axis): {_EMPTY}",
-    "test_reduce_sum_empty_set_non_reduced_axis_zero": f"empty input (a 0-sized axis): {_EMPTY}",
+    r"test_reduce_.*_empty_set_expanded": (
+        f"elementwise ops on an empty input (the expansion's Abs or Mul before its ReduceSum): {_EMPTY}, "
+        "but for an input only reduced over its empty axis"
+    ),
+    "test_reduce_sum_empty_set_non_reduced_axis_zero": f"empty output (a 0-sized axis kept): {_EMPTY}",
     # --- attribute combinations NNCG refuses with a clear error ------------------------------------
     # --- where onnx's reference and onnxruntime disagree: NNCG follows onnxruntime ---------------------
     r"test_resize_downsample_scales_(linear|cubic)_align_corners": (
@@ -141,6 +145,31 @@ def select_node_cases(supported: Iterable[str] = SUPPORTED_OPS) -> list[NodeCase
         if op in supported and ops and ops <= supported:
             selected.append(NodeCase(name, op, ops))
     return selected
+
+
+def is_float32_case(name: str) -> bool:
+    """Whether a node test case computes on float32 data: every graph output, and every graph input
+    some node reads as data (not in a PARAMETER_INPUTS slot: shapes, axes, indices), holds float32
+    (ArgMax/ArgMin's int64 indices aside; a sequence or optional holds float32 tensors)."""
+    graph = node_test_cases()[name].model.graph
+    data = set()
+    for node in graph.node:
+        params = PARAMETER_INPUTS.get(node.op_type, ()) if node.domain in ("", "ai.onnx") else ()
+        data |= {i for index, i in enumerate(node.input) if i and index not in params}
+    indices = index_outputs(graph)
+    values = [v for v in graph.input if v.name in data] + [v for v in graph.output if v.name not in indices]
+    return all(_holds_float32(v.type) for v in values)
+
+
+def _holds_float32(value_type: onnx.TypeProto) -> bool:
+    kind = value_type.WhichOneof("value")
+    if kind == "tensor_type":
+        return value_type.tensor_type.elem_type == onnx.TensorProto.FLOAT
+    if kind == "sequence_type":
+        return _holds_float32(value_type.sequence_type.elem_type)
+    if kind == "optional_type":
+        return _holds_float32(value_type.optional_type.elem_type)
+    return False
 
 
 def exclusion_reason(name: str) -> str | None:

@@ -57,7 +57,7 @@ class _Build:
     compiled: CompiledModel
     built: BuiltModel
     workdir: tempfile.TemporaryDirectory  # removed when the build is garbage collected
-    index_outputs: frozenset[str] = frozenset()  # ArgMax/ArgMin outputs: int64 in ONNX, float32 in the C
+    index_outputs: frozenset[str] = frozenset()  # ArgMax/ArgMin outputs: int64 in ONNX, int32 in the C
 
 
 class NncgBackendRep(BackendRep):

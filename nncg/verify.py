@@ -41,7 +41,8 @@ class VerificationError(NncgError):
 
 @dataclass(frozen=True)
 class ErrorStat:
-    """How far one output is from the reference; `problem` is set when the numbers are not comparable.
+    """How far one output is from the reference; `problem` is set when the numbers are not comparable
+    (and when indices differ: they are compared exactly).
 
     max_rel is max|out - ref| / max(max|ref|, 1e-12): the error relative to the output's scale.
     Element-wise relative error is meaningless where the reference crosses zero (any rounding
@@ -53,6 +54,7 @@ class ErrorStat:
     max_abs: float
     max_rel: float
     problem: str | None = None
+    indices: bool = False  # integer indices (ArgMax/ArgMin), compared exactly: any difference fails
 
 
 @dataclass(frozen=True)
@@ -272,11 +274,13 @@ def _build_and_run(
 
 
 def _read_output(path: Path, spec: Any) -> np.ndarray:
-    data = np.fromfile(path, dtype="<f4")
+    """An output file: little-endian float32, or int32 for an output of indices (spec.dtype)."""
+    dtype = np.dtype(getattr(spec, "dtype", "float32"))
+    data = np.fromfile(path, dtype=dtype.newbyteorder("<"))
     shape = tuple(spec.shape)
     if data.size != _element_count(shape):
-        raise VerificationError(f"output {spec.name!r}: expected {_element_count(shape)} floats, got {data.size}")
-    return data.astype(np.float32).reshape(shape)
+        raise VerificationError(f"output {spec.name!r}: expected {_element_count(shape)} values, got {data.size}")
+    return data.astype(dtype).reshape(shape)
 
 
 def reference_outputs(
@@ -307,6 +311,8 @@ def _error_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
     shape = tuple(out.shape)
     if out.shape != ref.shape:
         return ErrorStat(name, shape, math.inf, math.inf, f"shape {shape} != reference shape {tuple(ref.shape)}")
+    if out.dtype.kind in "iu" or ref.dtype.kind in "iu":
+        return _index_stat(name, out, ref)
     out64, ref64 = out.astype(np.float64), ref.astype(np.float64)
     ref_nan = np.isnan(ref64)
     bad_nan = int(np.count_nonzero(np.isnan(out64) & ~ref_nan))
@@ -319,6 +325,19 @@ def _error_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
     max_abs = float(diff.max()) if diff.size else 0.0
     scale = max(float(finite_ref.max()) if finite_ref.size else 0.0, 1e-12)
     return ErrorStat(name, shape, max_abs, max_abs / scale)
+
+
+def _index_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
+    """Indices (ArgMax's int32 against onnxruntime's int64) must be equal: any difference is a problem."""
+    shape = tuple(out.shape)
+    if out.dtype.kind not in "iu" or ref.dtype.kind not in "iu":
+        return ErrorStat(name, shape, math.inf, math.inf, f"{out.dtype} output where the reference is {ref.dtype}")
+    differ = int(np.count_nonzero(out.astype(np.int64) != ref.astype(np.int64)))
+    if differ:
+        worst = float(np.abs(out.astype(np.int64) - ref.astype(np.int64)).max())
+        problem = f"{differ} of {out.size} indices differ from the reference"
+        return ErrorStat(name, shape, worst, math.inf, problem, indices=True)
+    return ErrorStat(name, shape, 0.0, 0.0, indices=True)
 
 
 def compare(

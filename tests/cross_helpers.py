@@ -267,8 +267,9 @@ def _parse_output(text: str, compiled: CompiledModel) -> tuple[list[np.ndarray],
     sizes = [int(np.prod(spec.shape)) for spec in compiled.outputs]
     if bits.size != sum(sizes):
         raise VerificationError(f"the Cortex-M4 program printed {bits.size} floats, expected {sum(sizes)}")
-    chunks = np.split(bits.view(np.float32), np.cumsum(sizes)[:-1])
-    return [c.reshape(spec.shape) for c, spec in zip(chunks, compiled.outputs)], int(words[marker + 1], 16)
+    chunks = np.split(bits, np.cumsum(sizes)[:-1])  # each output's 32-bit words: float32 or int32 (indices)
+    outputs = [c.view(np.dtype(spec.dtype)).reshape(spec.shape) for c, spec in zip(chunks, compiled.outputs)]
+    return outputs, int(words[marker + 1], 16)
 
 
 def run_cortex_m4(compiled: CompiledModel, inputs: Sequence[np.ndarray], workdir: Path, **memory) -> CortexM4Result:

@@ -181,7 +181,7 @@ def test_argmax_with_a_bad_axis_is_refused():
 
 
 def test_other_int64_outputs_are_still_refused():
-    """Only an ArgMax/ArgMin output may be int64 (its floats are exact indices)."""
+    """Only an ArgMax/ArgMin output may be int64 (NNCG writes its indices as int32)."""
     nodes = [helper.make_node("ArgMax", ["x"], ["a"]), helper.make_node("Identity", ["a"], ["y"])]
     m = onnx_model(nodes, inputs={"x": (2, 7)}, outputs={"y": INDEX_OUTPUT})
     with pytest.raises(NncgError, match="output 'y' is int64"):

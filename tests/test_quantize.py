@@ -247,9 +247,18 @@ def test_several_inputs_from_an_npz(tmp_path):
 
 
 def test_a_tf2onnx_model_keeps_its_nhwc_layout():
-    model = dense_model()
+    """The input's layout is read from the graph (tf2onnx's Transpose to NCHW), which the quantize-
+    dequantize pair before it leaves readable; the producer is kept too."""
+    nodes = [
+        helper.make_node("Transpose", ["x"], ["t"], perm=[0, 3, 1, 2]),
+        helper.make_node("Conv", ["t", "w"], ["y"]),
+    ]
+    model = onnx_model(
+        nodes, inputs={"x": [1, 4, 4, 3]}, outputs={"y": [1, 2, 4, 4]}, initializers={"w": weights(2, 3, 1, 1)}
+    )
     model.producer_name, model.producer_version = "tf2onnx", "1.17.0"
-    qdq = nncg.quantize(model, np.ones((2, 1, 16), np.float32))
+    assert model_layout(model) == "nhwc"
+    qdq = nncg.quantize(model, np.ones((2, 1, 4, 4, 3), np.float32))
     assert (qdq.producer_name, qdq.producer_version) == ("tf2onnx", "1.17.0")
     assert model_layout(qdq) == "nhwc"
 

@@ -3,9 +3,10 @@ points' signatures (which the .c repeats)."""
 
 from __future__ import annotations
 
-from ..ir.kinds import BufferRole
+from ..ir.kinds import BufferRole, DType
 from ..ir.loops import Program
 from ..safe_text import comment_name
+from .c_integer import HEADER_TYPEDEFS, c_type, has_integer_io
 from .weights import external_weights, weights_header
 
 LAYOUT_NOTES = {
@@ -29,12 +30,16 @@ def header(program: Program, first_line: str, input_layout: str | None = None) -
         "#endif",
         "",
     ]
+    if has_integer_io(program):
+        lines += [*HEADER_TYPEDEFS, ""]
     for buf in (*program.role(BufferRole.INPUT), *program.role(BufferRole.OUTPUT)):
         shape = ",".join(map(str, buf.shape))
         layout = "row-major as in ONNX"
         if input_layout and buf.role == BufferRole.INPUT and len(buf.shape) == 4:
             layout = LAYOUT_NOTES[input_layout]
-        lines.append(f"/* {buf.role} {comment_name(buf.onnx_name)}: float32[{shape}], {layout} */")
+        lines.append(
+            f"/* {buf.role} {comment_name(buf.onnx_name)}: {buf.dtype}[{shape}], {layout}{_index_note(buf)} */"
+        )
         lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
     lines += [
         "",
@@ -71,7 +76,14 @@ def run_signature(program: Program) -> str:
     return f"void {program.name}_run({', '.join([*_io_params(program), 'void *arena'])})"
 
 
+def _index_note(buf) -> str:
+    """What an int32 output holds: ArgMax/ArgMin indices (the only integer output NNCG produces)."""
+    if buf.dtype != DType.INT32:
+        return ""
+    return "; indices (ArgMax/ArgMin), int32 where ONNX says int64: C89 has no guaranteed 64-bit type"
+
+
 def _io_params(program: Program) -> list[str]:
-    params = [f"const float *{b.name}" for b in program.role(BufferRole.INPUT)]
-    params += [f"float *{b.name}" for b in program.role(BufferRole.OUTPUT)]
+    params = [f"const {c_type(b.dtype)} *{b.name}" for b in program.role(BufferRole.INPUT)]
+    params += [f"{c_type(b.dtype)} *{b.name}" for b in program.role(BufferRole.OUTPUT)]
     return params + (["const void *weights"] if external_weights(program) else [])

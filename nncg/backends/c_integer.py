@@ -7,7 +7,7 @@ partial products, each below 2^32, are summed with their carries in unsigned lon
 
 from __future__ import annotations
 
-from ..ir.kinds import DType
+from ..ir.kinds import BufferRole, DType
 from ..ir.loops import Program, Requantize, RequantizeFixed, stmt_exprs, walk_exprs, walk_stmts
 
 C_TYPES = {
@@ -21,18 +21,30 @@ C_TYPES = {
 
 # signed char and short hold int8 and int16 on every two's complement machine; int holds int32
 # where INT_MAX says so, else long (at least 32 bits in C89).
-TYPEDEFS = (
-    "#include <limits.h>",
+INT32_TYPEDEF = (
+    "#if INT_MAX >= 2147483647",
+    "typedef int nncg_int32;",
+    "#else",
+    "typedef long nncg_int32;",
+    "#endif",
+)
+SMALL_TYPEDEFS = (
     "#if SCHAR_MIN > -128",
     '#error "the int8 code needs a signed char that holds -128"',
     "#endif",
     "typedef signed char nncg_int8;",
     "typedef unsigned char nncg_uint8;",
     "typedef short nncg_int16;",
-    "#if INT_MAX >= 2147483647",
-    "typedef int nncg_int32;",
-    "#else",
-    "typedef long nncg_int32;",
+)
+TYPEDEFS = ("#include <limits.h>", *SMALL_TYPEDEFS, *INT32_TYPEDEF)
+# The header's nncg_int32, for a function with int32 outputs (ArgMax's indices): guarded, so that
+# headers of several models can be included together, and then not repeated by the .c file.
+HEADER_INT32_GUARD = "NNCG_INT32_DEFINED"
+HEADER_TYPEDEFS = (
+    "#include <limits.h>",
+    f"#ifndef {HEADER_INT32_GUARD}",
+    f"#define {HEADER_INT32_GUARD}",
+    *INT32_TYPEDEF,
     "#endif",
 )
 
@@ -83,8 +95,13 @@ def c_type(dtype: DType) -> str:
     return C_TYPES[DType(dtype)]
 
 
+def has_integer_io(program: Program) -> bool:
+    """Whether an input or output of the function is not float32: its header defines nncg_int32."""
+    return any(b.dtype != DType.FLOAT32 for b in program.buffers if b.role in (BufferRole.INPUT, BufferRole.OUTPUT))
+
+
 def integer_preamble(program: Program) -> list[str]:
-    """The typedefs and the helpers the program calls; nothing for a float program."""
+    """The typedefs (but the header's) and the helpers the program calls; nothing for a float program."""
     if all(b.dtype == DType.FLOAT32 for b in program.buffers):
         return []
     kinds = {
@@ -95,7 +112,11 @@ def integer_preamble(program: Program) -> list[str]:
         for e in walk_exprs(top)
         if isinstance(e, Requantize | RequantizeFixed)
     }
-    lines = ["", *TYPEDEFS]
+    typedefs = TYPEDEFS
+    if has_integer_io(program):  # the header has <limits.h> and nncg_int32
+        small = any(b.dtype in (DType.INT8, DType.UINT8, DType.INT16) for b in program.buffers)
+        typedefs = SMALL_TYPEDEFS if small else ()
+    lines = ["", *typedefs] if typedefs else []
     for kind, helper in ((Requantize, REQUANTIZE), (RequantizeFixed, REQUANTIZE_FIXED)):
         lines += ["", *helper] if kind in kinds else []
     return lines

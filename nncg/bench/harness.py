@@ -85,7 +85,7 @@ class CompiledHarness:
     def outputs(self) -> list[np.ndarray]:
         self._ask("outputs")
         return [
-            np.fromfile(self.workdir / path, dtype="<f4").reshape(p.shape)
+            np.fromfile(self.workdir / path, dtype=np.dtype(p.dtype).newbyteorder("<")).reshape(p.shape)
             for path, p in zip(self.out_files, self.compiled.outputs)
         ]
 

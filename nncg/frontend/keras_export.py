@@ -203,6 +203,12 @@ def _saved_model_function(tf, path: str, where: str):
     return inference, signature, os.path.basename(os.path.normpath(path))
 
 
+def keras_layout() -> str:
+    """The image layout Keras builds layers in (keras.config.image_data_format; channels_last unless
+    the user set it), for a converted model whose graph does not show its inputs' layout."""
+    return "nhwc" if _require("keras").config.image_data_format() == "channels_last" else "nchw"
+
+
 def _require(package: str):
     try:
         return importlib.import_module(package)

@@ -4,19 +4,23 @@ ONNX models from torch are NCHW; tf2onnx keeps Keras' NHWC at the graph inputs a
 right after them. Asking for the other layout inserts a Transpose at each 4-D graph input (ONNX level,
 before import): the C function takes the chosen layout, and cancel-transposes removes the inserted
 Transpose together with tf2onnx's own, so no copy kernel is left for the common case.
+
+A model's own layout is read from its graph, not from its producer_name (text any model can set):
+an input is NHWC when the graph converts it to NCHW before computing on it, as tf2onnx does.
 """
 
 from __future__ import annotations
 
+import math
+
 import onnx
-from onnx import helper
+from onnx import helper, numpy_helper
 
 from nncg.errors import NncgError
 from nncg.ir.names import fresh_name
 from nncg.safe_text import capped
 
 LAYOUTS = ("nchw", "nhwc")
-TF2ONNX = "tf2onnx"
 # perm of the inserted Transpose: from the layout the C takes to the one the model has
 _PERM = {("nchw", "nhwc"): (0, 2, 3, 1), ("nhwc", "nchw"): (0, 3, 1, 2)}
 
@@ -28,13 +32,83 @@ def check_layout(layout: object) -> None:
         )
 
 
-def model_layout(model: onnx.ModelProto) -> str:
-    """The layout of the model's 4-D inputs: NHWC for tf2onnx's models (Keras, TensorFlow), else NCHW;
-    after with_input_layout, the layout it gave them (recorded in producer_name)."""
-    for layout in LAYOUTS:
-        if model.producer_name.endswith(f"(input layout {layout})"):
-            return layout
-    return "nhwc" if model.producer_name == TF2ONNX else "nchw"
+def model_layout(model: onnx.ModelProto, default: str = "nchw") -> str:
+    """The layout of the model's 4-D inputs as its graph shows it (graph_layout), else `default`
+    (ONNX's NCHW; the Keras route passes what Keras says)."""
+    return graph_layout(model) or default
+
+
+# Ops that leave the layout question open: they treat every axis alike when their other operands
+# are single values (a Keras Rescaling's Mul, per-tensor quantisation), so the walk goes on past them.
+_AXIS_BLIND = frozenset(
+    {"Mul", "Add", "Sub", "Div", "Relu", "LeakyRelu", "Clip", "Identity", "Cast", "QuantizeLinear", "DequantizeLinear"}
+)
+_TO_NCHW = (0, 3, 1, 2)
+
+
+def graph_layout(model: onnx.ModelProto) -> str | None:
+    """ "nhwc" when the graph converts each 4-D input to NCHW before computing on it (a Transpose by
+    (0, 3, 1, 2); with one channel, tf2onnx's Reshape of (N, H, W, 1) to (N, 1, H, W)), past ops blind
+    to axes; "nchw" when one input goes to any other op first (a Conv, or the Transpose by (0, 2, 3, 1)
+    with_input_layout inserts for "nchw" before tf2onnx's own); None without 4-D inputs."""
+    found = {_input_layout(model.graph, value) for value in image_inputs(model)}
+    if not found:
+        return None
+    return "nhwc" if found == {"nhwc"} else "nchw"
+
+
+def _input_layout(graph: onnx.GraphProto, value: onnx.ValueInfoProto) -> str:
+    dims = [d.dim_value if d.HasField("dim_value") else None for d in value.type.tensor_type.shape.dim]
+    readers: dict[str, list[onnx.NodeProto]] = {}
+    for node in graph.node:
+        for name in set(node.input):
+            readers.setdefault(name, []).append(node)
+    values, returned = _single_values(graph), {v.name for v in graph.output}
+    frontier, seen = [value.name], set()
+    while frontier:
+        name = frontier.pop()
+        if name in returned or name not in readers:
+            return "nchw"  # a path that never converts: nothing says the layout is not ONNX's own
+        for node in readers[name]:
+            if id(node) in seen:
+                continue
+            seen.add(id(node))
+            others = [i for i in node.input[1:] if i]
+            if node.op_type in _AXIS_BLIND and node.input[0] == name and all(i in values for i in others):
+                frontier += [o for o in node.output if o]
+            elif not _to_nchw(node, dims, graph):
+                return "nchw"
+    return "nhwc"
+
+
+def _to_nchw(node: onnx.NodeProto, dims: list[int | None], graph: onnx.GraphProto) -> bool:
+    """Whether the node turns an NHWC tensor of `dims` into NCHW."""
+    if node.op_type == "Transpose":
+        perm = next((tuple(a.ints) for a in node.attribute if a.name == "perm"), ())
+        return perm == _TO_NCHW
+    if node.op_type == "Reshape" and len(node.input) > 1 and dims[3] == 1 and None not in dims[1:3]:
+        shape = _constant(graph, node.input[1])
+        return shape is not None and len(shape) == 4 and list(shape[1:]) == [1, dims[1], dims[2]]
+    return False
+
+
+def _single_values(graph: onnx.GraphProto) -> set[str]:
+    """Constants of one element (initializers and Constant nodes)."""
+    found = {t.name for t in graph.initializer if math.prod(t.dims) == 1}
+    for node in graph.node:
+        if node.op_type == "Constant" and node.attribute and node.attribute[0].HasField("t"):
+            found |= {node.output[0]} if math.prod(node.attribute[0].t.dims) == 1 else set()
+    return found
+
+
+def _constant(graph: onnx.GraphProto, name: str) -> list[int] | None:
+    for tensor in graph.initializer:
+        if tensor.name == name:
+            return numpy_helper.to_array(tensor).tolist()
+    for node in graph.node:
+        if node.op_type == "Constant" and node.output[0] == name and node.attribute[0].HasField("t"):
+            return numpy_helper.to_array(node.attribute[0].t).tolist()
+    return None
 
 
 def image_inputs(model: onnx.ModelProto) -> list[onnx.ValueInfoProto]:
@@ -46,10 +120,11 @@ def image_inputs(model: onnx.ModelProto) -> list[onnx.ValueInfoProto]:
     ]
 
 
-def with_input_layout(model: onnx.ModelProto, layout: str | None) -> onnx.ModelProto:
-    """`model` whose 4-D inputs take `layout` (None: the model's own); the input names are kept."""
+def with_input_layout(model: onnx.ModelProto, layout: str | None, own: str | None = None) -> onnx.ModelProto:
+    """`model` whose 4-D inputs take `layout` (None: the model's own, `own` or else model_layout's);
+    the input names are kept."""
     check_layout(layout)
-    own = model_layout(model)
+    own = own or model_layout(model)
     if layout is None or layout == own:
         return model
     inputs = image_inputs(model)
@@ -82,5 +157,4 @@ def with_input_layout(model: onnx.ModelProto, layout: str | None) -> onnx.ModelP
     nodes = transposes + list(out.graph.node)
     del out.graph.node[:]
     out.graph.node.extend(nodes)
-    out.producer_name = f"{model.producer_name} (input layout {layout})"
     return out

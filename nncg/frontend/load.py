@@ -15,6 +15,7 @@ import onnx.inliner
 from onnx.external_data_helper import load_external_data_for_model, uses_external_data
 
 from nncg.errors import NncgError, NncgWarning, UnsupportedOpsError
+from nncg.frontend.empty_reductions import reduced_empty_inputs
 from nncg.frontend.names import node_names
 from nncg.frontend.shapes import dtype_name, format_shape, inferred_shapes, one_line, static_shape
 from nncg.frontend.wiring import check_operators, check_wiring
@@ -282,6 +283,7 @@ def fix_input_shapes(graph: onnx.GraphProto, input_shapes: dict[str, tuple[int, 
     """Check every real input is float32 and make its shape static, from input_shapes if given."""
     inputs = real_inputs(graph)
     _check_shape_keys(graph, inputs, input_shapes)
+    reduced_away = reduced_empty_inputs(graph)
     for value in inputs:
         _check_float32(value, "input")
         if value.name in input_shapes:
@@ -289,7 +291,7 @@ def fix_input_shapes(graph: onnx.GraphProto, input_shapes: dict[str, tuple[int, 
         elif _only_batch_is_dynamic(value):
             _default_batch(value)
         else:
-            _require_static(value)
+            _require_static(value, value.name in reduced_away)
         check_tensor_size(f"input {shown(value.name)}", static_shape(value))
 
 
@@ -307,7 +309,7 @@ def _check_shape_keys(graph: onnx.GraphProto, inputs: list, input_shapes: dict) 
 
 def index_outputs(graph: onnx.GraphProto) -> set[str]:
     """Graph outputs declared int64 that an ArgMax or ArgMin computes: the one int64 result NNCG
-    produces (its indices written as float32, see ops_reduce.convert_arg_extreme)."""
+    produces (its indices written as int32, see ops_reduce.convert_arg_extreme)."""
     declared = {v.name for v in graph.output if v.type.tensor_type.elem_type == onnx.TensorProto.INT64}
     arg_extremes = [node for node in graph.node if node.op_type in ("ArgMax", "ArgMin") and not node.domain]
     produced = {node.output[0] for node in arg_extremes if node.output}
@@ -361,9 +363,13 @@ def _default_batch(value: onnx.ValueInfoProto) -> None:
     dims[0].dim_value = 1
 
 
-def _require_static(value: onnx.ValueInfoProto) -> None:
+def _require_static(value: onnx.ValueInfoProto, may_be_empty: bool = False) -> None:
+    """A static shape of sizes >= 1; 0 too for an input only reductions over that axis read."""
     ttype = value.type.tensor_type
-    if ttype.HasField("shape") and all(_is_static(d) for d in ttype.shape.dim):
+    sizes_ok = [
+        _is_static(d) or (may_be_empty and d.HasField("dim_value") and d.dim_value == 0) for d in ttype.shape.dim
+    ]
+    if ttype.HasField("shape") and all(sizes_ok):
         return
     declared = format_shape(value.name, value)
     if ttype.HasField("shape") and all(d.HasField("dim_value") for d in ttype.shape.dim):

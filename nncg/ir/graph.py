@@ -178,7 +178,7 @@ class ReduceAttrs:
 @dataclass(frozen=True)
 class ArgMaxAttrs:
     """ArgMax / ArgMin along `axis` (non-negative): the index of the first extreme element (the last
-    with select_last_index), written as a float (exact: the axis has at most 2**24 elements)."""
+    with select_last_index), written as int32."""
 
     axis: int
     keepdims: bool = True

@@ -12,6 +12,8 @@ FLOAT32, INT8, UINT8, INT16, INT32 = DType.FLOAT32, DType.INT8, DType.UINT8, DTy
 ACTIVATIONS = (INT8, UINT8)  # the types of quantized activations
 # Ops that move elements without computing on them: their output has their input's dtype.
 TYPE_PRESERVING = ("MaxPool", "Reshape", "Identity", "Transpose", "Concat", "Pad")
+# Ops whose output holds indices: int32 (ONNX's are int64; C89 has no guaranteed 64-bit type).
+INDEX_OPS = ("ArgMax", "ArgMin")
 # The quantized ops, with the dtypes each input slot may have.
 QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QuantizeLinear": ((FLOAT32,),),
@@ -40,6 +42,8 @@ def output_dtype(node: Node, dtype_of: Callable[[str], DType]) -> DType:
     """The dtype of the node's outputs (every op here has one output type), given its inputs'."""
     if moves_integers(node):
         return dtype_of(node.inputs[0])
+    if node.op in INDEX_OPS:
+        return INT32
     if node.op in ("QuantizeLinear", "QLinearLookup"):
         return node.attrs.dtype
     if node.op in QUANTIZED_INPUTS and node.op != "DequantizeLinear":
@@ -80,7 +84,10 @@ def graph_dtype_problems(graph: Graph) -> list[str]:
             for out in node.outputs
             if graph.dtype(out) != expected
         ]
+    problems += [f"graph input {v.name} is not float32" for v in graph.inputs if graph.dtype(v.name) != FLOAT32]
     problems += [
-        f"graph {v} {v.name} is not float32" for v in (*graph.inputs, *graph.outputs) if graph.dtype(v.name) != FLOAT32
+        f"graph output {v.name} is {graph.dtype(v.name)}, neither float32 nor int32 indices"
+        for v in graph.outputs
+        if graph.dtype(v.name) not in (FLOAT32, INT32)
     ]
     return problems

@@ -36,6 +36,7 @@ from .kinds import BufferRole, DType, LoopKind
 
 FLOAT32, INT32 = DType.FLOAT32, DType.INT32
 ARENA_DTYPES = (DType.FLOAT32, DType.INT8, DType.UINT8)  # what an arena buffer may hold (c_file.py says why)
+OUTPUT_DTYPES = (DType.FLOAT32, DType.INT32)  # the caller's output arrays: values, or ArgMax's indices
 VECTOR_WIDTHS = (1, 2, 4, 8, 16)  # lanes a loop or expression may have
 
 
@@ -77,7 +78,9 @@ def verify_program(program: Program) -> list[str]:
         if buf.name not in program.constants or program.constants[buf.name].size != buf.size:
             problems.append(f"constant {buf.name} has no data of size {buf.size}")
     for buf in program.buffers:
-        if buf.role != BufferRole.CONSTANT and buf.dtype not in ARENA_DTYPES:
+        if buf.role == BufferRole.OUTPUT and buf.dtype not in OUTPUT_DTYPES:
+            problems.append(f"output buffer {buf.name} is {buf.dtype}: outputs are {', '.join(OUTPUT_DTYPES)}")
+        elif buf.role not in (BufferRole.CONSTANT, BufferRole.OUTPUT) and buf.dtype not in ARENA_DTYPES:
             problems.append(
                 f"{buf.role} buffer {buf.name} is {buf.dtype}: only {', '.join(ARENA_DTYPES)} live in memory"
             )

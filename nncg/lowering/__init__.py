@@ -177,7 +177,9 @@ def lower(
         ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
     outputs = {}
     for value in graph.outputs:
-        outputs[value.name] = ctx.add_buffer(value.name, "output", value.shape, row_major(len(value.shape)), value.name)
+        outputs[value.name] = ctx.add_buffer(
+            value.name, "output", value.shape, row_major(len(value.shape)), value.name, graph.dtype(value.name)
+        )
         if value.name not in ctx.refs:  # an input that is also an output is copied, not aliased
             ctx.refs[value.name] = outputs[value.name]
     stored = []

@@ -80,11 +80,11 @@ def lower_reduce(ctx: LoweringContext, node: Node) -> None:
 
 def lower_arg_extreme(ctx: LoweringContext, node: Node) -> None:
     """ArgMax/ArgMin: the running extreme and its index, replaced on a strictly better element (the
-    first one wins), or on an equal one too with select_last_index (the last one wins). The index
-    comes from a constant table 0, 1, 2, ... (loop-nest expressions are float, indices affine)."""
+    first one wins), or on an equal one too with select_last_index (the last one wins). The int32
+    index comes from a constant table 0, 1, 2, ... (loop-nest indices are affine, not values)."""
     attrs: ArgMaxAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
-    table = ctx.add_constant(f"index_{node.name}", np.arange(x.shape[attrs.axis], dtype=np.float32))
+    table = ctx.add_constant(f"index_{node.name}", np.arange(x.shape[attrs.axis], dtype=np.int32))
     better = {"ArgMax": ">", "ArgMin": "<"}[node.op] + ("=" if attrs.select_last_index else "")
     start = float("-inf") if node.op == "ArgMax" else float("inf")
     axis_var = dim_vars(len(x.shape))[attrs.axis]
@@ -97,7 +97,7 @@ def lower_arg_extreme(ctx: LoweringContext, node: Node) -> None:
             return (found, Assign("best", Select(better, xv, best, xv, best)))
 
         search = over(step)
-        return at, lambda store: Let("best", Const.splat(start), (Let("at", Const.splat(0.0), (*search, store)),))
+        return at, lambda store: Let("best", Const.splat(start), (Let("at", Const.integer(0), (*search, store)),))
 
     _lower_reduction(ctx, node, x, (attrs.axis,), attrs.keepdims, result)
 

@@ -1,7 +1,8 @@
-"""The debug build of `verify --per-layer`: every graph value the program stores (Program.values)
-becomes an extra output of the generated function, after the model's own, copied out as a dense
-row-major array right after the kernel that completes it. Right then, because later kernels may
-overwrite its memory (the arena lends it to other buffers; elementwise kernels compute in place).
+"""The debug build of `verify --per-layer`: every float32 graph value the program stores
+(Program.values), and ArgMax's int32 indices, becomes an extra output of the generated function,
+after the model's own, copied out as a dense row-major array right after the kernel that completes
+it. Right then, because later kernels may overwrite its memory (the arena lends it to other
+buffers; elementwise kernels compute in place).
 Not a pipeline pass: it runs on the planned program, and the normal build never sees it."""
 
 from __future__ import annotations
@@ -24,11 +25,12 @@ def with_exposed_layers(program: Program) -> Program:
     kernel_names = Namespace(layer_name, lambda ident: ident.lower() in layers)
     outputs, copies = [], {}
     for value in program.values:
-        if program.buffer(value.buffer).dtype != DType.FLOAT32:
-            continue  # the outputs are float: an int8 model's integer values are checked by its float outputs
+        dtype = program.buffer(value.buffer).dtype
+        if dtype not in (DType.FLOAT32, DType.INT32):
+            continue  # an int8 model's integer values are checked by its float outputs
         out = Buffer(
             buffer_names.claim(f"layer_{value.value}"), math.prod(value.shape), BufferRole.OUTPUT, value.shape,
-            Layout.ROW_MAJOR, value.value,
+            Layout.ROW_MAJOR, value.value, dtype=dtype,
         )  # fmt: skip
         kernel = Kernel(kernel_names.claim(f"expose_{value.value}"), "Copy", _copy_out(value, out))
         copies.setdefault(value.layer, []).append(kernel)
