@@ -75,7 +75,12 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
     blocks = chosen_blocks(program, target, layers)
     planar = planar_tensors(program)
     kernels = tuple(
-        replace(k, body=_block_kernel(k, blocks[k.name], k.name not in layers, target, planar))
+        replace(
+            k,
+            body=_block_kernel(
+                k, blocks[k.name], k.name not in layers, target.registers, fused_kernel(k, program, target), planar
+            ),
+        )
         if k.name in blocks
         else k
         for k in program.kernels
@@ -83,7 +88,9 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
     return replace(program, kernels=kernels)
 
 
-def _block_kernel(kernel: Kernel, block: tuple[int, int], own: bool, target: Target, planar) -> tuple[Stmt, ...]:
+def _block_kernel(
+    kernel: Kernel, block: tuple[int, int], own: bool, registers: int, fma: bool, planar
+) -> tuple[Stmt, ...]:
     """A kernel's body blocked by `block`; a band kernel runs several layers' nests, each of which the
     cost model sizes for itself (unless `layers` chose the kernel's block: `own` is False)."""
     if kernel.op != "Band" or not own:
@@ -91,7 +98,7 @@ def _block_kernel(kernel: Kernel, block: tuple[int, int], own: bool, target: Tar
 
     def per_nest(pixel: Loop) -> tuple[int, int]:
         shape = (pixel.extent, sum(_vectors(s) for s in pixel.body))
-        pixels, channels = choose_blocks(shape, target.registers, fma_from_memory(target))
+        pixels, channels = choose_blocks(shape, registers, fma)
         return (1 if reads_across_planes((pixel,), planar) else pixels), channels
 
     return block_body(kernel.body, *block, per_nest)
@@ -112,7 +119,8 @@ def chosen_blocks(
         shape = None if scalar_integer else block_shape(kernel.body)
         if shape is None:
             continue
-        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers, fma_from_memory(target))
+        fma = fused_kernel(kernel, program, target)
+        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers, fma)
         if kernel.name not in layers and reads_across_planes(kernel.body, planar_tensors(program)):
             pixels = 1
         blocks[kernel.name] = (pixels, channels)
@@ -202,8 +210,11 @@ def _reads_own_element(load: Load, own: dict, var: str) -> bool:
 
 def tuning_candidates(program: Program, target: Target) -> dict[str, tuple[tuple[int, int], ...]]:
     """For --tune: each blockable layer's block shapes worth timing."""
-    fused = fma_from_memory(target)
-    return {name: tuple(block_candidates(shape, target.registers, fused)) for name, shape in blockable(program).items()}
+    kernels = {k.name: k for k in program.kernels}
+    return {
+        name: tuple(block_candidates(shape, target.registers, fused_kernel(kernels[name], program, target)))
+        for name, shape in blockable(program).items()
+    }
 
 
 def blockable(program: Program) -> dict[str, tuple[int, int]]:
@@ -227,8 +238,13 @@ def block_candidates(shape: tuple[int, int], registers: int, fused: bool = False
 
 
 def fma_from_memory(target: Target) -> bool:
-    """Whether a multiply-add on `target` is one instruction reading its weight vector from memory."""
+    """Whether a float multiply-add on `target` is one instruction reading its weight vector from memory."""
     return target.fma and target.memory_operands
+
+
+def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
+    """fma_from_memory for a float kernel (an int8 kernel's int32 multiply and add are two instructions)."""
+    return fma_from_memory(target) and not is_integer_kernel(kernel, program)
 
 
 def choose_blocks(shape: tuple[int, int], registers: int, fused: bool = False) -> tuple[int, int]:
