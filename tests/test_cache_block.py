@@ -56,13 +56,51 @@ def test_layer_choices_override_and_are_checked():
         graph_after(small, "cache-block{layers=Conv_0:8x3}")
     with pytest.raises(NncgError, match="a panel of 32 is more than its 16 channels"):
         graph_after(small, "cache-block{layers=Conv_0:32x2}")
-    grouped = conv_model((1, 8, 6, 6), 8, (3, 3), group=8)
-    with pytest.raises(NncgError, match="neither a direct, ungrouped Conv"):
-        graph_after(grouped, "cache-block{layers=Conv_0:8x1}")
+    depthwise = conv_model((1, 8, 6, 6), 8, (3, 3), group=8)
+    with pytest.raises(NncgError, match="neither a direct, not depthwise Conv"):
+        graph_after(depthwise, "cache-block{layers=Conv_0:8x1}")
+    grouped = conv_model((1, 8, 6, 6), 16, (3, 3), group=2)  # 8 output channels from 4 inputs a group
+    assert graph_after(grouped, "cache-block{layers=Conv_0:8x2}").nodes[0].attrs.ci_block == 2
+    with pytest.raises(NncgError, match="a grouped Conv's panel is its group, 8"):
+        graph_after(grouped, "cache-block{layers=Conv_0:16x2}")
+    with pytest.raises(NncgError, match="block 3 does not divide 4"):
+        graph_after(grouped, "cache-block{layers=Conv_0:8x3}")
     assert parse_layers("a:32x8;b:off;c:32") == {"a": (32, 8), "b": OFF, "c": (32, 0)}
     for bad in ("a:32x", "a:0x8", "a:x8", "a:on", "a:32x0"):
         with pytest.raises(ValueError):
             parse_layers(bad)
+
+
+def test_cost_model_computes_a_grouped_conv_one_group_per_panel():
+    # 4.6 KiB of weights (fits L1), but unblocked its register block would jam groups, sharing nothing
+    (conv,) = graph_after(conv_model((1, 32, 6, 6), 32, (3, 3), group=2), "cache-block").nodes
+    assert (conv.attrs.panel, conv.attrs.ci_block) == (16, 16)
+    # the whole reduction of a group fits: avx2's 16 channels x 9 taps x 4 B per input channel
+    depthwise = graph_after(conv_model((1, 32, 6, 6), 32, (3, 3), group=32), "cache-block").nodes[0]
+    assert depthwise.attrs.panel == 0  # one channel a group: the group loop is the vector loop
+
+
+@pytest.mark.parametrize("target_name", TARGETS)
+@pytest.mark.parametrize(
+    "shape,c_out,kernel,attrs,choice",
+    [
+        # regnet's 16-channel groups, stride 2 and padded; two reduction blocks per group
+        ((1, 48, 9, 9), 48, (3, 3), dict(pads=[1, 1, 1, 1], strides=[2, 2], group=3), "16x8"),
+        # groups narrower than a vector, each taking a different count of input channels than it makes
+        ((1, 12, 5, 7), 24, (3, 3), dict(pads=[1, 0, 1, 2], group=4), "6x3"),
+        # a grouped 1x1 conv (its pixels as one dim), one block per group, a batch of 2
+        ((2, 16, 4, 5), 32, (1, 1), dict(group=2), "16x8"),
+    ],
+    ids=["regnet_like", "narrow_groups", "pointwise_batch_2"],
+)
+def test_grouped_conv_by_group_panels_matches_onnxruntime(target_name, shape, c_out, kernel, attrs, choice):
+    m = conv_model(shape, c_out, kernel, **attrs)
+    facts = nncg.get_target(target_name)
+    for halos in ("auto", "false"):
+        compiled = nncg.compile(m, target=target_name, pipeline=pipeline(facts, f"Conv_0:{choice}", halos))
+        check_against_onnxruntime(m, compiled)
+    # and as the default pipeline chooses it
+    check_against_onnxruntime(m, nncg.compile(m, target=target_name), sanitize=target_name == "avx2")
 
 
 def test_input_block_is_the_largest_divisor_that_fits_half_of_l1():

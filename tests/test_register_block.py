@@ -12,7 +12,7 @@ from nncg.errors import NncgError
 from nncg.frontend import import_onnx
 from nncg.ir.loops import If, Let, Loop, Store, walk_stmts
 from nncg.passes import PassManager
-from nncg.passes.register_block import choose_blocks, parse_layers
+from nncg.passes.register_block import choose_blocks, fma_from_memory, parse_layers
 
 LOWER = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation,lower"
 
@@ -74,6 +74,17 @@ def test_cost_model_fills_the_registers_it_is_given():
     assert choose_blocks((2, 1), 16) == (2, 1)  # never more pixels than the loop has
     assert choose_blocks((40, 1), 32) == (26, 1)
     assert choose_blocks((40, 16), 16) == (2, 4)  # many channel vectors: blocks of 4
+    # x86 FMA: each pixel's accumulators and broadcast input, and one weight vector
+    assert choose_blocks((40, 4), 16, fused=True) == (3, 4)  # avx2's 1x1 panels: 12 accumulators
+    assert choose_blocks((40, 2), 16, fused=True) == (5, 2)
+    assert choose_blocks((40, 4), 32, fused=True) == (6, 4)
+    assert choose_blocks((40, 1), 32, fused=True) == (15, 1)
+
+
+def test_only_x86_fma_reads_its_weights_from_memory():
+    assert [fma_from_memory(nncg.get_target(t)) for t in ("avx2", "avx512")] == [True, True]
+    # SSE multiplies into a register of its own; NEON's multiply-add reads registers only
+    assert [fma_from_memory(nncg.get_target(t)) for t in ("ssse3", "neon", "ansi-c")] == [False, False, False]
 
 
 def test_layers_parameter_parses_and_rejects():

@@ -19,7 +19,14 @@ from .x86_integer import x86_integer
 AVX_128 = replace(x86_width("_mm", "__m128", select="blendv", fma=True), **x86_integer(4))
 AVX_256 = replace(x86_width("_mm256", "__m256", select="blendv", fma=True), **x86_integer(8))
 AVX_512 = replace(x86_width("_mm512", "__m512", select="mask", fma=True), **x86_integer(16))
-X86 = {"registers": 16, "fma": True, "l1_bytes": X86_L1, "l2_bytes": X86_L2, "integer_vectors": True}
+X86 = {
+    "registers": 16,
+    "fma": True,
+    "l1_bytes": X86_L1,
+    "l2_bytes": X86_L2,
+    "integer_vectors": True,
+    "memory_operands": True,
+}
 
 
 class Avx2(SimdPrinter):

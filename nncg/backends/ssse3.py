@@ -15,7 +15,14 @@ from .x86_integer import sse2_integer
 
 class Ssse3(SimdPrinter):
     target = Target(
-        "ssse3", vector_widths=(4,), registers=16, fma=False, l1_bytes=X86_L1, l2_bytes=X86_L2, integer_vectors=True
+        "ssse3",
+        vector_widths=(4,),
+        registers=16,
+        fma=False,
+        l1_bytes=X86_L1,
+        l2_bytes=X86_L2,
+        integer_vectors=True,
+        memory_operands=True,
     )
     widths = {4: replace(x86_width("_mm", "__m128", select="bitwise", fma=False), **sse2_integer())}
     cflags = ("-mssse3",)

@@ -34,6 +34,21 @@ def cache_block_applies(graph: Graph, node: Node) -> bool:
     )
 
 
+def group_panels_apply(graph: Graph, node: Node) -> bool:
+    """A direct, grouped (not depthwise) Conv vectorised over its output channels, with constant weights:
+    computed one group at a time, a group being one panel."""
+    attrs = node.attrs
+    return (
+        node.op == "Conv"
+        and isinstance(attrs, ConvAttrs)
+        and attrs.algorithm == ConvAlgorithm.DIRECT
+        and attrs.vector_axis == VectorAxis.CHANNELS
+        and attrs.group > 1
+        and graph.shape(node.inputs[1])[0] > attrs.group
+        and graph.is_constant(node.inputs[1])
+    )
+
+
 def panel_packing_applies(graph: Graph, node: Node) -> bool:
     """A Gemm/MatMul whose w is one constant [K, N] matrix (x's rows may be any)."""
     attrs = node.attrs

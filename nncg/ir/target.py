@@ -17,7 +17,9 @@ class Target:
     l1_bytes, l2_bytes: the data caches of one core the cache-block pass sizes weight panels for, the
     smallest of the CPUs the backend serves (0: no data cache, as on a Cortex-M; nothing is blocked).
     integer_vectors: its widths also hold int32 lanes with a 32-bit multiply, widening 8-bit loads and
-    narrowing 8-bit stores, so the vectorize pass vectorises the int8 kernels too."""
+    narrowing 8-bit stores, so the vectorize pass vectorises the int8 kernels too.
+    memory_operands: an arithmetic instruction may read one operand straight from memory (x86), so a
+    fused multiply-add needs no register for the weight vector it reads."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -26,6 +28,7 @@ class Target:
     l1_bytes: int = 0
     l2_bytes: int = 0
     integer_vectors: bool = False
+    memory_operands: bool = False
 
     @property
     def lanes(self) -> int:

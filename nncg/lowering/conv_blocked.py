@@ -11,7 +11,8 @@ reduction block, the panel's channels innermost (they vectorise and register-blo
 
 A single block is first and last at once. Weights are packed in the order the nests read them:
 [panel][block][k_1..k_d][input channel in block][channel in panel], so each block of pixels streams
-one contiguous slice of them, small enough to stay in L1 across the pixel blocks."""
+one contiguous slice of them, small enough to stay in L1 across the pixel blocks. A grouped Conv's
+panel is one group: panel g reads the input channels of group g."""
 
 from __future__ import annotations
 
@@ -39,8 +40,8 @@ class _Operands(NamedTuple):
 
 def lower_blocked_conv(ctx: LoweringContext, node: Node) -> None:
     attrs: ConvAttrs = node.attrs
-    weights = ctx.graph.constants[node.inputs[1]]  # [c_out, c_in, k_1..k_d]
-    c_out = weights.shape[0]
+    weights = ctx.graph.constants[node.inputs[1]]  # [c_out, c_in / group, k_1..k_d]
+    c_out, c_in_group = weights.shape[:2]
     bias_name, residual_name = conv_extras(node)
     operands = _Operands(
         ctx.ref(node.inputs[0]),
@@ -56,7 +57,8 @@ def lower_blocked_conv(ctx: LoweringContext, node: Node) -> None:
         return _packed(weights[start:stop], panels, attrs.ci_block)
 
     def nests(w: TensorRef, panel: Affine, first_channel: Affine, width: int) -> tuple[Stmt, ...]:
-        return _stages(attrs, operands, w, panel, first_channel, width)
+        first_input = panel * c_in_group if attrs.group > 1 else Affine()  # a group per panel
+        return _stages(attrs, operands, w, panel, (first_channel, first_input), width)
 
     body = by_panels(ctx, f"w_{node.name}", c_out, attrs.panel, pack, nests)
     ctx.emit(node.name, "Conv", body)
@@ -100,13 +102,14 @@ def _packed(weights: np.ndarray, panels: int, block: int) -> np.ndarray:
 
 
 def _stages(
-    attrs: ConvAttrs, ops: _Operands, w: TensorRef, panel: Affine, first_channel: Affine, width: int
+    attrs: ConvAttrs, ops: _Operands, w: TensorRef, panel: Affine, firsts: tuple[Affine, Affine], width: int
 ) -> tuple[Stmt, ...]:
-    """One panel's nests: the first reduction block, the middle ones in a loop, the last."""
+    """One panel's nests: the first reduction block, the middle ones in a loop, the last. `firsts`:
+    the panel's first output channel and first input channel."""
     blocks = w.shape[1]
 
     def stage(block: Affine, first: bool, last: bool) -> tuple[Stmt, ...]:
-        return _pixel_nest(attrs, ops, w, (panel, block), first_channel, width, (first, last))
+        return _pixel_nest(attrs, ops, w, (panel, block), firsts, width, (first, last))
 
     if blocks == 1:
         return stage(Affine(), True, True)
@@ -122,12 +125,12 @@ def _pixel_nest(
     ops: _Operands,
     w: TensorRef,
     panel_block: tuple[Affine, Affine],
-    first_channel: Affine,
+    firsts: tuple[Affine, Affine],
     width: int,
     first_last: tuple[bool, bool],
 ) -> tuple[Stmt, ...]:
     """The output pixels x the panel's channels, over one block of input channels."""
-    (panel, block), (first, last) = panel_block, first_last
+    (panel, block), (first_channel, first_input), (first, last) = panel_block, firsts, first_last
     x, out = ops.x, ops.out
     names = spatial_names(len(attrs.kernel))
     out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]
@@ -139,7 +142,7 @@ def _pixel_nest(
         ci = Affine.of("ci") if ci_block > 1 else Affine()
 
         def tap(positions: list[Affine], k_vars: list[Affine]) -> tuple[Stmt, ...]:
-            x_load = Load(x.buffer, x.at([n, block * ci_block + ci, *positions]))
+            x_load = Load(x.buffer, x.at([n, first_input + block * ci_block + ci, *positions]))
             product = Binary("*", x_load, Load(w.buffer, w.at([panel, block, *k_vars, ci, co])))
             update: tuple[Stmt, ...] = (Assign("acc", Binary("+", LocalRef("acc"), product)),)
             return (Loop("ci", ci_block, update),) if ci_block > 1 else update

@@ -13,7 +13,11 @@ the output is read back between reduction blocks and the input is read once per 
 
 The cost model (`chosen_blocks`) blocks a layer whose weights exceed the target's L1; the panel is
 the register block's channel vectors (register_block.choose_blocks), the input-channel block the
-largest divisor of the input channels that fits. `layers` overrides it per layer (what `--tune`
+largest divisor of the input channels that fits. A grouped (not depthwise) Conv is always computed
+one group per panel, whatever its size: unblocked, its group loop is the innermost loop around the
+channels, so register-block jams groups, which share neither inputs nor weights (regnet_x_400mf's
+16-channel groups on avx2: 1 pixel x 5 groups, 1.5 loads per multiply-add); per panel it jams
+pixels, which share the group's weights. `layers` overrides it per layer (what `--tune`
 measured); lowering/conv_blocked.py does the rest."""
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import math
 from dataclasses import replace
 
 from ..errors import NncgError
-from ..ir.applicability import cache_block_applies, panel_packing_applies
+from ..ir.applicability import cache_block_applies, group_panels_apply, panel_packing_applies
 from ..ir.graph import Graph, Node
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
@@ -76,7 +80,15 @@ def _blocked(graph: Graph, node: Node, choice: tuple[int, int]):
 
 def _check_choice(graph: Graph, node: Node, choice: tuple[int, int]) -> None:
     panel, block = choice
-    if cache_block_applies(graph, node):
+    if group_panels_apply(graph, node):
+        c_out, c_in = graph.shape(node.inputs[1])[:2]
+        if panel != c_out // node.attrs.group:
+            raise NncgError(
+                f"cache-block: layer {node.name}: a grouped Conv's panel is its group, {c_out // node.attrs.group}"
+            )
+        if block > c_in or (block and c_in % block):
+            raise NncgError(f"cache-block: layer {node.name}: the input-channel block {block} does not divide {c_in}")
+    elif cache_block_applies(graph, node):
         c_out, c_in = graph.shape(node.inputs[1])[:2]
         if block > c_in or (block and c_in % block):
             raise NncgError(f"cache-block: layer {node.name}: the input-channel block {block} does not divide {c_in}")
@@ -86,7 +98,7 @@ def _check_choice(graph: Graph, node: Node, choice: tuple[int, int]) -> None:
             raise NncgError(f"cache-block: layer {node.name} is a Gemm/MatMul: give its panel alone (PANEL)")
     else:
         raise NncgError(
-            f"cache-block: layer {node.name} is neither a direct, ungrouped Conv over output channels with "
+            f"cache-block: layer {node.name} is neither a direct, not depthwise Conv over output channels with "
             "constant weights (the winograd and vectorize-pixels passes may have taken it) nor a Gemm/MatMul "
             "with a constant 2-D w"
         )
@@ -100,7 +112,7 @@ def _columns(graph: Graph, node: Node) -> int:
 
 
 def _shape(graph: Graph, node: Node) -> tuple[int, int, int, int]:
-    """(output channels, input channels, taps, output row length) of a Conv or Gemm/MatMul."""
+    """(output channels, input channels (of a group), taps, output row length) of a Conv or Gemm/MatMul."""
     if node.op == "Conv":
         c_out, c_in, *kernel = graph.shape(node.inputs[1])
         return c_out, c_in, math.prod(kernel), graph.shape(node.outputs[0])[-1]
@@ -109,10 +121,16 @@ def _shape(graph: Graph, node: Node) -> tuple[int, int, int, int]:
 
 
 def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
-    """(panel, input-channel block) for a layer whose weights exceed L1, else OFF. A Gemm/MatMul
+    """(panel, input-channel block) for a grouped Conv or a layer whose weights exceed L1, else OFF. A Gemm/MatMul
     takes the whole reduction at once (block 0): its rows are few, there is little to reuse."""
+    if not target.l1_bytes or not target.vector_widths:
+        return OFF
+    if group_panels_apply(graph, node):
+        c_out, c_in, taps, _ = _shape(graph, node)
+        panel = c_out // node.attrs.group
+        return panel, input_block(c_in, taps, panel, target)
     conv = cache_block_applies(graph, node)
-    if not (conv or panel_packing_applies(graph, node)) or not target.l1_bytes or not target.vector_widths:
+    if not (conv or panel_packing_applies(graph, node)):
         return OFF
     c_out, c_in, taps, _ = _shape(graph, node)
     if FLOAT_BYTES * c_out * c_in * taps <= target.l1_bytes:
@@ -141,6 +159,9 @@ def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[tuple[int
     if not target.l1_bytes or not target.vector_widths:
         return out
     for node in graph.nodes:
+        if group_panels_apply(graph, node):
+            out[node.name] = (chosen_blocks(graph, node, target), OFF)
+            continue
         applies = cache_block_applies(graph, node) or panel_packing_applies(graph, node)
         if not applies or 2 * FLOAT_BYTES * math.prod(_shape(graph, node)[:3]) <= target.l1_bytes:
             continue
