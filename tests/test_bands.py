@@ -13,6 +13,7 @@ import nncg
 from nncg.backends import get_target
 from nncg.frontend import import_onnx
 from nncg.lowering import band_plan
+from nncg.lowering.band_costs import band_costs
 from nncg.lowering.band_plan import layer_bound_floats, plan_bands
 from nncg.lowering.bands import BandGroup, geometry
 from nncg.passes import PassManager, default_pipeline
@@ -20,6 +21,7 @@ from nncg.passes import PassManager, default_pipeline
 ROOT = Path(__file__).parent.parent
 ROBOT = ROOT / "examples" / "robot.onnx"
 PEDESTRIAN = ROOT / "examples" / "pedestrian.onnx"
+BALL = ROOT / "examples" / "ball.onnx"
 RESNET8 = ROOT / "benchmarks" / "models" / "resnet8.onnx"
 MOBILENET = ROOT / "benchmarks" / "models" / "mobilenet_v1_025.onnx"
 X86 = ("ssse3", "avx2", "avx512")
@@ -201,6 +203,63 @@ def test_speed_is_the_default_and_plans_nothing():
     graph = lowered_graph(ROBOT)
     assert plan_bands(graph) == ()
     assert nncg.compile(ROBOT, target="ssse3").source == nncg.compile(ROBOT, target="ssse3", memory="speed").source
+
+
+def _plans(graph, target):
+    """(floats, estimated latency) of the fastest plan under every memory bound, and speed's."""
+    steps = band_plan.candidate_steps(graph, band_costs(target))
+    plans = (band_plan._cheapest(len(graph.nodes), steps, bound) for bound in sorted({s.floats for s in steps}))
+    speed = band_plan.plan_steps(graph, "speed", 0, target)
+    return [_figures(p) for p in plans if p], _figures(speed)
+
+
+def _figures(plan):
+    return max(s.floats for s in plan), sum(s.cost for s in plan)
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2"])
+@pytest.mark.parametrize("model", [ROBOT, PEDESTRIAN, RESNET8, MOBILENET])
+def test_balanced_is_the_fastest_plan_with_half_the_arena_within_the_latency_bound(model, target):
+    """Issue 18: balanced takes the fastest plan with at most half of speed's memory when its estimated
+    latency is within 1.3x of speed's; when none is, the smallest memory within 1.3x."""
+    graph = lowered_graph(model, target)
+    plans, (speed_floats, speed_time) = _plans(graph, target)
+    fast = [(floats, time) for floats, time in plans if time <= speed_time * band_plan.BALANCED_LATENCY]
+    cut = [(time, floats) for floats, time in fast if floats <= speed_floats / band_plan.BALANCED_CUT]
+    floats, time = _figures(band_plan.plan_steps(graph, "balanced", 0, target))
+    assert time <= speed_time * band_plan.BALANCED_LATENCY
+    if cut:
+        assert floats <= speed_floats / band_plan.BALANCED_CUT and time == min(cut)[0]
+    else:
+        assert floats == min(f for f, _ in fast)
+
+
+def test_balanced_halves_the_arena_where_a_plan_is_fast_enough():
+    """mobilenet (no Winograd): bands cost little, so balanced has at most half of speed's arena."""
+    for target in ("ssse3", "avx2"):
+        speed = nncg.compile(MOBILENET, target=target).arena_bytes
+        compiled = nncg.compile(MOBILENET, target=target, memory="balanced")
+        assert compiled.arena_bytes <= speed / 2
+    check_against_onnxruntime(onnx.load(MOBILENET), compiled)
+
+
+def test_plans_are_priced_for_the_target():
+    """ball: bands cost less on scalar C than on avx2, so balanced cuts deeper there; compile hands
+    lower its target, and the report names the plan priced for it."""
+    plans = {t: plan_bands(lowered_graph(BALL, t), "balanced", 0, t) for t in ("ansi-c", "avx2")}
+    assert plans["ansi-c"] != plans["avx2"]
+    for target, groups in plans.items():
+        compiled = nncg.compile(BALL, target=target, memory="balanced")
+        assert nncg.compiler.memory_figures(compiled).plan == band_plan.describe_plan(groups)
+
+
+def test_a_residual_conv_written_over_its_residual_counts_once():
+    """resnet8: each residual Conv writes over its dying residual (plan-memory), so the layer bound is
+    one input + output pair (issue 18's 131,072 B) and speed's estimate is its real arena."""
+    graph = lowered_graph(RESNET8, "avx2")
+    assert layer_bound_floats(graph) * 4 == 131_072
+    _, (speed_floats, _) = _plans(graph, "avx2")
+    assert speed_floats * 4 == nncg.compile(RESNET8, target="avx2").arena_bytes
 
 
 def test_settings_order_the_arena():

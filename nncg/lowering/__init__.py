@@ -11,6 +11,7 @@ from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm
 from ..ir.loops import Program, StoredValue
 from ..ir.ops import REDUCE_OPS
+from ..ir.target import Target
 from .band_plan import plan_bands
 from .bands import BandGroup
 from .concat import lower_concat
@@ -153,18 +154,20 @@ def lower(
     memory: str = "speed",
     budget: int = 0,
     requantize: str = "float",
+    target: Target | None = None,
 ) -> Program:
     """`halos`: store tensors that only padded Convs read inside a zero border (see halo.py). `auto`
     (the default) does it only where the readers are cache-blocked Convs: it removes every border
     check, which on a small image is every pixel (resnet18's layer4 at 96x96, avx2: 1860 -> 1400 us),
     but for the other layers gcc's code came out as often slower as faster (robot avx2 -2 %,
     pedestrian ssse3 +23 %). true: for every padded Conv; false: never. `memory` (speed, balanced,
-    min) and `budget` (bytes; 0: none) choose the layers run in bands (see band_plan.py). `requantize`:
+    min) and `budget` (bytes; 0: none) choose the layers run in bands (see band_plan.py), priced for
+    `target` (None: 4-lane vector figures). `requantize`:
     how the integer ops of an int8 model scale their results, `float` (onnxruntime's arithmetic) or
     `fixed` (integers only, see lowering/requantize.py)."""
     name = program_name(function_name or graph.name)
     ctx = LoweringContext(graph, name, halos, requantize)
-    groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget)}
+    groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget, target and target.name)}
     banded = {name for group in groups.values() for name in group.nodes}
     # a line buffer has no halo; a group's output neither, as it would only add memory
     unbordered = band_values(graph, tuple(groups.values()))
