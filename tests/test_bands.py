@@ -17,6 +17,7 @@ from nncg.lowering.band_costs import band_costs
 from nncg.lowering.band_plan import layer_bound_floats, plan_bands
 from nncg.lowering.bands import BandGroup, geometry
 from nncg.passes import PassManager, default_pipeline
+from nncg.verify_layers import verify_per_layer
 
 ROOT = Path(__file__).parent.parent
 ROBOT = ROOT / "examples" / "robot.onnx"
@@ -194,6 +195,56 @@ def test_robot_balanced_and_min_on_every_x86_target(target):
 def test_resnet8_min_under_the_sanitizers():
     compiled = nncg.compile(RESNET8, target="ssse3", memory="min")
     check_against_onnxruntime(onnx.load(RESNET8), compiled, sanitize=True)
+
+
+# ---------------------------------------------------------------------------- in-place depthwise
+
+
+def depthwise_peak_model(kernel: int, pads: list[int]) -> onnx.ModelProto:
+    """1x1 Conv 8 -> 32 channels, a depthwise Conv, 1x1 Conv 32 -> 4: the depthwise layer's input
+    and output side by side are the largest layer (the model's input and output are not the arena's)."""
+    nodes = [
+        helper.make_node("Conv", ["x", "w1", "b1"], ["a"]),
+        helper.make_node("Relu", ["a"], ["a_r"]),
+        helper.make_node("Conv", ["a_r", "w2", "b2"], ["b"], group=32, pads=pads),
+        helper.make_node("Relu", ["b"], ["b_r"]),
+        helper.make_node("Conv", ["b_r", "w3"], ["y"]),
+    ]
+    init = {
+        "w1": weights(32, 8, 1, 1),
+        "b1": weights(32),
+        "w2": weights(32, 1, kernel, kernel),
+        "b2": weights(32),
+        "w3": weights(4, 32, 1, 1),
+    }
+    return onnx_model(nodes, inputs={"x": [1, 8, 32, 32]}, outputs={"y": [1, 4, 32, 32]}, initializers=init)
+
+
+IN_PLACE_BUDGET = 160_000  # bytes: below speed's 262,144, above the in-place plan's 155,648
+
+
+@pytest.mark.parametrize("target", ["ansi-c", *X86])
+@pytest.mark.parametrize(("kernel", "pads"), [(3, [1, 1, 1, 1]), (5, [2, 1, 2, 3])])
+def test_depthwise_runs_in_place_where_the_budget_needs_it(target, kernel, pads):
+    """The fastest plan under the budget writes the depthwise output over its input (stored pad + 1
+    rows down): every layer still computed whole, 262,144 -> 155,648 B, the same outputs."""
+    model = depthwise_peak_model(kernel, pads)
+    speed = nncg.compile(model, target=target)
+    compiled = nncg.compile(model, target=target, ram_budget=IN_PLACE_BUDGET)
+    graph = lowered_graph(model, target)
+    assert band_plan.in_place_layers(graph, "speed", IN_PLACE_BUDGET, target) == {graph.nodes[1].name}
+    assert band_kernels(compiled) == 0
+    assert (speed.arena_bytes, compiled.arena_bytes) == (262_144, 155_648 + 1024 * 4 * (pads[0] - 1))
+    check_against_onnxruntime(model, compiled, sanitize=target == "ansi-c")
+
+
+def test_in_place_depthwise_reads_back_per_layer_and_is_left_out_where_it_does_not_pay():
+    model = depthwise_peak_model(3, [1, 1, 1, 1])
+    report = verify_per_layer(model, "ansi-c", ram_budget=IN_PLACE_BUDGET, sanitize=True)
+    assert report.ok, report.format()
+    graph = lowered_graph(model, "ssse3")
+    assert not band_plan.in_place_layers(graph, "speed", 300_000, "ssse3")  # fits without it
+    assert not band_plan.in_place_layers(graph, "speed", 0, "ssse3")
 
 
 # ---------------------------------------------------------------------------- the planner and options

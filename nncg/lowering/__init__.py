@@ -12,10 +12,10 @@ from ..ir.kinds import ConvAlgorithm
 from ..ir.loops import Program, StoredValue
 from ..ir.ops import REDUCE_OPS
 from ..ir.target import Target
-from .band_plan import plan_bands
+from .band_plan import in_place_layers, plan_bands
 from .bands import BandGroup
 from .concat import lower_concat
-from .context import LoweringContext, row_major
+from .context import LoweringContext, TensorRef, row_major
 from .conv import lower_conv
 from .conv_blocked import lower_blocked_conv
 from .conv_transpose import lower_conv_transpose
@@ -30,6 +30,7 @@ from .elementwise import (
     lower_where,
 )
 from .gather import lower_gather
+from .in_place import lower_in_place_depthwise
 from .lrn import lower_lrn
 from .normalization import lower_normalization
 from .pad import lower_pad
@@ -167,11 +168,16 @@ def lower(
     `fixed` (integers only, see lowering/requantize.py)."""
     name = program_name(function_name or graph.name)
     ctx = LoweringContext(graph, name, halos, requantize)
-    groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget, target and target.name)}
+    costs = target and target.name
+    groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget, costs)}
+    in_place = in_place_layers(graph, memory, budget, costs)
     banded = {name for group in groups.values() for name in group.nodes}
     # a line buffer has no halo; a group's output neither, as it would only add memory
     unbordered = band_values(graph, tuple(groups.values()))
     ctx.halos = {value: halo for value, halo in ctx.halos.items() if value not in unbordered}
+    for node in graph.nodes:
+        if node.name in in_place:
+            ctx.in_place[node.outputs[0]] = (node.inputs[0], node.attrs.pads_begin[0] + 1)
     for value in graph.inputs:
         ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
     outputs = {}
@@ -184,6 +190,8 @@ def lower(
     for node in graph.nodes:
         if node.name in groups:
             _lower_group(ctx, groups[node.name])
+        elif node.name in in_place:
+            lower_in_place_depthwise(ctx, node)
         elif node.name not in banded:
             _lower_node(ctx, node)
         if node.name not in banded or node.name in ends:  # a line buffer holds no whole value to read back
@@ -201,7 +209,12 @@ def _stored_values(ctx: LoweringContext, node: Node) -> list[StoredValue]:
         return []
     layer = ctx.kernels[-1].name
     refs = {value: ctx.refs[value] for value in node.outputs if value in ctx.refs}
-    return [StoredValue(v, r.buffer, r.shape, r.order, r.halo, layer) for v, r in refs.items()]
+    return [StoredValue(v, r.buffer, r.shape, r.order, _stored_halo(r), layer) for v, r in refs.items()]
+
+
+def _stored_halo(ref: TensorRef) -> tuple[tuple[int, int], ...]:
+    """The rows before a tensor with a lead (one image, no halo) read back as a halo above it."""
+    return ((0, 0), (0, 0), (ref.lead, 0), (0, 0)) if ref.lead else ref.halo
 
 
 def _lower_node(ctx: LoweringContext, node: Node) -> None:

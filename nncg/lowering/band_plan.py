@@ -17,7 +17,7 @@ scratch buffers."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm, VectorAxis
@@ -26,6 +26,7 @@ from .band_costs import BandCosts, band_costs
 from .bands import STREAMABLE, BandGroup, geometry, row_floats, streamable
 from .conv import conv_extras
 from .halo import conv_halos
+from .in_place import in_place_lead
 from .winograd import scratch_floats
 
 MEMORY_MODES = ("speed", "balanced", "min")
@@ -45,6 +46,7 @@ class Step:
     floats: int
     cost: float  # estimated time, in MACs of a whole direct Conv (band_costs.py)
     lines: int = 0
+    in_place: bool = False  # a depthwise Conv run whole over its input (in_place.py)
 
 
 def parse_memory(text: str) -> str:
@@ -64,30 +66,47 @@ def plan_bands(
     return tuple(s.group for s in plan_steps(graph, memory, budget, target) if s.group is not None)
 
 
-def plan_steps(graph: Graph, memory: str, budget: int, target: str | None) -> list[Step]:
-    """The steps of the plan plan_bands chooses (for `speed`: every layer whole)."""
-    steps = candidate_steps(graph, band_costs(target))
-    count = len(graph.nodes)
+def in_place_layers(graph: Graph, memory: str = "speed", budget: int = 0, target: str | None = None) -> set[str]:
+    """The depthwise Convs the plan runs in place (none for `speed`)."""
     if memory == "speed" and not budget:
-        return [s for s in steps if s.group is None]
-    plan = _cheapest(count, steps, budget // 4) if budget else None
-    if plan is None and memory == "balanced":
-        plan = _balanced(count, steps)
-    if plan is None:
-        plan = next(p for p in (_cheapest(count, steps, b) for b in sorted({s.floats for s in steps})) if p)
-    return plan
+        return set()
+    return {graph.nodes[s.start].name for s in plan_steps(graph, memory, budget, target) if s.in_place}
 
 
-def _balanced(count: int, steps: list[Step]) -> list[Step]:
+def plan_steps(graph: Graph, memory: str, budget: int, target: str | None) -> list[Step]:
+    """The steps of the plan plan_bands chooses (for `speed`: every layer whole). The candidates are
+    the fastest plan under every memory bound, from the steps without in-place depthwise Convs and,
+    where a model has some, from the steps with them (their tensors counted with the rows they are
+    stored down, wherever they are live: an estimate on the safe side)."""
+    costs, count = band_costs(target), len(graph.nodes)
+    exact = candidate_steps(graph, costs)
+    speed = [s for s in exact if s.group is None]
+    if memory == "speed" and not budget:
+        return speed
+    plans = _fastest_per_bound(count, exact)
+    if _Liveness(graph).leads:
+        plans += _fastest_per_bound(count, candidate_steps(graph, costs, in_place=True))
+    fitting = [p for p in plans if _floats(p) <= budget // 4] if budget else []
+    if fitting:
+        return min(fitting, key=lambda p: (_cost(p), _in_place(p), _floats(p)))
+    if memory == "balanced" and not budget:
+        return _balanced(plans, speed)
+    return min(plans, key=lambda p: (_floats(p), _cost(p), _in_place(p)))
+
+
+def _balanced(plans: list[list[Step]], speed: list[Step]) -> list[Step]:
     """The fastest plan with at most 1/BALANCED_CUT of speed's memory, if its latency is within
     BALANCED_LATENCY of speed's; else the smallest memory any plan within that latency needs."""
-    speed = [s for s in steps if s.group is None]
-    limit = sum(s.cost for s in speed) * BALANCED_LATENCY
-    cut = _cheapest(count, steps, max(s.floats for s in speed) / BALANCED_CUT)
-    if cut is not None and _cost(cut) <= limit:
-        return cut
+    fast = [p for p in plans if _cost(p) <= _cost(speed) * BALANCED_LATENCY]
+    cut = [p for p in fast if _floats(p) <= _floats(speed) / BALANCED_CUT]
+    if cut:
+        return min(cut, key=lambda p: (_cost(p), _in_place(p), _floats(p)))
+    return min(fast, key=lambda p: (_floats(p), _cost(p), _in_place(p)))
+
+
+def _fastest_per_bound(count: int, steps: list[Step]) -> list[list[Step]]:
     plans = (_cheapest(count, steps, bound) for bound in sorted({s.floats for s in steps}))
-    return next(p for p in plans if p is not None and _cost(p) <= limit)
+    return [p for p in plans if p is not None]
 
 
 def layer_bound_floats(graph: Graph) -> int:
@@ -109,9 +128,10 @@ def describe_plan(groups: tuple[BandGroup, ...]) -> str:
     return "; ".join(f"{shown(g.nodes[0])}..{shown(g.nodes[-1])} in bands of {g.rows} output row(s)" for g in groups)
 
 
-def candidate_steps(graph: Graph, costs: BandCosts) -> list[Step]:
-    """Every layer run whole, and every group that can run in bands at each height."""
-    live = _Liveness(graph)
+def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> list[Step]:
+    """Every layer run whole, and every group that can run in bands at each height; with `in_place`,
+    also every depthwise Conv that can run in place, its input and output counted as stored for it."""
+    live = _Liveness(graph, in_place)
     steps = [
         Step(
             i, i + 1, None, live.whole(i) + _scratch(graph, node) + _output_copy(graph, node),
@@ -120,6 +140,8 @@ def candidate_steps(graph: Graph, costs: BandCosts) -> list[Step]:
         for i, node in enumerate(graph.nodes)
     ]  # fmt: skip
     ceiling = max((s.floats for s in steps), default=0)  # what a plan of whole layers needs
+    for i in live.leads if in_place else ():  # after the layer run whole, which wins a tie
+        steps.append(replace(steps[i], floats=steps[i].floats - live.size[graph.nodes[i].outputs[0]], in_place=True))
     nodes = graph.nodes
     for i in range(len(nodes)):
         stop = i
@@ -194,20 +216,28 @@ class _Liveness:
     """Which whole tensors are live across a run of nodes: produced before its end and read at or
     after its start (graph inputs and outputs are the caller's, not the arena's). A Conv run whole
     whose fused residual dies at it writes its output over the residual (plan-memory computes it in
-    place), so its layer holds one of the two (`shared`)."""
+    place), so its layer holds one of the two (`shared`). With `in_place`, the input and output of
+    every depthwise Conv that can run in place (`leads`) count the rows it is stored down."""
 
-    def __init__(self, graph: Graph):
+    def __init__(self, graph: Graph, in_place: bool = False):
         index = {node.name: i for i, node in enumerate(graph.nodes)}
         outputs = {v.name for v in graph.outputs}
         readers = {value: index[node.name] for node in graph.nodes for value in node.inputs}  # the last
+        producers = {value: node for node in graph.nodes for value in node.outputs}
+        halos = conv_halos(graph, blocked_only=True)
+        leads = {i: in_place_lead(graph, node, readers, i, halos) for i, node in enumerate(graph.nodes)}
+        self.leads = {i: lead for i, lead in leads.items() if lead}  # depthwise Convs that can run in place
+        self.size = {value: math.prod(graph.shape(value)) for node in graph.nodes for value in node.outputs}
+        for i, lead in self.leads.items() if in_place else ():  # stored down `lead` rows, written over
+            node = graph.nodes[i]
+            for value in (node.inputs[0], node.outputs[0]):
+                self.size[value] += lead * row_floats(graph, value)
         self.tensors = [  # (name, producer, last reader, floats)
-            (value, i, max(i, readers.get(value, i)), math.prod(graph.shape(value)))
+            (value, i, max(i, readers.get(value, i)), self.size[value])
             for i, node in enumerate(graph.nodes)
             for value in node.outputs
             if value not in outputs
         ]
-        producers = {value: node for node in graph.nodes for value in node.outputs}
-        halos = conv_halos(graph, blocked_only=True)
         self.shared = {
             i: math.prod(graph.shape(node.outputs[0]))
             for i, node in enumerate(graph.nodes)
@@ -261,3 +291,12 @@ def _cheapest(count: int, steps: list[Step], limit: float) -> list[Step] | None:
 
 def _cost(plan: list[Step]) -> float:
     return sum(s.cost for s in plan)
+
+
+def _floats(plan: list[Step]) -> int:
+    return max(s.floats for s in plan)
+
+
+def _in_place(plan: list[Step]) -> int:
+    """In-place layers: at equal estimated time a plan runs in place only what its memory needs."""
+    return sum(s.in_place for s in plan)
