@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
+from cross_helpers import TOOLCHAINS, missing_tools, verify_on
 from helpers import check_against_onnxruntime, nncg_onnx, onnx_model, weights
 from onnx import helper
 
@@ -236,6 +237,19 @@ def test_depthwise_runs_in_place_where_the_budget_needs_it(target, kernel, pads)
     assert band_kernels(compiled) == 0
     assert (speed.arena_bytes, compiled.arena_bytes) == (262_144, 155_648 + 1024 * 4 * (pads[0] - 1))
     check_against_onnxruntime(model, compiled, sanitize=target == "ansi-c")
+
+
+@pytest.mark.parametrize("toolchain", ["aarch64-neon", "armhf-neon"])
+def test_depthwise_runs_in_place_on_neon(toolchain):
+    tc = TOOLCHAINS[toolchain]
+    missing = missing_tools(tc)
+    if missing:
+        pytest.skip(f"{', '.join(missing)} not installed")  # test_cross_targets fails CI for a missing one
+    model = depthwise_peak_model(3, [1, 1, 1, 1])
+    compiled = nncg.compile(model, target="neon", ram_budget=IN_PLACE_BUDGET)
+    assert compiled.arena_bytes == 155_648
+    report = verify_on(tc, model, compiled)
+    assert report.ok, report.format()
 
 
 def test_in_place_depthwise_reads_back_per_layer_and_is_left_out_where_it_does_not_pay():
