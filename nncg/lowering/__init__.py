@@ -171,13 +171,15 @@ def lower(
     costs = target and target.name
     groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget, costs)}
     in_place = in_place_layers(graph, memory, budget, costs)
+    by_name = {node.name: node for node in graph.nodes}
     banded = {name for group in groups.values() for name in group.nodes}
     # a line buffer has no halo; a group's output neither, as it would only add memory
     unbordered = band_values(graph, tuple(groups.values()))
     ctx.halos = {value: halo for value, halo in ctx.halos.items() if value not in unbordered}
-    for node in graph.nodes:
-        if node.name in in_place:
+    for node in graph.nodes:  # not where halos=true gives a tensor a zero border the plan did not count
+        if node.name in in_place and not {node.inputs[0], node.outputs[0]} & ctx.halos.keys():
             ctx.in_place[node.outputs[0]] = (node.inputs[0], node.attrs.pads_begin[0] + 1)
+    in_place = {name for name in in_place if by_name[name].outputs[0] in ctx.in_place}
     for value in graph.inputs:
         ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
     outputs = {}
