@@ -216,7 +216,7 @@ def memory_figures(compiled: CompiledModel) -> MemoryFigures | None:
         return None
     lower = next(spec for spec in parse_pipeline(compiled.pipeline) if spec.name == "lower")
     params = dict(lower.params)
-    groups = plan_bands(graph, params.get("memory", "speed"), int(params.get("budget", 0)))
+    groups = plan_bands(graph, params.get("memory", "speed"), int(params.get("budget", 0)), compiled.target)
     bound, whole = layer_bound_floats(graph), whole_activation_floats(graph)
     return MemoryFigures(bound * FLOAT_BYTES, whole * FLOAT_BYTES, describe_plan(groups))
 

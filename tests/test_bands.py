@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
+from cross_helpers import TOOLCHAINS, missing_tools, verify_on
 from helpers import check_against_onnxruntime, nncg_onnx, onnx_model, weights
 from onnx import helper
 
@@ -13,13 +14,16 @@ import nncg
 from nncg.backends import get_target
 from nncg.frontend import import_onnx
 from nncg.lowering import band_plan
+from nncg.lowering.band_costs import band_costs
 from nncg.lowering.band_plan import layer_bound_floats, plan_bands
 from nncg.lowering.bands import BandGroup, geometry
 from nncg.passes import PassManager, default_pipeline
+from nncg.verify_layers import verify_per_layer
 
 ROOT = Path(__file__).parent.parent
 ROBOT = ROOT / "examples" / "robot.onnx"
 PEDESTRIAN = ROOT / "examples" / "pedestrian.onnx"
+BALL = ROOT / "examples" / "ball.onnx"
 RESNET8 = ROOT / "benchmarks" / "models" / "resnet8.onnx"
 MOBILENET = ROOT / "benchmarks" / "models" / "mobilenet_v1_025.onnx"
 X86 = ("ssse3", "avx2", "avx512")
@@ -194,6 +198,69 @@ def test_resnet8_min_under_the_sanitizers():
     check_against_onnxruntime(onnx.load(RESNET8), compiled, sanitize=True)
 
 
+# ---------------------------------------------------------------------------- in-place depthwise
+
+
+def depthwise_peak_model(kernel: int, pads: list[int]) -> onnx.ModelProto:
+    """1x1 Conv 8 -> 32 channels, a depthwise Conv, 1x1 Conv 32 -> 4: the depthwise layer's input
+    and output side by side are the largest layer (the model's input and output are not the arena's)."""
+    nodes = [
+        helper.make_node("Conv", ["x", "w1", "b1"], ["a"]),
+        helper.make_node("Relu", ["a"], ["a_r"]),
+        helper.make_node("Conv", ["a_r", "w2", "b2"], ["b"], group=32, pads=pads),
+        helper.make_node("Relu", ["b"], ["b_r"]),
+        helper.make_node("Conv", ["b_r", "w3"], ["y"]),
+    ]
+    init = {
+        "w1": weights(32, 8, 1, 1),
+        "b1": weights(32),
+        "w2": weights(32, 1, kernel, kernel),
+        "b2": weights(32),
+        "w3": weights(4, 32, 1, 1),
+    }
+    return onnx_model(nodes, inputs={"x": [1, 8, 32, 32]}, outputs={"y": [1, 4, 32, 32]}, initializers=init)
+
+
+IN_PLACE_BUDGET = 160_000  # bytes: below speed's 262,144, above the in-place plan's 155,648
+
+
+@pytest.mark.parametrize("target", ["ansi-c", *X86])
+@pytest.mark.parametrize(("kernel", "pads"), [(3, [1, 1, 1, 1]), (5, [2, 1, 2, 3])])
+def test_depthwise_runs_in_place_where_the_budget_needs_it(target, kernel, pads):
+    """The fastest plan under the budget writes the depthwise output over its input (stored pad + 1
+    rows down): every layer still computed whole, 262,144 -> 155,648 B, the same outputs."""
+    model = depthwise_peak_model(kernel, pads)
+    speed = nncg.compile(model, target=target)
+    compiled = nncg.compile(model, target=target, ram_budget=IN_PLACE_BUDGET)
+    graph = lowered_graph(model, target)
+    assert band_plan.in_place_layers(graph, "speed", IN_PLACE_BUDGET, target) == {graph.nodes[1].name}
+    assert band_kernels(compiled) == 0
+    assert (speed.arena_bytes, compiled.arena_bytes) == (262_144, 155_648 + 1024 * 4 * (pads[0] - 1))
+    check_against_onnxruntime(model, compiled, sanitize=target == "ansi-c")
+
+
+@pytest.mark.parametrize("toolchain", ["aarch64-neon", "armhf-neon"])
+def test_depthwise_runs_in_place_on_neon(toolchain):
+    tc = TOOLCHAINS[toolchain]
+    missing = missing_tools(tc)
+    if missing:
+        pytest.skip(f"{', '.join(missing)} not installed")  # test_cross_targets fails CI for a missing one
+    model = depthwise_peak_model(3, [1, 1, 1, 1])
+    compiled = nncg.compile(model, target="neon", ram_budget=IN_PLACE_BUDGET)
+    assert compiled.arena_bytes == 155_648
+    report = verify_on(tc, model, compiled)
+    assert report.ok, report.format()
+
+
+def test_in_place_depthwise_reads_back_per_layer_and_is_left_out_where_it_does_not_pay():
+    model = depthwise_peak_model(3, [1, 1, 1, 1])
+    report = verify_per_layer(model, "ansi-c", ram_budget=IN_PLACE_BUDGET, sanitize=True)
+    assert report.ok, report.format()
+    graph = lowered_graph(model, "ssse3")
+    assert not band_plan.in_place_layers(graph, "speed", 300_000, "ssse3")  # fits without it
+    assert not band_plan.in_place_layers(graph, "speed", 0, "ssse3")
+
+
 # ---------------------------------------------------------------------------- the planner and options
 
 
@@ -201,6 +268,63 @@ def test_speed_is_the_default_and_plans_nothing():
     graph = lowered_graph(ROBOT)
     assert plan_bands(graph) == ()
     assert nncg.compile(ROBOT, target="ssse3").source == nncg.compile(ROBOT, target="ssse3", memory="speed").source
+
+
+def _plans(graph, target):
+    """(floats, estimated latency) of the fastest plan under every memory bound, and speed's."""
+    steps = band_plan.candidate_steps(graph, band_costs(target))
+    plans = (band_plan._cheapest(len(graph.nodes), steps, bound) for bound in sorted({s.floats for s in steps}))
+    speed = band_plan.plan_steps(graph, "speed", 0, target)
+    return [_figures(p) for p in plans if p], _figures(speed)
+
+
+def _figures(plan):
+    return max(s.floats for s in plan), sum(s.cost for s in plan)
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2"])
+@pytest.mark.parametrize("model", [ROBOT, PEDESTRIAN, RESNET8, MOBILENET])
+def test_balanced_is_the_fastest_plan_with_half_the_arena_within_the_latency_bound(model, target):
+    """Issue 18: balanced takes the fastest plan with at most half of speed's memory when its estimated
+    latency is within 1.3x of speed's; when none is, the smallest memory within 1.3x."""
+    graph = lowered_graph(model, target)
+    plans, (speed_floats, speed_time) = _plans(graph, target)
+    fast = [(floats, time) for floats, time in plans if time <= speed_time * band_plan.BALANCED_LATENCY]
+    cut = [(time, floats) for floats, time in fast if floats <= speed_floats / band_plan.BALANCED_CUT]
+    floats, time = _figures(band_plan.plan_steps(graph, "balanced", 0, target))
+    assert time <= speed_time * band_plan.BALANCED_LATENCY
+    if cut:
+        assert floats <= speed_floats / band_plan.BALANCED_CUT and time == min(cut)[0]
+    else:
+        assert floats == min(f for f, _ in fast)
+
+
+def test_balanced_halves_the_arena_where_a_plan_is_fast_enough():
+    """mobilenet (no Winograd): bands cost little, so balanced has at most half of speed's arena."""
+    for target in ("ssse3", "avx2"):
+        speed = nncg.compile(MOBILENET, target=target).arena_bytes
+        compiled = nncg.compile(MOBILENET, target=target, memory="balanced")
+        assert compiled.arena_bytes <= speed / 2
+    check_against_onnxruntime(onnx.load(MOBILENET), compiled)
+
+
+def test_plans_are_priced_for_the_target():
+    """ball: bands cost less on scalar C than on avx2, so balanced cuts deeper there; compile hands
+    lower its target, and the report names the plan priced for it."""
+    plans = {t: plan_bands(lowered_graph(BALL, t), "balanced", 0, t) for t in ("ansi-c", "avx2")}
+    assert plans["ansi-c"] != plans["avx2"]
+    for target, groups in plans.items():
+        compiled = nncg.compile(BALL, target=target, memory="balanced")
+        assert nncg.compiler.memory_figures(compiled).plan == band_plan.describe_plan(groups)
+
+
+def test_a_residual_conv_written_over_its_residual_counts_once():
+    """resnet8: each residual Conv writes over its dying residual (plan-memory), so the layer bound is
+    one input + output pair (issue 18's 131,072 B) and speed's estimate is its real arena."""
+    graph = lowered_graph(RESNET8, "avx2")
+    assert layer_bound_floats(graph) * 4 == 131_072
+    _, (speed_floats, _) = _plans(graph, "avx2")
+    assert speed_floats * 4 == nncg.compile(RESNET8, target="avx2").arena_bytes
 
 
 def test_settings_order_the_arena():

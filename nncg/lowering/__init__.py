@@ -11,10 +11,11 @@ from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm
 from ..ir.loops import Program, StoredValue
 from ..ir.ops import REDUCE_OPS
-from .band_plan import plan_bands
+from ..ir.target import Target
+from .band_plan import in_place_layers, plan_bands
 from .bands import BandGroup
 from .concat import lower_concat
-from .context import LoweringContext, row_major
+from .context import LoweringContext, TensorRef, row_major
 from .conv import lower_conv
 from .conv_blocked import lower_blocked_conv
 from .conv_transpose import lower_conv_transpose
@@ -29,6 +30,7 @@ from .elementwise import (
     lower_where,
 )
 from .gather import lower_gather
+from .in_place import lower_in_place_depthwise
 from .lrn import lower_lrn
 from .normalization import lower_normalization
 from .pad import lower_pad
@@ -157,22 +159,31 @@ def lower(
     memory: str = "speed",
     budget: int = 0,
     requantize: str = "float",
+    target: Target | None = None,
 ) -> Program:
     """`halos`: store tensors that only padded Convs read inside a zero border (see halo.py). `auto`
     (the default) does it only where the readers are cache-blocked Convs: it removes every border
     check, which on a small image is every pixel (resnet18's layer4 at 96x96, avx2: 1860 -> 1400 us),
     but for the other layers gcc's code came out as often slower as faster (robot avx2 -2 %,
     pedestrian ssse3 +23 %). true: for every padded Conv; false: never. `memory` (speed, balanced,
-    min) and `budget` (bytes; 0: none) choose the layers run in bands (see band_plan.py). `requantize`:
+    min) and `budget` (bytes; 0: none) choose the layers run in bands (see band_plan.py), priced for
+    `target` (None: 4-lane vector figures). `requantize`:
     how the integer ops of an int8 model scale their results, `float` (onnxruntime's arithmetic) or
     `fixed` (integers only, see lowering/requantize.py)."""
     name = program_name(function_name or graph.name)
     ctx = LoweringContext(graph, name, halos, requantize)
-    groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget)}
+    costs = target and target.name
+    groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget, costs)}
+    in_place = in_place_layers(graph, memory, budget, costs)
+    by_name = {node.name: node for node in graph.nodes}
     banded = {name for group in groups.values() for name in group.nodes}
     # a line buffer has no halo; a group's output neither, as it would only add memory
     unbordered = band_values(graph, tuple(groups.values()))
     ctx.halos = {value: halo for value, halo in ctx.halos.items() if value not in unbordered}
+    for node in graph.nodes:  # not where halos=true gives a tensor a zero border the plan did not count
+        if node.name in in_place and not {node.inputs[0], node.outputs[0]} & ctx.halos.keys():
+            ctx.in_place[node.outputs[0]] = (node.inputs[0], node.attrs.pads_begin[0] + 1)
+    in_place = {name for name in in_place if by_name[name].outputs[0] in ctx.in_place}
     for value in graph.inputs:
         ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
     outputs = {}
@@ -187,6 +198,8 @@ def lower(
     for node in graph.nodes:
         if node.name in groups:
             _lower_group(ctx, groups[node.name])
+        elif node.name in in_place:
+            lower_in_place_depthwise(ctx, node)
         elif node.name not in banded:
             _lower_node(ctx, node)
         if node.name not in banded or node.name in ends:  # a line buffer holds no whole value to read back
@@ -204,7 +217,12 @@ def _stored_values(ctx: LoweringContext, node: Node) -> list[StoredValue]:
         return []
     layer = ctx.kernels[-1].name
     refs = {value: ctx.refs[value] for value in node.outputs if value in ctx.refs}
-    return [StoredValue(v, r.buffer, r.shape, r.order, r.halo, layer) for v, r in refs.items()]
+    return [StoredValue(v, r.buffer, r.shape, r.order, _stored_halo(r), layer) for v, r in refs.items()]
+
+
+def _stored_halo(ref: TensorRef) -> tuple[tuple[int, int], ...]:
+    """The rows before a tensor with a lead (one image, no halo) read back as a halo above it."""
+    return ((0, 0), (0, 0), (ref.lead, 0), (0, 0)) if ref.lead else ref.halo
 
 
 def _lower_node(ctx: LoweringContext, node: Node) -> None:

@@ -1,36 +1,38 @@
 """Which layers run in bands (bands.py), for a memory setting: `speed` runs every layer whole (the
-layer-by-layer arena), `min` takes the smallest activation memory, `balanced` the smallest whose
-extra work stays under BALANCED_EXTRA of the model's multiply-accumulates, and a RAM budget the
-least extra work that fits it.
+layer-by-layer arena), `min` takes the smallest activation memory, `balanced` the fastest plan with at
+most half of speed's arena whose estimated latency stays within BALANCED_LATENCY of speed's (none: the
+smallest arena within that latency), and a RAM budget the fastest plan that fits it.
 
 The model is cut into steps, consecutive in graph order: a layer run whole, or a group run in bands
 with some band height. A step needs the memory of the whole tensors live across it (its inputs, its
-output, tensors passing over it to later layers) plus its line buffers; a plan needs the largest of
-its steps. Its cost is the work banding adds, in multiply-accumulates: a Winograd layer run direct
-does 2.25x the multiplies, a cache-blocked or pixel-vectorised one loses that gain (a share of its
-MACs), every band adds loop and border overhead per layer, and line buffers are shifted. Dynamic
-programming over the steps gives the cheapest plan under a memory bound; `min` is the smallest
-bound any plan meets. The figures are estimates (no alignment, no fragmentation): the driver checks
-the planned arena against a budget. A single layer in bands is a Winograd layer run direct, without
-its scratch buffers."""
+output, tensors passing over it to later layers) plus its line buffers, and a Winograd layer run
+whole its scratch; a plan needs the largest of its steps. Its latency is estimated per target
+(band_costs.py): a layer run whole keeps the graph passes' choices (Winograd, cache blocking), one in
+bands runs direct, and every band adds per-layer overhead and line-buffer shifts. Dynamic
+programming over the steps gives the fastest plan under a memory bound; `min` is the smallest bound
+any plan meets. The figures are estimates (no alignment, no fragmentation): the driver checks the
+planned arena against a budget. A single layer in bands is a Winograd layer run direct, without its
+scratch buffers."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm, VectorAxis
 from ..safe_text import shown
+from .band_costs import BandCosts, band_costs
 from .bands import STREAMABLE, BandGroup, geometry, row_floats, streamable
+from .conv import conv_extras
+from .halo import conv_halos
+from .in_place import in_place_lead
 from .winograd import scratch_floats
 
 MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
-LOST_WINOGRAD = 0.55
-LOST_CHOICE = 0.25
-PER_BAND = 64
-BALANCED_EXTRA = 0.3
+BALANCED_LATENCY = 1.3  # issue 18: balanced at most 1.3x speed's latency ...
+BALANCED_CUT = 2  # ... with at least 2x less arena
 
 
 @dataclass(frozen=True)
@@ -42,8 +44,9 @@ class Step:
     stop: int
     group: BandGroup | None
     floats: int
-    cost: float
+    cost: float  # estimated time, in MACs of a whole direct Conv (band_costs.py)
     lines: int = 0
+    in_place: bool = False  # a depthwise Conv run whole over its input (in_place.py)
 
 
 def parse_memory(text: str) -> str:
@@ -52,25 +55,65 @@ def parse_memory(text: str) -> str:
     return text
 
 
-def plan_bands(graph: Graph, memory: str = "speed", budget: int = 0) -> tuple[BandGroup, ...]:
-    """The groups to run in bands; `budget` (bytes, 0: none) takes precedence over `memory`. A
-    budget no plan meets gets the `min` plan (the driver then refuses with its arena)."""
+def plan_bands(
+    graph: Graph, memory: str = "speed", budget: int = 0, target: str | None = None
+) -> tuple[BandGroup, ...]:
+    """The groups to run in bands; `budget` (bytes, 0: none) takes precedence over `memory`, and
+    `target` (a backend's name) prices the plans. A budget no plan meets gets the `min` plan (the
+    driver then refuses with its arena)."""
     if memory == "speed" and not budget:
         return ()
-    steps = candidate_steps(graph)
-    plan = _cheapest(len(graph.nodes), steps, budget // 4) if budget else None
-    if plan is None:
-        bounds = sorted({s.floats for s in steps})
-        limit = sum(_conv_macs(graph, n) for n in graph.nodes) * BALANCED_EXTRA if memory == "balanced" else math.inf
-        plan = next(p for p in (_cheapest(len(graph.nodes), steps, b) for b in bounds) if p and _cost(p) <= limit)
-    return tuple(s.group for s in plan if s.group is not None)
+    return tuple(s.group for s in plan_steps(graph, memory, budget, target) if s.group is not None)
+
+
+def in_place_layers(graph: Graph, memory: str = "speed", budget: int = 0, target: str | None = None) -> set[str]:
+    """The depthwise Convs the plan runs in place (none for `speed`)."""
+    if memory == "speed" and not budget:
+        return set()
+    return {graph.nodes[s.start].name for s in plan_steps(graph, memory, budget, target) if s.in_place}
+
+
+def plan_steps(graph: Graph, memory: str, budget: int, target: str | None) -> list[Step]:
+    """The steps of the plan plan_bands chooses (for `speed`: every layer whole). The candidates are
+    the fastest plan under every memory bound, from the steps without in-place depthwise Convs and,
+    where a model has some, from the steps with them (their tensors counted with the rows they are
+    stored down, wherever they are live: an estimate on the safe side)."""
+    costs, count = band_costs(target), len(graph.nodes)
+    exact = candidate_steps(graph, costs)
+    speed = [s for s in exact if s.group is None]
+    if memory == "speed" and not budget:
+        return speed
+    plans = _fastest_per_bound(count, exact)
+    if _Liveness(graph).leads:
+        plans += _fastest_per_bound(count, candidate_steps(graph, costs, in_place=True))
+    fitting = [p for p in plans if _floats(p) <= budget // 4] if budget else []
+    if fitting:
+        return min(fitting, key=lambda p: (_cost(p), _in_place(p), _floats(p)))
+    if memory == "balanced" and not budget:
+        return _balanced(plans, speed)
+    return min(plans, key=lambda p: (_floats(p), _cost(p), _in_place(p)))
+
+
+def _balanced(plans: list[list[Step]], speed: list[Step]) -> list[Step]:
+    """The fastest plan with at most 1/BALANCED_CUT of speed's memory, if its latency is within
+    BALANCED_LATENCY of speed's; else the smallest memory any plan within that latency needs."""
+    fast = [p for p in plans if _cost(p) <= _cost(speed) * BALANCED_LATENCY]
+    cut = [p for p in fast if _floats(p) <= _floats(speed) / BALANCED_CUT]
+    if cut:
+        return min(cut, key=lambda p: (_cost(p), _in_place(p), _floats(p)))
+    return min(fast, key=lambda p: (_floats(p), _cost(p), _in_place(p)))
+
+
+def _fastest_per_bound(count: int, steps: list[Step]) -> list[list[Step]]:
+    plans = (_cheapest(count, steps, bound) for bound in sorted({s.floats for s in steps}))
+    return [p for p in plans if p is not None]
 
 
 def layer_bound_floats(graph: Graph) -> int:
     """The layer-by-layer bound: the most activation floats live at one layer computed whole (its
     input and output, and tensors passing over it), scratch buffers left out."""
     live = _Liveness(graph)
-    return max((live.floats(i, i + 1, ()) for i in range(len(graph.nodes))), default=0)
+    return max((live.whole(i) for i in range(len(graph.nodes))), default=0)
 
 
 def whole_activation_floats(graph: Graph) -> int:
@@ -85,14 +128,20 @@ def describe_plan(groups: tuple[BandGroup, ...]) -> str:
     return "; ".join(f"{shown(g.nodes[0])}..{shown(g.nodes[-1])} in bands of {g.rows} output row(s)" for g in groups)
 
 
-def candidate_steps(graph: Graph) -> list[Step]:
-    """Every layer run whole, and every group that can run in bands at each height."""
-    live = _Liveness(graph)
+def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> list[Step]:
+    """Every layer run whole, and every group that can run in bands at each height; with `in_place`,
+    also every depthwise Conv that can run in place, its input and output counted as stored for it."""
+    live = _Liveness(graph, in_place)
     steps = [
-        Step(i, i + 1, None, live.floats(i, i + 1, ()) + _scratch(graph, node) + _output_copy(graph, node), 0.0)
+        Step(
+            i, i + 1, None, live.whole(i) + _scratch(graph, node) + _output_copy(graph, node),
+            _whole_time(graph, node, costs),
+        )
         for i, node in enumerate(graph.nodes)
-    ]
+    ]  # fmt: skip
     ceiling = max((s.floats for s in steps), default=0)  # what a plan of whole layers needs
+    for i in live.leads if in_place else ():  # after the layer run whole, which wins a tie
+        steps.append(replace(steps[i], floats=steps[i].floats - live.size[graph.nodes[i].outputs[0]], in_place=True))
     nodes = graph.nodes
     for i in range(len(nodes)):
         stop = i
@@ -100,7 +149,7 @@ def candidate_steps(graph: Graph) -> list[Step]:
             stop += 1
         for rows in BAND_ROWS:
             for j in range(i + 1, stop + 1):  # one layer alone: run direct, without a Winograd scratch
-                step = _band_step(graph, live, i, j, rows)
+                step = _band_step(graph, live, costs, i, j, rows)
                 if step is not None and step.lines > ceiling:
                     break  # a longer group only adds line buffers
                 if step is not None:
@@ -108,7 +157,7 @@ def candidate_steps(graph: Graph) -> list[Step]:
     return steps
 
 
-def _band_step(graph: Graph, live: _Liveness, i: int, j: int, rows: int) -> Step | None:
+def _band_step(graph: Graph, live: _Liveness, costs: BandCosts, i: int, j: int, rows: int) -> Step | None:
     group = BandGroup(tuple(n.name for n in graph.nodes[i:j]), rows)
     if rows > graph.shape(graph.nodes[j - 1].outputs[0])[2]:
         return None
@@ -121,7 +170,9 @@ def _band_step(graph: Graph, live: _Liveness, i: int, j: int, rows: int) -> Step
         for v in geo.internal
     )
     runs = sum(geo.runs(0, geo.rows[n.outputs[0]].level) for n in graph.nodes[i:j])  # of the layers per band
-    cost = sum(_lost(graph, n) for n in graph.nodes[i:j]) + geo.bands * (PER_BAND * runs + shifted)
+    banded = costs.banded if j - i > 1 else 1.0  # one layer alone: its direct nest under a band loop
+    work = sum(_conv_macs(graph, n) * banded + _window_work(graph, n) for n in graph.nodes[i:j])
+    cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.floats(i, j, geo.internal) + lines, cost, lines)
 
 
@@ -137,16 +188,22 @@ def _output_copy(graph: Graph, node: Node) -> int:
     return math.prod(shape) if copied and math.prod(shape[2:]) > 1 else 0
 
 
-def _lost(graph: Graph, node: Node) -> float:
-    """The work a layer loses in bands: the graph passes' choices do not apply there."""
-    if node.op != "Conv":
-        return 0.0
+def _whole_time(graph: Graph, node: Node, costs: BandCosts) -> float:
+    """A layer run whole: a Conv at the speed of what the graph passes chose for it."""
+    macs = _conv_macs(graph, node)
     attrs = node.attrs
-    if attrs.algorithm == ConvAlgorithm.WINOGRAD:
-        return LOST_WINOGRAD * _conv_macs(graph, node)
-    if attrs.panel or attrs.vector_axis == VectorAxis.PIXELS:
-        return LOST_CHOICE * _conv_macs(graph, node)
-    return 0.0
+    if macs and attrs.algorithm == ConvAlgorithm.WINOGRAD:
+        macs *= costs.winograd
+    elif macs and (attrs.panel or attrs.vector_axis == VectorAxis.PIXELS):
+        macs *= costs.blocked
+    return macs + _window_work(graph, node)
+
+
+def _window_work(graph: Graph, node: Node) -> int:
+    """A pooling layer's window reads, whole or in bands alike."""
+    if node.op not in STREAMABLE or node.op == "Conv":
+        return 0
+    return math.prod(graph.shape(node.outputs[0])) * math.prod(node.attrs.kernel)
 
 
 def _conv_macs(graph: Graph, node: Node) -> int:
@@ -157,22 +214,64 @@ def _conv_macs(graph: Graph, node: Node) -> int:
 
 class _Liveness:
     """Which whole tensors are live across a run of nodes: produced before its end and read at or
-    after its start (graph inputs and outputs are the caller's, not the arena's)."""
+    after its start (graph inputs and outputs are the caller's, not the arena's). A Conv run whole
+    whose fused residual dies at it writes its output over the residual (plan-memory computes it in
+    place), so its layer holds one of the two (`shared`). With `in_place`, the input and output of
+    every depthwise Conv that can run in place (`leads`) count the rows it is stored down."""
 
-    def __init__(self, graph: Graph):
+    def __init__(self, graph: Graph, in_place: bool = False):
         index = {node.name: i for i, node in enumerate(graph.nodes)}
         outputs = {v.name for v in graph.outputs}
         readers = {value: index[node.name] for node in graph.nodes for value in node.inputs}  # the last
+        producers = {value: node for node in graph.nodes for value in node.outputs}
+        halos = conv_halos(graph, blocked_only=True)
+        leads = {i: in_place_lead(graph, node, readers, i, halos) for i, node in enumerate(graph.nodes)}
+        self.leads = {i: lead for i, lead in leads.items() if lead}  # depthwise Convs that can run in place
+        self.size = {value: math.prod(graph.shape(value)) for node in graph.nodes for value in node.outputs}
+        for i, lead in self.leads.items() if in_place else ():  # stored down `lead` rows, written over
+            node = graph.nodes[i]
+            for value in (node.inputs[0], node.outputs[0]):
+                self.size[value] += lead * row_floats(graph, value)
         self.tensors = [  # (name, producer, last reader, floats)
-            (value, i, max(i, readers.get(value, i)), math.prod(graph.shape(value)))
+            (value, i, max(i, readers.get(value, i)), self.size[value])
             for i, node in enumerate(graph.nodes)
             for value in node.outputs
             if value not in outputs
         ]
+        self.shared = {
+            i: math.prod(graph.shape(node.outputs[0]))
+            for i, node in enumerate(graph.nodes)
+            if _writes_over_residual(graph, node, i, readers, producers, halos)
+        }
 
     def floats(self, start: int, stop: int, inside: tuple[str, ...]) -> int:
         live = (size for name, made, last, size in self.tensors if made < stop and last >= start and name not in inside)
         return sum(live)
+
+    def whole(self, i: int) -> int:
+        """The floats live while node i runs whole."""
+        return self.floats(i, i + 1, ()) - self.shared.get(i, 0)
+
+
+def _writes_over_residual(graph: Graph, node: Node, i: int, readers, producers, halos) -> bool:
+    """Whether plan-memory will put the Conv's output in its residual's memory: the residual dies
+    here, both are channels-last tensors of one size and type without a halo, inside the arena."""
+    if node.op != "Conv" or not node.attrs.residual or node.attrs.vector_axis == VectorAxis.PIXELS:
+        return False
+    residual, out = conv_extras(node)[1], node.outputs[0]
+    source = producers.get(residual)
+    planar = getattr(source.attrs, "vector_axis", None) == VectorAxis.PIXELS if source else True
+    channels_last = source is not None and source.op in STREAMABLE and not planar
+    return (
+        channels_last
+        and readers.get(residual) == i
+        and not graph.is_graph_output(residual)
+        and not graph.is_graph_output(out)
+        and graph.shape(residual) == graph.shape(out)
+        and graph.dtype(residual) == graph.dtype(out)
+        and residual not in halos
+        and out not in halos
+    )
 
 
 def _cheapest(count: int, steps: list[Step], limit: float) -> list[Step] | None:
@@ -192,3 +291,12 @@ def _cheapest(count: int, steps: list[Step], limit: float) -> list[Step] | None:
 
 def _cost(plan: list[Step]) -> float:
     return sum(s.cost for s in plan)
+
+
+def _floats(plan: list[Step]) -> int:
+    return max(s.floats for s in plan)
+
+
+def _in_place(plan: list[Step]) -> int:
+    """In-place layers: at equal estimated time a plan runs in place only what its memory needs."""
+    return sum(s.in_place for s in plan)

@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..errors import NncgError
 from ..ir.c_names import Namespace, buffer_name, layer_name
 from ..ir.graph import Graph
 from ..ir.kinds import DType, Layout
@@ -33,12 +34,15 @@ def layout_of(shape: tuple[int, ...], order: tuple[int, ...]) -> Layout:
 class TensorRef:
     """Where a logical tensor lives: a buffer and the physical order of its logical dims. With a
     `halo` ((before, after) per logical dim), the buffer holds the tensor inside a border of zeros
-    that padded convolutions read instead of checking bounds."""
+    that padded convolutions read instead of checking bounds. With a `lead`, the tensor (one image,
+    channels last) starts that many rows into its buffer, whose first rows an in-place depthwise
+    Conv's output takes (in_place.py); they are not zeros."""
 
     buffer: str
     shape: tuple[int, ...]
     order: tuple[int, ...]  # logical dims from outermost to innermost in memory
     halo: tuple[tuple[int, int], ...] = ()
+    lead: int = 0
 
     @property
     def stored_shape(self) -> tuple[int, ...]:
@@ -59,7 +63,7 @@ class TensorRef:
 
     def at(self, index) -> Affine:
         """Flat offset of a logical index (a sequence of Affine/str/int, one per dim)."""
-        offset = Affine()
+        offset = Affine.of(self.lead * self.strides[2]) if self.lead else Affine()
         for d, (i, stride) in enumerate(zip(index, self.strides)):
             offset = offset + (Affine.of(i) + (self.halo[d][0] if self.halo else 0)) * stride
         return offset
@@ -126,6 +130,7 @@ class LoweringContext:
         self.halos = conv_halos(graph, blocked_only=halos == "auto") if halos else {}
         self.slabs = concat_slices(graph)  # Concat inputs their producers write in place
         self.written_as_is: set[str] = set()  # graph outputs their producer writes in their own layout
+        self.in_place: dict[str, tuple[str, int]] = {}  # depthwise output -> (its input, the input's lead)
 
     def add_buffer(
         self, name: str, role: str, shape, order, onnx_name: str = "", dtype: DType = DType.FLOAT32
@@ -172,15 +177,28 @@ class LoweringContext:
             if slab is not None:
                 self.refs[value] = slab
                 return slab
-        if value in self.halos:
+        if value in self.in_place:  # a depthwise Conv's output over its input (in_place.py)
+            ref = replace(self.refs[self.in_place[value][0]], shape=shape, lead=0)
+        elif value in self.halos:
             halo = self.halos[value]
             stored = TensorRef("", shape, tuple(order), halo).stored_shape
             ref = replace(self.add_buffer("t_" + value, "internal", stored, order), shape=shape, halo=halo)
             self.emit_helper("halo_" + ref.buffer, "ZeroHalo", zero_halo(ref))
         else:
-            ref = self.add_buffer("t_" + value, "internal", shape, order, dtype=dtype)
+            ref = self._add_tensor(value, shape, order, dtype)
         self.refs[value] = ref
         return ref
+
+    def _add_tensor(self, value: str, shape, order, dtype) -> TensorRef:
+        """The buffer of an internal tensor; the input of an in-place depthwise Conv `lead` rows
+        down a buffer that many rows higher."""
+        lead = next((lead for x, lead in self.in_place.values() if x == value), 0)
+        if not lead:
+            return self.add_buffer("t_" + value, "internal", shape, order, dtype=dtype)
+        if tuple(order) != (0, 2, 3, 1):
+            raise NncgError(f"the input '{value}' of an in-place depthwise Conv is not stored channels last")
+        stored = (shape[0], shape[1], shape[2] + lead, shape[3])
+        return replace(self.add_buffer("t_" + value, "internal", stored, order, dtype=dtype), shape=shape, lead=lead)
 
     def _slab(self, value: str, order: tuple[int, ...]) -> TensorRef | None:
         """`value` as a view of its slab of the Concat output (allocated now, in the layout of the

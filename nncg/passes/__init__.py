@@ -86,8 +86,9 @@ register(
     tunable=Tunable(cache_block_choices, format_cache_block), layers=parse_cache_block_layers,
 )  # fmt: skip
 register(
-    "lower", "lower", lower, halos=parse_halos, memory=parse_memory, budget=parse_budget, requantize=parse_requantize
-)
+    "lower", "lower", lower, priced=True,
+    halos=parse_halos, memory=parse_memory, budget=parse_budget, requantize=parse_requantize,
+)  # fmt: skip
 register("vectorize", "loop", vectorize, target=True)
 register(
     "register-block",

@@ -51,6 +51,7 @@ class PassInfo:
     target: bool = False  # run(ir, target=..., **params): it needs the hardware facts
     finishing: bool = False  # runs last; appended to a lowering pipeline that lacks it
     tunable: Tunable | None = None  # what --tune may choose per layer (through the `layers` parameter)
+    priced: bool = False  # run(ir, target=...) when there is a target: it prices its choices for it
 
 
 REGISTRY: dict[str, PassInfo] = {}
@@ -64,13 +65,14 @@ def register(
     target: bool = False,
     finishing: bool = False,
     tunable: Tunable | None = None,
+    priced: bool = False,
     **params: Callable[[str], object],
 ) -> None:
     if tunable is not None and "layers" not in params:
         raise ValueError(f"pass {name} is tunable but has no `layers` parameter to record the choices")
     doc = (sys.modules[run.__module__].__doc__ or "").strip()
     first = doc.splitlines()[0] if doc else ""
-    REGISTRY[name] = PassInfo(name, stage, run, params, first, target, finishing, tunable)
+    REGISTRY[name] = PassInfo(name, stage, run, params, first, target, finishing, tunable, priced)
 
 
 @dataclass(frozen=True)
@@ -188,7 +190,7 @@ class PassManager:
             expected, got = _ir_kind(STAGES[info.stage]), _ir_kind(type(ir))
             raise NncgError(f"pass {spec} works on the {expected} but gets the {got}; put it {where} lower")
         kwargs = {k: info.params[k](v) for k, v in spec.params}
-        if info.target:
+        if info.target or (info.priced and self.target is not None):
             kwargs["target"] = self.target
         try:
             return info.run(ir, **kwargs)

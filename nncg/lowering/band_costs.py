@@ -1,0 +1,46 @@
+"""What the band planner (band_plan.py) charges a layer, per target: the time of a Conv run whole or
+in bands, in multiply-accumulates of a whole direct Conv (the unit).
+
+Run whole, a Conv keeps what the graph passes chose for it: Winograd does 2.25x fewer multiplies, but
+its transforms and scratch traffic take back part of that, more so the wider the vectors; cache
+blocking and pixel vectors gain less. In a group of bands, every Conv runs as a direct,
+channels-last nest over the band's rows (stream.py), which costs more than the same nest over the
+whole layer (the row loop cut into bands, line-buffer indices, shorter loops for register blocking
+and unrolling); a layer alone in bands has no line buffers, its nest is the whole layer's. On top,
+each band runs every layer's nest once (`per_band`) and shifts the line buffers (`shift`, per float).
+
+The x86 figures are rounded from the memory suite's side-by-side runs of robot, pedestrian, resnet8,
+ball and mobilenet_v1_025 (speed, balanced, min; and speed against speed without Winograd) on a
+machine other jobs loaded, where two builds of the same C differed by up to 40 %: they order plans,
+they do not predict microseconds. On avx2 a dense 3x3 Conv loses more in bands than a depthwise or
+1x1 one (robot, resnet8 at min: 1.3-1.6x per MAC; ball 1.1x; mobilenet none): `banded` is in
+between. ansi-c (scalar: Winograd's saving nearer its 2.25x) and neon (the 4-lane figures) are not
+measured."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class BandCosts:
+    """Time per MAC relative to a whole direct Conv: `winograd` and `blocked` a whole Conv the graph
+    passes made Winograd or cache-blocked (or pixel-vectorised), `banded` a Conv in a group of bands;
+    `per_band` MAC-equivalents per layer and band run, `shift` per float a line buffer shifts."""
+
+    winograd: float
+    blocked: float
+    banded: float
+    per_band: float
+    shift: float
+
+
+SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0)
+VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5)
+VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25)
+COSTS = {"ansi-c": SCALAR, "ssse3": VECTOR4, "neon": VECTOR4, "avx2": VECTOR8, "avx512": VECTOR8}
+
+
+def band_costs(target: str | None) -> BandCosts:
+    """The figures of `target` (a backend's name); None or an unknown name: the 4-lane figures."""
+    return COSTS.get(target or "", VECTOR4)
