@@ -74,11 +74,11 @@ def test_unrolled_weights_are_constant_vectors(toolchain):
 
 
 @pytest.mark.parametrize("toolchain", ARM[:2])
-def test_repository_model(toolchain):
-    """A whole network (DS-CNN with its final QLinearSoftmax), bit-identical; its first Conv reads the
-    planar graph input and stays scalar, the others are vectors."""
-    source = check_on(toolchain, repository_model("benchmarks/models/dscnn.onnx")).source
-    assert "vmulq_s32(" in source and "nncg_vrequantizeq_s32(" in source
+@pytest.mark.parametrize("name", ["dscnn", "resnet8", "mobilenet_v1_025"])
+def test_repository_model(name, toolchain):
+    """Whole MLPerf-Tiny-shaped networks with their final QLinearSoftmax, bit-identical; a first Conv
+    reading the planar graph input stays scalar, the others are vectors."""
+    assert vectorised(check_on(toolchain, repository_model(f"benchmarks/models/{name}.onnx")).source)
 
 
 @pytest.mark.parametrize("kind", sorted(MODELS))
