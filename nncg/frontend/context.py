@@ -67,13 +67,17 @@ def _decode(value: object) -> object:
 
 @dataclass
 class Context:
-    """Model-wide state for converters: constants, shapes, which values are read, taken names."""
+    """Model-wide state for converters: constants, shapes, which values are read, taken names, and
+    qdq.py's notes on the nodes it wrote (by output: real ranges of folded clamps, int8 pools
+    onnxruntime computes in uint8)."""
 
     opset: int
     constants: dict[str, np.ndarray]
     shapes: dict[str, Shape]
     used: set[str]
     taken: set[str]
+    output_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    uint8_pools: set[str] = field(default_factory=set)
 
     def shape(self, value: str) -> Shape:
         if value in self.constants:

@@ -17,10 +17,10 @@ from nncg.frontend.folding import Folded, NamedNode, fold_constants
 from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, real_inputs
 from nncg.frontend.names import node_reads, value_names
 from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
-from nncg.frontend.qdq import fuse_qdq
+from nncg.frontend.qdq import QdqNotes, fuse_qdq
 from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
-from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, float_ops_reading_integers, output_dtype
+from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, TYPE_PRESERVING, float_ops_reading_integers, output_dtype
 from nncg.ir.kinds import DType
 from nncg.safe_text import shown
 
@@ -29,9 +29,10 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     """The graph IR of an ONNX model (path, bytes, ModelProto or load_model's result)."""
     proto, shapes = load_with_shapes(model, input_shapes)
     folded = fold_constants(proto, shapes)
-    folded = replace(folded, nodes=fuse_qdq(folded, [v.name for v in proto.graph.output]))
+    nodes, notes = fuse_qdq(folded, [v.name for v in proto.graph.output])
+    folded = replace(folded, nodes=nodes)
     check_supported(folded.nodes)
-    ctx = _context(proto, folded)
+    ctx = _context(proto, folded, notes)
     computed = [(name, node.op_type, node.output) for node, name in folded.nodes]
     check_computed_shapes(computed, ctx.shapes, ctx.is_used)  # before converters size anything by them
     nodes = tuple(ir_node for node, name in folded.nodes for ir_node in _converted(OnnxOp.of(node, name), ctx))
@@ -43,8 +44,9 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     return graph
 
 
-# Integer operators NNCG does not compile yet, named in the error; dynamic quantisation (scales
-# computed per inference) never will be in generated C.
+# Integer operators with int32 output tensors, refused by name: an int32 tensor would have to live in
+# memory (the verifier keeps int16/int32 in locals), and these usually come with dynamic quantisation
+# (scales computed per inference), which never will be in generated C.
 QUANTIZED_OPS = {"ConvInteger", "MatMulInteger"}
 DYNAMIC_QUANTIZATION = "DynamicQuantizeLinear"
 
@@ -61,8 +63,10 @@ def check_supported(nodes: list[NamedNode]) -> None:
     if types & QUANTIZED_OPS:
         found = ", ".join(sorted(types & QUANTIZED_OPS))
         raise UnsupportedOpsError(
-            f"the model computes in int8 with {found}, which NNCG does not compile yet: quantize it with "
-            "onnxruntime.quantization (QDQ or QOperator format), or compile the float model"
+            f"the model computes in int8 with {found}, whose int32 output tensors NNCG does not compile (its "
+            "int32 values live in registers only): quantize the float model statically with "
+            "onnxruntime.quantization.quantize_static (QDQ, or QOperator: QLinearConv, QLinearMatMul), or "
+            "compile the float model"
         )
     if bad:
         raise UnsupportedOpsError(
@@ -93,7 +97,7 @@ def _converted(op: OnnxOp, ctx: Context) -> tuple[Node, ...]:
     return converted if isinstance(converted, tuple) else (converted,)
 
 
-def _context(model: onnx.ModelProto, folded: Folded) -> Context:
+def _context(model: onnx.ModelProto, folded: Folded, notes: QdqNotes) -> Context:
     used = {i for node, _ in folded.nodes for i in node_reads(node)}
     used |= {v.name for v in model.graph.output}
     return Context(
@@ -102,6 +106,8 @@ def _context(model: onnx.ModelProto, folded: Folded) -> Context:
         shapes=dict(folded.shapes),
         used=used,
         taken=value_names(model.graph) | set(folded.constants),
+        output_ranges=notes.output_ranges,
+        uint8_pools=notes.uint8_pools,
     )
 
 
@@ -117,8 +123,9 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
         for name in node.inputs:
             if name in ctx.constants:
                 array = ctx.constants[name]
+                moved = node.op in TYPE_PRESERVING and array.dtype in (np.int8, np.uint8)  # a QLinearConcat's
                 constants[name] = (
-                    np.ascontiguousarray(array) if node.op in QUANTIZED_INPUTS else _float32(node, name, array)
+                    np.ascontiguousarray(array) if node.op in QUANTIZED_INPUTS or moved else _float32(node, name, array)
                 )
     return Graph(
         graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes, _dtypes(nodes, constants)

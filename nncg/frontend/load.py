@@ -26,7 +26,18 @@ ModelSource = str | os.PathLike | bytes | onnx.ModelProto
 MIN_OPSET = 7
 DEFAULT_DOMAINS = ("", "ai.onnx")
 # onnxruntime's contrib ops (domain com.microsoft) that a model may hold as they are
-CONTRIB_OPS = {"com.microsoft": ("QLinearSoftmax",)}
+CONTRIB_OPS = {
+    "com.microsoft": (
+        "QLinearAdd",
+        "QLinearAveragePool",
+        "QLinearConcat",
+        "QLinearGlobalAveragePool",
+        "QLinearLeakyRelu",
+        "QLinearMul",
+        "QLinearSigmoid",
+        "QLinearSoftmax",
+    )
+}
 
 
 def load_model(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] | None = None) -> onnx.ModelProto:

@@ -39,6 +39,14 @@ from nncg.frontend.ops_nn import (
     convert_softmax,
 )
 from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
+from nncg.frontend.ops_qconcat import convert_qlinear_concat
+from nncg.frontend.ops_qlookup import (
+    convert_qlinear_hard_swish,
+    convert_qlinear_leaky_relu,
+    convert_qlinear_sigmoid,
+    convert_qlinear_tanh,
+)
+from nncg.frontend.ops_qmul import convert_qlinear_mul
 from nncg.frontend.ops_qsoftmax import convert_qlinear_softmax
 from nncg.frontend.ops_quantized import (
     convert_dequantize_linear,
@@ -158,8 +166,8 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "InstanceNormalization": ConvertedOp(convert_instance_norm, ("InstanceNormalization",)),
     "GroupNormalization": ConvertedOp(convert_group_norm, ("GroupNormalization",)),
     "LayerNormalization": ConvertedOp(convert_layer_norm, ("LayerNormalization",)),
-    # The int8 path: scales and zero points are parameters; QGemm, QLinearAdd and
-    # QLinearGlobalAveragePool are onnxruntime's (com.microsoft), and what QDQ groups become (qdq.py).
+    # The int8 path: scales and zero points are parameters; QGemm, QLinearAdd, the pools, QLinearSoftmax,
+    # QLinearLeakyRelu and QLinearSigmoid are onnxruntime's (com.microsoft), and what QDQ groups become (qdq.py).
     "QuantizeLinear": ConvertedOp(convert_quantize_linear, ("QuantizeLinear",), (1, 2)),
     "DequantizeLinear": ConvertedOp(convert_dequantize_linear, ("DequantizeLinear",), (1, 2)),
     "QLinearConv": ConvertedOp(convert_qlinear_conv, ("QLinearConv",), (1, 2, 4, 5, 6, 7)),
@@ -173,6 +181,13 @@ ONNX_OPS: dict[str, ConvertedOp] = {
         convert_qlinear_global_average_pool, ("QLinearGlobalAveragePool",), (1, 2, 3, 4)
     ),
     "QLinearSoftmax": ConvertedOp(convert_qlinear_softmax, ("QLinearSoftmax",), (1, 2, 3, 4)),
+    "QLinearConcat": ConvertedOp(convert_qlinear_concat, ("QLinearLookup", "Concat")),
+    "QLinearMul": ConvertedOp(convert_qlinear_mul, ("QLinearMul",), (1, 2, 4, 5, 6, 7)),
+    "QLinearLeakyRelu": ConvertedOp(convert_qlinear_leaky_relu, ("QLinearLookup",), (1, 2, 3, 4)),
+    "QLinearSigmoid": ConvertedOp(convert_qlinear_sigmoid, ("QLinearLookup",), (1, 2, 3, 4)),
+    # NNCG's own, written only by qdq.py for a QDQ HardSwish or Tanh (onnxruntime computes those in float)
+    "QLinearHardSwish": ConvertedOp(convert_qlinear_hard_swish, ("QLinearLookup",), (1, 2, 3, 4)),
+    "QLinearTanh": ConvertedOp(convert_qlinear_tanh, ("QLinearLookup",), (1, 2, 3, 4)),
 }
 
 CONVERTERS: dict[str, Converter] = {name: op.convert for name, op in ONNX_OPS.items()}

@@ -46,7 +46,11 @@ RESIZE_MODES = ("nearest", "linear", "cubic")
 
 
 def convert_concat(op: OnnxOp, ctx: Context) -> Node:
-    inputs = [name for name in op.node.input if name]
+    return concat_node(op, ctx, [name for name in op.node.input if name])
+
+
+def concat_node(op: OnnxOp, ctx: Context, inputs: list[str]) -> Node:
+    """The Concat of `inputs` along op's axis attribute (Concat's, or QLinearConcat's)."""
     shapes = [ctx.shape(name) for name in inputs]
     if op.attr("axis") is None:
         raise op.error("has no axis attribute, which Concat requires: add the axis to concatenate along")
@@ -207,9 +211,10 @@ def _pad_params(op: OnnxOp, ctx: Context, rank: int) -> tuple[list[int], float |
         value = op.input(2)
     elif op.input(2):
         constant = ctx.const(op.input(2))
-        if constant.size != 1 or constant.dtype.kind != "f":
+        if constant.size != 1 or constant.dtype not in (np.float32, np.float64, np.float16, np.int8, np.uint8):
             raise op.error(
-                f"has constant_value of type {constant.dtype.name} and size {constant.size}; it must be one float"
+                f"has constant_value of type {constant.dtype.name} and size {constant.size}; it must be one float "
+                "(or one int8 or uint8, padding integers)"
             )
         value = float(constant.reshape(-1)[0])
     axes = list(range(rank))

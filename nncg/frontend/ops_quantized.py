@@ -62,14 +62,15 @@ def quantize(value: float, scale: float, zero_point: int, dtype: DType) -> int:
     return int(np.clip(q + zero_point, low, high)) if np.isfinite(q) else (low if q < 0 else high)
 
 
-def requantization(op: OnnxOp, scale: float, zero_point: int, dtype: DType) -> Requantization:
-    """The output range: the type's, narrowed by a folded Relu or Clip (qdq.py's nncg_low and
-    nncg_high, the real bounds, quantized as QuantizeLinear would)."""
+def requantization(op: OnnxOp, ctx: Context, scale: float, zero_point: int, dtype: DType) -> Requantization:
+    """The output range: the type's, narrowed by a Relu or Clip that qdq.py folded into the op (its
+    real bounds, noted in ctx.output_ranges, quantized as QuantizeLinear would)."""
     low, high = dtype.range
-    if op.attr("nncg_low") is not None:
-        low = max(low, quantize(op.attr("nncg_low"), scale, zero_point, dtype))
-    if op.attr("nncg_high") is not None:
-        high = min(high, quantize(op.attr("nncg_high"), scale, zero_point, dtype))
+    real_low, real_high = ctx.output_ranges.get(op.node.output[0], (-np.inf, np.inf))
+    if real_low > -np.inf:
+        low = max(low, quantize(real_low, scale, zero_point, dtype))
+    if real_high < np.inf:
+        high = min(high, quantize(real_high, scale, zero_point, dtype))
     return Requantization(zero_point, low, min(max(low, high), dtype.range[1]), dtype)
 
 
@@ -131,7 +132,7 @@ def convert_qlinear_conv(op: OnnxOp, ctx: Context) -> Node:
     w, w_scales = integer_weights(op, ctx, 3, w_shape[0], 0)
     attrs = QConvAttrs(
         geometry.kernel, geometry.strides, geometry.dilations, geometry.pads_begin, geometry.pads_end,
-        geometry.group, x_zero, requantization(op, y_scale, y_zero, y_dtype),
+        geometry.group, x_zero, requantization(op, ctx, y_scale, y_zero, y_dtype),
     )  # fmt: skip
     return op.ir_node(
         "QLinearConv",
@@ -165,7 +166,7 @@ def _dense(op: OnnxOp, ctx: Context, w_slot: int, trans_w: bool, bias_slot: int 
     w = np.ascontiguousarray(w.T if trans_w else w)
     bias = int32_bias(op, ctx, bias_slot, channels) if bias_slot is not None else np.zeros(channels, np.int32)
     ctx.set_shape(op, op.node.output[0], (ctx.shape(x)[0], channels))
-    attrs = QDenseAttrs(x_zero, requantization(op, y_scale, y_zero, y_dtype))
+    attrs = QDenseAttrs(x_zero, requantization(op, ctx, y_scale, y_zero, y_dtype))
     return op.ir_node("QLinearDense", [x, *_parameters(op, ctx, w, bias, x_scale, w_scales, y_scale)], attrs)
 
 
@@ -197,7 +198,7 @@ def convert_qlinear_add(op: OnnxOp, ctx: Context) -> Node:
     if len({a_dtype, b_dtype, y_dtype}) != 1:
         raise op.error("mixes int8 and uint8; QLinearAdd's inputs and output have one type")
     ctx.set_shape(op, op.node.output[0], ctx.shape(a))
-    attrs = QAddAttrs(a_scale, a_zero, b_scale, b_zero, y_scale, requantization(op, y_scale, y_zero, y_dtype))
+    attrs = QAddAttrs(a_scale, a_zero, b_scale, b_zero, y_scale, requantization(op, ctx, y_scale, y_zero, y_dtype))
     return op.ir_node("QLinearAdd", [a, b], attrs)
 
 
@@ -215,8 +216,9 @@ def convert_qlinear_average_pool(op: OnnxOp, ctx: Context) -> Node:
     x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
     y_scale, y_zero, y_dtype = quantization(op, ctx, 3, "output")
     ctx.set_shape(op, op.node.output[0], checked_pool_output_shape(op, pool, shape))
-    out = requantization(op, y_scale, y_zero, y_dtype)
-    attrs = QAveragePoolAttrs(pool, x_scale, x_zero, y_scale, out, int(op.attr("nncg_u8_offset", 0)))
+    out = requantization(op, ctx, y_scale, y_zero, y_dtype)
+    offset = 128 if op.node.output[0] in ctx.uint8_pools else 0
+    attrs = QAveragePoolAttrs(pool, x_scale, x_zero, y_scale, out, offset)
     return op.ir_node("QLinearAveragePool", [x], attrs)
 
 
@@ -229,5 +231,5 @@ def convert_qlinear_global_average_pool(op: OnnxOp, ctx: Context) -> Node:
     y_scale, y_zero, y_dtype = quantization(op, ctx, 3, "output")
     shape = ctx.shape(x)
     ctx.set_shape(op, op.node.output[0], (*shape[:2], *[1] * (len(shape) - 2)))
-    attrs = QPoolAttrs(x_scale, x_zero, y_scale, requantization(op, y_scale, y_zero, y_dtype))
+    attrs = QPoolAttrs(x_scale, x_zero, y_scale, requantization(op, ctx, y_scale, y_zero, y_dtype))
     return op.ir_node("QLinearGlobalAveragePool", [x], attrs)

@@ -3,38 +3,55 @@ QOperator models, as onnxruntime's own QDQ transformer rewrites them, so that on
 QOperator op serves both formats.
 
 A float op whose inputs come from DequantizeLinear nodes and whose only reader is a QuantizeLinear
-computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, Gemm QGemm, Add QLinearAdd,
-GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool and Softmax
-QLinearSoftmax (the last five in onnxruntime's com.microsoft domain).
+computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, and in onnxruntime's
+com.microsoft domain Gemm QGemm, Add QLinearAdd, Mul QLinearMul, Concat QLinearConcat,
+GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool, Softmax QLinearSoftmax,
+LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid; HardSwish and Tanh become NNCG's own
+QLinearHardSwish and QLinearTanh (these four are table lookups, see ops_qlookup.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
-is monotonic, so clamping before it is clamping its result. MaxPool, Reshape, Flatten and Transpose between a
-DequantizeLinear and a QuantizeLinear of the same scale and zero point move the integers as they
-are. Weights and biases are the constants that folding dequantized (Folded.dequantized keeps the
-DequantizeLinear they came from). Every QuantizeLinear and DequantizeLinear left over stays: an
-explicit quantise or dequantise kernel.
+is monotonic, so clamping before it is clamping its result; the real bounds travel beside the nodes
+(QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten,
+Transpose, Pad and nearest Resize between a DequantizeLinear and a QuantizeLinear of the same scale
+and zero point move the integers as they are (Pad's constant value quantised). Weights and biases
+are the constants that folding dequantized (Folded.dequantized keeps the DequantizeLinear they came
+from). Every QuantizeLinear and DequantizeLinear left over stays: an explicit quantise or
+dequantise kernel.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import onnx
 from onnx import helper
 
 from nncg.frontend.folding import Folded, NamedNode, live_nodes
+from nncg.ir.names import fresh_name
 
 CONTRIB = "com.microsoft"
+NNCG_DOMAIN = "nncg"  # the domain of NNCG's own QOperator nodes (a model cannot import it)
 PASS_THROUGH = ("MaxPool", "Reshape", "Flatten", "Transpose")
 ACTIVATION_TYPES = (np.int8, np.uint8)
+
+
+@dataclass
+class QdqNotes:
+    """What the rewritten nodes need beyond their ONNX inputs and attributes, by the node's output:
+    the real range of the Relu and Clip nodes folded into it, and which int8 pools onnxruntime
+    computes in uint8 (see QAveragePoolAttrs)."""
+
+    output_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    uint8_pools: set[str] = field(default_factory=set)
 
 
 class _Model:
     """The live nodes with their producers and readers, and the names the rewrite adds."""
 
-    def __init__(self, folded: Folded, outputs: list[str]):
+    def __init__(self, folded: Folded, outputs: list[str], notes: QdqNotes):
         self.folded = folded
+        self.notes = notes
         self.outputs = set(outputs)
         self.nodes = list(folded.nodes)
         self.producer = {o: (node, name) for node, name in self.nodes for o in node.output}
@@ -106,12 +123,14 @@ def _dequantized(model: _Model, value: str, dtypes: tuple) -> onnx.NodeProto | N
     return node
 
 
-def fuse_qdq(folded: Folded, outputs: list[str]) -> list[NamedNode]:
-    """The live nodes with every QDQ group that computes in integers replaced by its QOperator node."""
+def fuse_qdq(folded: Folded, outputs: list[str]) -> tuple[list[NamedNode], QdqNotes]:
+    """The live nodes with every QDQ group that computes in integers replaced by its QOperator node,
+    and the notes on those nodes."""
     changed = True
     nodes = folded.nodes
+    notes = QdqNotes()
     while changed:
-        model = _Model(replace(folded, nodes=nodes), outputs)
+        model = _Model(replace(folded, nodes=nodes), outputs, notes)
         changed = False
         for node, name in model.nodes:
             rewrite = REWRITES.get(node.op_type)
@@ -124,26 +143,22 @@ def fuse_qdq(folded: Folded, outputs: list[str]) -> list[NamedNode]:
             nodes = live_nodes(nodes, outputs)
             changed = True
             break
-    return nodes
+    return nodes, notes
 
 
 def _q_output(model: _Model, op: onnx.NodeProto) -> tuple[onnx.NodeProto, list] | None:
     return _output_q(model, op.output[0])
 
 
-def _with_clamps(model: _Model, q: onnx.NodeProto, clamps: list[onnx.NodeProto]) -> list[onnx.AttributeProto]:
-    """The folded Relu and Clip bounds, as attributes nncg_low/nncg_high of the output's real range
-    (NNCG's own: an onnx QOperator node has no such attributes; the converter reads them)."""
+def _fused(model: _Model, node: onnx.NodeProto, q: onnx.NodeProto, clamps: list[onnx.NodeProto]):
+    """The rewrite's result: `node` replacing q and the clamps, whose real range is noted."""
     low, high = -np.inf, np.inf
-    for node in clamps:
-        lo, hi = _clip_bounds(model, node)
+    for clamp in clamps:
+        lo, hi = _clip_bounds(model, clamp)
         low, high = max(low, lo), min(high, hi)
-    attrs = []
-    if low > -np.inf:
-        attrs.append(helper.make_attribute("nncg_low", float(low)))
-    if high < np.inf:
-        attrs.append(helper.make_attribute("nncg_high", float(high)))
-    return attrs
+    if clamps:
+        model.notes.output_ranges[node.output[0]] = (float(low), float(high))
+    return node, [q, *clamps]
 
 
 def _clip_bounds(model: _Model, node: onnx.NodeProto) -> tuple[float, float]:
@@ -156,12 +171,11 @@ def _clip_bounds(model: _Model, node: onnx.NodeProto) -> tuple[float, float]:
     return tuple(float(b) if b is not None else default for b, default in zip(bounds, (-np.inf, np.inf)))
 
 
-def _node(op_type: str, inputs: list[str], output: str, source: onnx.NodeProto, extra=(), domain: str = ""):
+def _node(op_type: str, inputs: list[str], output: str, source: onnx.NodeProto, domain: str = ""):
     """The QOperator node with the float op's attributes (but Gemm's transA and beta, which QGemm
-    lacks: only transA=0 and beta=1 are rewritten) and `extra` ones."""
+    lacks: only transA=0 and beta=1 are rewritten)."""
     node = helper.make_node(op_type, inputs, [output], domain=domain)
     node.attribute.extend([a for a in source.attribute if a.name not in ("transA", "beta")])
-    node.attribute.extend(extra)
     return node
 
 
@@ -174,7 +188,7 @@ def _conv(model: _Model, conv: onnx.NodeProto):
         return None
     q, clamps = out
     inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], *_quantize_params(q)] + ([b.input[0]] if b else [])
-    return _node("QLinearConv", inputs, q.output[0], conv, _with_clamps(model, q, clamps)), [q, *clamps]
+    return _fused(model, _node("QLinearConv", inputs, q.output[0], conv), q, clamps)
 
 
 def _gemm(model: _Model, gemm: onnx.NodeProto):
@@ -192,7 +206,7 @@ def _gemm(model: _Model, gemm: onnx.NodeProto):
         return None
     q, clamps = out
     inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], b.input[0] if b else "", *_quantize_params(q)]
-    return _node("QGemm", inputs, q.output[0], gemm, _with_clamps(model, q, clamps), CONTRIB), [q, *clamps]
+    return _fused(model, _node("QGemm", inputs, q.output[0], gemm, CONTRIB), q, clamps)
 
 
 def _matmul(model: _Model, matmul: onnx.NodeProto):
@@ -203,7 +217,7 @@ def _matmul(model: _Model, matmul: onnx.NodeProto):
         return None
     q, clamps = out
     inputs = [dq_x.input[0], *_quantize_params(dq_x), *w.input[:3], *_quantize_params(q)]
-    return _node("QLinearMatMul", inputs, q.output[0], matmul, _with_clamps(model, q, clamps)), [q, *clamps]
+    return _fused(model, _node("QLinearMatMul", inputs, q.output[0], matmul), q, clamps)
 
 
 def _add(model: _Model, add: onnx.NodeProto):
@@ -214,12 +228,47 @@ def _add(model: _Model, add: onnx.NodeProto):
         return None  # a broadcast Add stays a float Add between explicit (de)quantise layers
     q, clamps = out
     inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
-    return _node("QLinearAdd", inputs, q.output[0], add, _with_clamps(model, q, clamps), CONTRIB), [q, *clamps]
+    return _fused(model, _node("QLinearAdd", inputs, q.output[0], add, CONTRIB), q, clamps)
+
+
+def _mul(model: _Model, mul: onnx.NodeProto):
+    """A Mul of two DequantizeLinear outputs (or one and a constant folded from one), broadcast."""
+    operands = [model.live_dq(i) or _dequantized_per_tensor(model, i) for i in mul.input]
+    out = _q_output(model, mul)
+    if None in operands or out is None:
+        return None
+    q, clamps = out
+    a, b = operands
+    inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
+    return _fused(model, _node("QLinearMul", inputs, q.output[0], mul, CONTRIB), q, clamps)
+
+
+def _concat(model: _Model, concat: onnx.NodeProto):
+    """A Concat of DequantizeLinear outputs (or constants folded from them) of one 8-bit type."""
+    parts = [model.live_dq(i) or _dequantized_per_tensor(model, i) for i in concat.input]
+    q = model.sole_reader(concat.output[0], "QuantizeLinear")
+    if None in parts or q is None or not _per_tensor(model, q):
+        return None
+    if len({_zero_point_type(model, node) for node in (*parts, q)}) != 1:
+        return None
+    inputs = [*_quantize_params(q)] + [name for dq in parts for name in (dq.input[0], *_quantize_params(dq))]
+    return _node("QLinearConcat", inputs, q.output[0], concat, CONTRIB), [q]
+
+
+def _zero_point_type(model: _Model, node: onnx.NodeProto):
+    zero = model.const(_quantize_params(node)[1])
+    return np.dtype(np.uint8) if zero is None else zero.dtype
+
+
+def _dequantized_per_tensor(model: _Model, value: str) -> onnx.NodeProto | None:
+    """The per-tensor DequantizeLinear an 8-bit constant operand was folded from."""
+    node = _dequantized(model, value, ACTIVATION_TYPES)
+    return node if node is not None and _per_tensor(model, node) else None
 
 
 def _pool(qop: str) -> Callable:
     """GlobalAveragePool or AveragePool between a DequantizeLinear and a QuantizeLinear as `qop`;
-    an int8 one marked nncg_u8_offset=128: onnxruntime computes it in uint8 (see QAveragePoolAttrs)."""
+    an int8 one noted in uint8_pools: onnxruntime computes it in uint8 (see QAveragePoolAttrs)."""
 
     def rewrite(model: _Model, pool: onnx.NodeProto):
         dq_x = model.live_dq(pool.input[0])
@@ -229,9 +278,9 @@ def _pool(qop: str) -> Callable:
         q = out[0]
         inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
         zero = model.const(_quantize_params(q)[1])
-        signed = zero is not None and zero.dtype == np.int8
-        extra = [helper.make_attribute("nncg_u8_offset", 128)] if signed else []
-        return _node(qop, inputs, q.output[0], pool, extra, CONTRIB), [q]
+        if zero is not None and zero.dtype == np.int8:
+            model.notes.uint8_pools.add(q.output[0])
+        return _node(qop, inputs, q.output[0], pool, CONTRIB), [q]
 
     return rewrite
 
@@ -244,7 +293,21 @@ def _softmax(model: _Model, softmax: onnx.NodeProto):
     if dq_x is None or q is None or not _per_tensor(model, q):
         return None
     inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
-    return _node("QLinearSoftmax", inputs, q.output[0], softmax, domain=CONTRIB), [q]
+    return _node("QLinearSoftmax", inputs, q.output[0], softmax, CONTRIB), [q]
+
+
+def _lookup(qop: str, domain: str = CONTRIB) -> Callable:
+    """A unary op between a DequantizeLinear and a QuantizeLinear as `qop`, a table lookup."""
+
+    def rewrite(model: _Model, op: onnx.NodeProto):
+        dq_x = model.live_dq(op.input[0])
+        q = model.sole_reader(op.output[0], "QuantizeLinear")
+        if dq_x is None or q is None or not _per_tensor(model, q):
+            return None
+        inputs = [dq_x.input[0], *_quantize_params(dq_x), *_quantize_params(q)]
+        return _node(qop, inputs, q.output[0], op, domain), [q]
+
+    return rewrite
 
 
 def _pass_through(model: _Model, op: onnx.NodeProto):
@@ -256,6 +319,44 @@ def _pass_through(model: _Model, op: onnx.NodeProto):
     node = helper.make_node(op.op_type, [dq_x.input[0], *op.input[1:]], [q.output[0]])
     node.attribute.extend(op.attribute)
     return node, [q]
+
+
+def _resize(model: _Model, resize: onnx.NodeProto):
+    """A nearest-neighbour Resize of the integers (it picks elements), when the scale and zero point
+    do not change; tf_crop_and_resize, which can write an extrapolation value, stays float."""
+    attrs = {a.name: helper.get_attribute_value(a) for a in resize.attribute}
+    if (
+        attrs.get("mode", b"nearest") != b"nearest"
+        or attrs.get("coordinate_transformation_mode") == b"tf_crop_and_resize"
+    ):
+        return None
+    return _pass_through(model, resize)
+
+
+def _pad(model: _Model, pad: onnx.NodeProto):
+    """A Pad (opset 11 on: pads and value are inputs) of the integers, when the scale and zero point
+    do not change; the constant value becomes the integer QuantizeLinear gives it (0: the zero point)."""
+    value = model.const(pad.input[2]) if len(pad.input) > 2 and pad.input[2] else np.zeros((), np.float32)
+    found = _pass_through(model, pad)
+    if found is None or len(pad.input) < 2 or value is None or value.size != 1:
+        return None
+    node, removed = found
+    scale, zero = (model.const(i) for i in _quantize_params(removed[0]))
+    dtype = np.dtype(np.uint8) if zero is None else zero.dtype
+    integer = _quantized(float(value.reshape(())), float(scale.reshape(())), 0 if zero is None else int(zero), dtype)
+    name = fresh_name(f"{node.output[0]}_pad_value", model.folded.constants, model.folded.shapes, model.producer)
+    model.folded.constants[name] = np.array(integer, dtype)
+    del node.input[2:]
+    node.input.extend([name, *pad.input[3:]])
+    return node, removed
+
+
+def _quantized(value: float, scale: float, zero: int, dtype: np.dtype) -> int:
+    """QuantizeLinear of one value: divided in float32, rounded half to even, saturated."""
+    info = np.iinfo(dtype)
+    with np.errstate(over="ignore"):
+        q = np.rint(np.float32(value) / np.float32(scale))
+    return int(np.clip(q + zero, info.min, info.max)) if np.isfinite(q) else (info.min if q < 0 else info.max)
 
 
 def _same_quantization(model: _Model, a: onnx.NodeProto, b: onnx.NodeProto) -> bool:
@@ -272,8 +373,16 @@ REWRITES: dict[str, Callable] = {
     "Gemm": _gemm,
     "MatMul": _matmul,
     "Add": _add,
+    "Mul": _mul,
+    "Concat": _concat,
     "GlobalAveragePool": _pool("QLinearGlobalAveragePool"),
     "AveragePool": _pool("QLinearAveragePool"),
     "Softmax": _softmax,
+    "LeakyRelu": _lookup("QLinearLeakyRelu"),
+    "Sigmoid": _lookup("QLinearSigmoid"),
+    "HardSwish": _lookup("QLinearHardSwish", NNCG_DOMAIN),
+    "Tanh": _lookup("QLinearTanh", NNCG_DOMAIN),
     **dict.fromkeys(PASS_THROUGH, _pass_through),
+    "Pad": _pad,
+    "Resize": _resize,
 }

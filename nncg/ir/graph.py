@@ -366,6 +366,19 @@ class QAddAttrs:
 
 
 @dataclass(frozen=True)
+class QMulAttrs:
+    """QLinearMul of two tensors, NumPy-broadcast: (a - a_zp) (b - b_zp) a_scale b_scale / y_scale
+    + y_zp, computed as onnxruntime's x86 kernel does (lowering/quantized_mul.py)."""
+
+    a_scale: float
+    a_zero_point: int
+    b_scale: float
+    b_zero_point: int
+    y_scale: float
+    out: Requantization
+
+
+@dataclass(frozen=True)
 class QPoolAttrs:
     """QLinearGlobalAveragePool: the int32 sum of each channel minus N * x_zero_point, times
     x_scale / (y_scale * N) (N: the pixels of a channel), requantized."""
@@ -404,12 +417,26 @@ class QSoftmaxAttrs:
     out: Requantization
 
 
+@dataclass(frozen=True)
+class QLookupAttrs:
+    """A unary op on an int8/uint8 tensor as a table (its second input: 256 constant entries of the
+    output type, indexed by the input value minus the input type's lowest), computed at generation
+    time as onnxruntime computes its QLinearLeakyRelu and QLinearSigmoid (frontend/ops_qlookup.py).
+    `function` names the op the table computes; `dtype` is the output type."""
+
+    function: str
+    dtype: DType
+
+    def __post_init__(self) -> None:
+        coerce(self, dtype=DType)
+
+
 # Every attribute record a node may carry.
 AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
     SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs, QuantAttrs, QConvAttrs,
-    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs,
+    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs, QMulAttrs,
 ]  # fmt: skip
 
 

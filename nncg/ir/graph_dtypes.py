@@ -11,7 +11,7 @@ from .kinds import DType
 FLOAT32, INT8, UINT8, INT16, INT32 = DType.FLOAT32, DType.INT8, DType.UINT8, DType.INT16, DType.INT32
 ACTIVATIONS = (INT8, UINT8)  # the types of quantized activations
 # Ops that move elements without computing on them: their output has their input's dtype.
-TYPE_PRESERVING = ("MaxPool", "Reshape", "Identity", "Transpose")
+TYPE_PRESERVING = ("MaxPool", "Reshape", "Identity", "Transpose", "Concat", "Pad")
 # The quantized ops, with the dtypes each input slot may have.
 QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QuantizeLinear": ((FLOAT32,),),
@@ -22,14 +22,25 @@ QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QLinearGlobalAveragePool": (ACTIVATIONS,),
     "QLinearAveragePool": (ACTIVATIONS,),
     "QLinearSoftmax": (ACTIVATIONS, (FLOAT32,)),
+    "QLinearLookup": (ACTIVATIONS, ACTIVATIONS),
+    "QLinearMul": (ACTIVATIONS, ACTIVATIONS),
 }
+
+
+def moves_integers(node: Node) -> bool:
+    """Whether the node only moves its input's elements, so it takes integers as they are: the
+    TYPE_PRESERVING ops, and a nearest-neighbour Resize that extrapolates nothing."""
+    if node.op == "Resize":
+        attrs = node.attrs
+        return attrs.mode == "nearest" and attrs.coordinate_transformation_mode != "tf_crop_and_resize"
+    return node.op in TYPE_PRESERVING
 
 
 def output_dtype(node: Node, dtype_of: Callable[[str], DType]) -> DType:
     """The dtype of the node's outputs (every op here has one output type), given its inputs'."""
-    if node.op in TYPE_PRESERVING:
+    if moves_integers(node):
         return dtype_of(node.inputs[0])
-    if node.op == "QuantizeLinear":
+    if node.op in ("QuantizeLinear", "QLinearLookup"):
         return node.attrs.dtype
     if node.op in QUANTIZED_INPUTS and node.op != "DequantizeLinear":
         return node.attrs.out.dtype
@@ -38,11 +49,10 @@ def output_dtype(node: Node, dtype_of: Callable[[str], DType]) -> DType:
 
 def float_ops_reading_integers(graph: Graph) -> list[tuple[Node, str]]:
     """(node, input) for every float op that reads an integer value."""
-    integer_ops = (*TYPE_PRESERVING, *QUANTIZED_INPUTS)
     return [
         (node, name)
         for node in graph.nodes
-        if node.op not in integer_ops
+        if not moves_integers(node) and node.op not in QUANTIZED_INPUTS
         for name in node.inputs
         if graph.dtype(name) != FLOAT32
     ]
@@ -53,7 +63,7 @@ def graph_dtype_problems(graph: Graph) -> list[str]:
     problems = []
     for node in graph.nodes:
         dtypes = [graph.dtype(name) for name in node.inputs]
-        if node.op in TYPE_PRESERVING:
+        if moves_integers(node):
             allowed = [(dtypes[0],)] * len(dtypes) if dtypes else []
         elif node.op in QUANTIZED_INPUTS:
             allowed = list(QUANTIZED_INPUTS[node.op])

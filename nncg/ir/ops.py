@@ -27,6 +27,8 @@ from .graph import (
     QAveragePoolAttrs,
     QConvAttrs,
     QDenseAttrs,
+    QLookupAttrs,
+    QMulAttrs,
     QPoolAttrs,
     QSoftmaxAttrs,
     QuantAttrs,
@@ -165,4 +167,6 @@ IR_OPS: dict[str, IrOp] = {
     "QLinearGlobalAveragePool": IrOp(QPoolAttrs, no_macs),
     "QLinearAveragePool": IrOp(QAveragePoolAttrs, no_macs),
     "QLinearSoftmax": IrOp(QSoftmaxAttrs, no_macs),
+    "QLinearLookup": IrOp(QLookupAttrs, no_macs),
+    "QLinearMul": IrOp(QMulAttrs, no_macs),
 }

@@ -43,6 +43,8 @@ from .quantized import (
     lower_quantize_linear,
 )
 from .quantized_add import lower_qlinear_add
+from .quantized_lookup import lower_qlinear_lookup
+from .quantized_mul import lower_qlinear_mul
 from .quantized_softmax import lower_qlinear_softmax
 from .reduce import lower_arg_extreme, lower_reduce
 from .reshape import copy_nest, lower_reshape
@@ -143,6 +145,8 @@ LOWERINGS = {
     "QLinearGlobalAveragePool": lower_qlinear_global_average_pool,
     "QLinearAveragePool": lower_qlinear_average_pool,
     "QLinearSoftmax": lower_qlinear_softmax,
+    "QLinearLookup": lower_qlinear_lookup,
+    "QLinearMul": lower_qlinear_mul,
 }
 
 

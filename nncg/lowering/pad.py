@@ -37,7 +37,9 @@ def lower_pad(ctx: LoweringContext, node: Node) -> None:
     x = ctx.ref(node.inputs[0])
     out = ctx.output(node.outputs[0], copy_order(ctx, node.outputs[0], x.order))
     per_dim = [segments(n, b, e, attrs.mode) for n, b, e in zip(x.shape, attrs.pads_begin, attrs.pads_end)]
-    value = Load(ctx.ref(node.inputs[1]).buffer, Affine()) if len(node.inputs) > 1 else Const.splat(attrs.value)
+    dtype = ctx.graph.dtype(node.outputs[0])
+    literal = Const.integer(int(attrs.value), dtype) if dtype.is_integer else Const.splat(attrs.value)
+    value = Load(ctx.ref(node.inputs[1]).buffer, Affine()) if len(node.inputs) > 1 else literal
     body: list[Stmt] = []
     for box in itertools.product(*per_dim):
         body += box_nest([s.length for s in box], out.order, _filler(x, out, box, value))

@@ -82,7 +82,8 @@ def _lower_dim_by_dim(ctx: LoweringContext, node: Node, x: TensorRef, taps: list
         if d == resized[-1]:
             target = ctx.output(node.outputs[0], x.order)
         else:
-            target = ctx.add_buffer(f"t_{node.outputs[0]}_{i}", "internal", shape, x.order)
+            dtype = ctx.graph.dtype(node.inputs[0])
+            target = ctx.add_buffer(f"t_{node.outputs[0]}_{i}", "internal", shape, x.order, dtype=dtype)
         pieces = [_plain(shape[k]) for k in range(rank)]
         pieces[d] = _dim_cover(ctx, node, d, taps[d], exact[d])
         _emit(ctx, node, source, target, pieces)
@@ -101,6 +102,8 @@ def cover_cost(pieces: list[Piece]) -> int:
 
 def _dim_cover(ctx: LoweringContext, node: Node, d: int, taps: list[Taps], exact: list[Piece]) -> list[Piece]:
     """The exact pieces, or windowed ones with their weight table when those are cheaper."""
+    if ctx.graph.dtype(node.inputs[0]).is_integer:
+        return exact  # integers are moved, never multiplied by a table's weights
     window = windowed_pieces(taps, ctx.graph.shape(node.inputs[0])[d])
     if window is None or cover_cost(exact) <= cover_cost(window[0]):
         return exact
