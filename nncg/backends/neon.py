@@ -13,6 +13,7 @@ one of them has is chosen by the preprocessor in small helpers printed when the 
 from __future__ import annotations
 
 from ..ir.target import Target
+from .neon_integer import neon_integer
 from .simd import SimdPrinter
 from .vector_width import VectorWidth
 
@@ -97,13 +98,22 @@ Q_REGISTER = VectorWidth(
         "<<": "vshlq_n_s32({a}, {n})",
         ">>": "vshrq_n_s32({a}, {n})",
     },
+    **neon_integer(),
 )
 
 
 class Neon(SimdPrinter):
     # AArch64 has 32 vector registers but ARMv7 only 16 q registers (q0-q15), and the same file
     # serves both: register blocking sized for 32 would spill on ARMv7.
-    target = Target("neon", vector_widths=(4,), registers=16, fma=True, l1_bytes=32 * 1024, l2_bytes=256 * 1024)
+    target = Target(
+        "neon",
+        vector_widths=(4,),
+        registers=16,
+        fma=True,
+        l1_bytes=32 * 1024,
+        l2_bytes=256 * 1024,
+        integer_vectors=True,
+    )
     widths = {4: Q_REGISTER}
     # No flags on AArch64 (NEON is baseline). ARMv7 needs NEON switched on, e.g. -mfpu=neon-vfpv4
     # (hard-float toolchains have -mfloat-abi=hard already); not here, as the host harness uses cflags.

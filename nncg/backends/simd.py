@@ -37,7 +37,7 @@ class SimdPrinter(IntegerVectors, ScalarPrinter):
         needs = collect_needs(program, self.widths)
         lane_wise = {fn for lanes, fn in needs.math if not has_vector_math(self.widths[lanes])}
         printer = type(self)(needs, scalar_calls(program) | lane_wise).typed_for(program)
-        return printer.with_integer_stores(program, printer.dtypes)
+        return printer.with_integer_helpers(program, printer.dtypes)
 
     # ------------------------------------------------------------------ dispatch, once
 

@@ -5,9 +5,26 @@ requantisation and the narrowing 8-bit stores."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 from ..ir.dtypes import expr_dtype
 from ..ir.kinds import DType
-from ..ir.loops import Binary, Broadcast, Cast, Const, Expr, Load, LocalRef, Program, Requantize, Store, walk_stmts
+from ..ir.loops import (
+    Binary,
+    Broadcast,
+    Cast,
+    Const,
+    Expr,
+    Load,
+    LocalRef,
+    Program,
+    Requantize,
+    Stmt,
+    Store,
+    stmt_exprs,
+    walk_exprs,
+    walk_stmts,
+)
 from .c_text import c_affine, c_float, c_int
 from .vector_width import VectorWidth
 
@@ -15,19 +32,20 @@ from .vector_width import VectorWidth
 class IntegerVectors:
     """Mixed into SimdPrinter, which has `dtypes`, `expr` and `width`."""
 
-    integer_stores: frozenset[tuple[int, str]] = frozenset()  # (lanes, dtype) of the 8-bit vector stores
+    integer_helpers_used: frozenset[tuple[int, str]] = frozenset()  # (lanes, key of the width's int_helpers)
 
-    def with_integer_stores(self, program: Program, buffer_dtypes: dict[str, DType]):
-        self.integer_stores = frozenset(
-            (s.value.lanes, buffer_dtypes[s.buffer].value)
+    def with_integer_helpers(self, program: Program, buffer_dtypes: dict[str, DType]):
+        self.integer_helpers_used = frozenset(
+            (lanes, key)
             for k in program.kernels
             for s in walk_stmts(k.body)
-            if isinstance(s, Store) and s.value.lanes > 1 and buffer_dtypes[s.buffer].is_integer
+            for lanes, key in _helper_keys(s, buffer_dtypes)
+            if lanes in self.widths and key in self.widths[lanes].int_helpers
         )
         return self
 
     def integer_helpers(self) -> list[str]:
-        blocks = [self.widths[lanes].int_helpers[dtype] for lanes, dtype in sorted(self.integer_stores, reverse=True)]
+        blocks = [self.widths[lanes].int_helpers[key] for lanes, key in sorted(self.integer_helpers_used, reverse=True)]
         return [line for block in blocks for line in ("", *block)]
 
     def is_integer_vector(self, e: Expr) -> bool:
@@ -63,6 +81,20 @@ class IntegerVectors:
             source = self.dtypes[e.value.buffer].value
             return width.ints[f"widen_{source}"].format(address=f"&{e.value.buffer}[{c_affine(e.value.index)}]")
         raise TypeError(f"cannot print {e!r} on vectors")
+
+
+def _helper_keys(stmt: Stmt, buffer_dtypes: dict[str, DType]) -> Iterator[tuple[int, str]]:
+    """(lanes, key) of the int_helpers a statement's integer vectors may call: the stored dtype of an
+    8-bit vector store, and the operations `requantize`, `widen_<dtype>` and `vector`."""
+    if isinstance(stmt, Store) and stmt.value.lanes > 1 and buffer_dtypes[stmt.buffer].is_integer:
+        yield stmt.value.lanes, buffer_dtypes[stmt.buffer].value
+    for e in (e for top in stmt_exprs(stmt) for e in walk_exprs(top) if e.lanes > 1):
+        if isinstance(e, Requantize):
+            yield e.lanes, "requantize"
+        elif isinstance(e, Cast) and e.dtype.is_integer and isinstance(e.value, Load):
+            yield e.lanes, f"widen_{buffer_dtypes[e.value.buffer].value}"
+        elif isinstance(e, Const) and e.dtype.is_integer and not e.is_splat:
+            yield e.lanes, "vector"
 
 
 def _integer_const(values: tuple[int, ...], ints: dict[str, str]) -> str:

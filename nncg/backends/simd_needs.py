@@ -77,9 +77,9 @@ def operations(node: Expr | Store, width: VectorWidth) -> tuple[str, ...]:
 
 
 def _in_table(const: Const, width: VectorWidth) -> bool:
-    """Whether a constant vector is a row of the width's table: it is not a splat and the width has
-    no template that spells a vector lane by lane."""
-    return not const.is_splat and "vector" not in width.ops
+    """Whether a constant vector is a row of the width's table: it is a float vector, not a splat, and
+    the width has no template that spells a vector lane by lane (integer vectors have `ints` `vector`)."""
+    return not const.is_splat and "vector" not in width.ops and not const.dtype.is_integer
 
 
 def _vector_nodes(program: Program, widths: Mapping[int, VectorWidth]) -> Iterator[tuple[int, Expr | Store]]:

@@ -64,7 +64,8 @@ class VectorWidth:
     bits: operation -> C template of BIT_OPERATIONS (all or none).
     ints: operation -> C template of INTEGER_OPERATIONS (all or none), with `int_helpers`: stored
     dtype -> the lines defining the narrowing store, printed once for a program that stores that
-    dtype from vectors of this width (simd_integer.py)."""
+    dtype from vectors of this width, and `requantize`, `widen_<dtype>`, `vector` -> the lines
+    defining what that template calls, printed once for a program that uses it (simd_integer.py)."""
 
     type: str
     ops: Mapping[str, str]
