@@ -1,14 +1,29 @@
 """Backend: the SIMD printer's int8 part — int32 vectors of the vectorised int8 convolutions and
 matrix products, printed from each width's `ints` table (vector_width.INTEGER_OPERATIONS): int32
-loads and arithmetic, 8-bit loads widened to int32, the conversion to float, the float form of
-requantisation and the narrowing 8-bit stores."""
+loads and arithmetic, 8-bit loads widened to int32, dot products (`dot2`: int16 pairs, `dot4_add`:
+u8 x s8 quads accumulated; a width without its template computes each lane in scalar C), the
+conversion to float, the float form of requantisation and the narrowing 8-bit stores."""
 
 from __future__ import annotations
 
 from ..ir.dtypes import expr_dtype
 from ..ir.kinds import DType
-from ..ir.loops import Binary, Broadcast, Cast, Const, Expr, Load, LocalRef, Program, Requantize, Store, walk_stmts
+from ..ir.loops import (
+    Binary,
+    Broadcast,
+    Cast,
+    Const,
+    Dot,
+    Expr,
+    Load,
+    LocalRef,
+    Program,
+    Requantize,
+    Store,
+    walk_stmts,
+)
 from .c_text import c_affine, c_float, c_int
+from .scalar import scalar_dot
 from .vector_width import VectorWidth
 
 
@@ -47,12 +62,34 @@ class IntegerVectors:
             return _integer_const(e.values, ints)
         if isinstance(e, Broadcast):
             return ints["splat"].format(value=self.expr(e.value))
+        if isinstance(e, Binary) and e.op == "+" and isinstance(e.b, Dot) and f"dot{len(e.b.x)}_add" in ints:
+            return self._dot(e.b, width, accumulator=self.expr(e.a))
         if isinstance(e, Binary):
             return ints[e.op].format(a=self.expr(e.a), b=self.expr(e.b))
+        if isinstance(e, Dot):
+            return self._dot(e, width)
         if isinstance(e, Requantize):
             low, high = (c_float(float(v - e.zero_point)) for v in (e.low, e.high))
             return ints["requantize"].format(value=self.expr(e.value), low=low, high=high, zero_point=e.zero_point)
         return self._integer_cast(e, width)
+
+    def _dot(self, e: Dot, width: VectorWidth, accumulator: str | None = None) -> str:
+        """A dot product from the width's template, its activations packed in one int32 that every lane
+        shares (2 int16 or 4 bytes, the lowest channel lowest); lane by lane where there is none."""
+        k, ints = len(e.x), width.ints
+        address = f"&{e.w.buffer}[{c_affine(e.w.index)}]"
+        bits, mask = 32 // k, "0xFFFFu" if k == 2 else "0xFFu"
+        parts = [
+            f"(((unsigned){self.expr(x)} & {mask}) << {bits * j})" for j, x in enumerate(e.x) if x != Const.integer(0)
+        ]
+        packed = f"(int)({' | '.join(parts) or '0u'})"
+        if f"dot{k}_add" in ints:
+            return ints[f"dot{k}_add"].format(acc=accumulator or ints["splat"].format(value="0"), x=packed, address=address)
+        if f"dot{k}" in ints:
+            dot = ints[f"dot{k}"].format(x=packed, address=address)
+            return dot if accumulator is None else ints["+"].format(a=accumulator, b=dot)
+        lanes = ints["vector"].format(values=", ".join(scalar_dot(self, e, lane) for lane in range(e.lanes)))
+        return lanes if accumulator is None else ints["+"].format(a=accumulator, b=lanes)
 
     def _integer_cast(self, e: Cast, width: VectorWidth) -> str:
         if e.dtype == DType.FLOAT32:

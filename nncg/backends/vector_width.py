@@ -51,6 +51,11 @@ INTEGER_OPERATIONS = {
     "store_uint8": ("address", "value"),  # int32 lanes already in the type's range, stored as bytes
     "store_int8": ("address", "value"),
 }
+# optional: the dot products of loops.Dot (without them a width computes each lane in scalar C)
+INTEGER_DOTS = {
+    "dot2": ("x", "address"),  # pmaddwd: x two int16 in an int32, address 2 int8 weights per lane
+    "dot4_add": ("acc", "x", "address"),  # acc + vpdpbusd: x four uint8, address 4 int8 weights per lane
+}
 
 
 @dataclass(frozen=True)
@@ -88,5 +93,5 @@ class VectorWidth:
             unknown += [f"bits {op}" for op in self.bits if op not in BIT_OPERATIONS]
         if self.ints:
             missing += [f"ints {op}" for op in INTEGER_OPERATIONS if op not in self.ints]
-            unknown += [f"ints {op}" for op in self.ints if op not in INTEGER_OPERATIONS]
+            unknown += [f"ints {op}" for op in self.ints if op not in {**INTEGER_OPERATIONS, **INTEGER_DOTS}]
         return [f"no template for {op}" for op in missing] + [f"unknown operation {op}" for op in unknown]

@@ -17,7 +17,10 @@ class Target:
     l1_bytes, l2_bytes: the data caches of one core the cache-block pass sizes weight panels for, the
     smallest of the CPUs the backend serves (0: no data cache, as on a Cortex-M; nothing is blocked).
     integer_vectors: its widths also hold int32 lanes with a 32-bit multiply, widening 8-bit loads and
-    narrowing 8-bit stores, so the vectorize pass vectorises the int8 kernels too."""
+    narrowing 8-bit stores, so the vectorize pass vectorises the int8 kernels too.
+    dot_uint8, dot_int8: the input channels one integer dot product (loops.Dot) multiplies per lane,
+    for uint8 and for int8 activations: 2 (pmaddwd on int16 pairs), 4 (vpdpbusd on u8 x s8 quads);
+    0: none, the int8 kernels multiply channel by channel."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -26,6 +29,8 @@ class Target:
     l1_bytes: int = 0
     l2_bytes: int = 0
     integer_vectors: bool = False
+    dot_uint8: int = 0
+    dot_int8: int = 0
 
     @property
     def lanes(self) -> int:

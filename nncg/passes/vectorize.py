@@ -13,7 +13,9 @@ vector version call the function per lane.
 
 The int8 kernels are vectorised the same way on targets with integer vectors (Target.integer_vectors):
 int32 accumulators over output channels, an invariant integer operand (the input value minus its
-zero point) broadcast whole, requantised per vector. A kernel in the fixed-point form stays scalar."""
+zero point) broadcast whole, requantised per vector; where the target has integer dot products, the
+reduction over input channels first becomes dot products of 2 or 4 channels (dot_product.py). A
+kernel in the fixed-point form stays scalar."""
 
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from ..ir.loops import (
     Call,
     Cast,
     Const,
+    Dot,
     Expr,
     If,
     Kernel,
@@ -49,6 +52,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from ..ir.target import Target
+from .dot_product import dot_products
 from .substitute import interior, iterations, substitute_body
 
 
@@ -59,9 +63,12 @@ def vectorize(program: Program, target: Target) -> Program:
         return program
     if list(widths) != sorted(set(widths), reverse=True):
         raise ValueError(f"vector widths {widths} are not strictly decreasing")
+    integer = {k.name for k in program.kernels if is_integer_kernel(k, program)}
+    vectorizable_integer = {k.name for k in program.kernels if k.name in integer and _integer_vectorizable(k, target)}
+    program = dot_products(program, vectorizable_integer, target)
     kernels = []
     for kernel in program.kernels:
-        if is_integer_kernel(kernel, program) and not _integer_vectorizable(kernel, target):
+        if kernel.name in integer and kernel.name not in vectorizable_integer:
             kernels.append(kernel)
             continue
         body = mark_vector_loop(kernel.body, widths)
@@ -133,10 +140,21 @@ def vectorizable(loop: Loop, lanes: int, borders: bool = False) -> bool:
         if isinstance(stmt, If) and not borders and any(b.expr.coeff(var) for b in stmt.bounds):
             return False
         for expr in stmt_exprs(stmt):
+            dots = [e for e in walk_exprs(expr) if isinstance(e, Dot)]
+            if any(not _dot_vectorizable(d, var) for d in dots):
+                return False
+            weights = {d.w for d in dots}
             for e in walk_exprs(expr):
-                if isinstance(e, Load) and e.index.coeff(var) not in (0, 1):
+                if isinstance(e, Load) and e not in weights and e.index.coeff(var) not in (0, 1):
                     return False
     return stores > 0
+
+
+def _dot_vectorizable(dot: Dot, var: str) -> bool:
+    """The lanes of a dot product run along `var`: its weights are packed K per lane, its
+    activations do not depend on var."""
+    shared = all(not (isinstance(e, Load) and e.index.coeff(var)) for x in dot.x for e in walk_exprs(x))
+    return shared and dot.w.index.coeff(var) == len(dot.x)
 
 
 # ---------------------------------------------------------------------------- mechanism
@@ -220,6 +238,8 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
         return Load(e.buffer, e.index, lanes) if e.index.coeff(var) else Broadcast(e, lanes)
     if isinstance(e, Const):
         return Const(e.values * lanes, e.dtype) if e.dtype.is_integer else Const.splat(e.values[0], lanes)
+    if isinstance(e, Dot):
+        return Dot(e.x, Load(e.w.buffer, e.w.index, lanes * len(e.x)))
     if isinstance(e, Cast | Binary) and _invariant_integer(e, var, vector_locals):
         return Broadcast(e, lanes)  # x - x_zero_point: one broadcast, not a vector subtraction
     if isinstance(e, Cast | Requantize):
