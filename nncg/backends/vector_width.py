@@ -53,8 +53,12 @@ INTEGER_OPERATIONS = {
 }
 # optional: the dot products of loops.Dot (without them a width computes each lane in scalar C)
 INTEGER_DOTS = {
-    "dot2": ("x", "address"),  # pmaddwd: x two int16 in an int32, address 2 int8 weights per lane
-    "dot4_add": ("acc", "x", "address"),  # acc + vpdpbusd: x four uint8, address 4 int8 weights per lane
+    "dot2": ("xs", "address"),  # pmaddwd: xs two int16 in each lane, address 2 int8 weights per lane
+    "dot4_add": ("acc", "xs", "address"),  # acc + vpdpbusd: xs four uint8 in each lane, address 4 int8 per lane
+    # xs from 2 (4) adjacent 8-bit activations in memory, in every lane; else from a scalar int (splat)
+    "pair_uint8": ("address",),
+    "pair_int8": ("address",),
+    "quad_uint8": ("address",),
 }
 
 

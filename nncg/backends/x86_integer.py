@@ -23,21 +23,28 @@ PAIRS = {
     8: "_mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)({address})))",
     16: "_mm512_cvtepi8_epi16(_mm256_loadu_si256((const __m256i *)({address})))",
 }
-# AVX-512F without BW has no 512-bit pmaddwd: two 256-bit halves
+# AVX-512F without BW has no 512-bit pmaddwd: two 256-bit halves (both halves of {xs} are the same)
 DOT2_HALVES = (
-    "_mm512_inserti64x4(_mm512_castsi256_si512(_mm256_madd_epi16(_mm256_set1_epi32({x}), "
-    "_mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)({address}))))), "
-    "_mm256_madd_epi16(_mm256_set1_epi32({x}), _mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)(({address}) + 16)))), 1)"
+    "_mm512_inserti64x4(_mm512_castsi256_si512(_mm256_madd_epi16(_mm512_castsi512_si256({xs}), "
+    "_mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)({address}))))), _mm256_madd_epi16("
+    "_mm512_castsi512_si256({xs}), _mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)(({address}) + 16)))), 1)"
 )
 
 
 def x86_dots(lanes: int, bw: bool = False, vnni: bool = False) -> dict[str, str]:
     """The dot-product templates of one x86 width: `dot2` (pmaddwd; 16 lanes in halves without
-    AVX-512BW) and, with `vnni` (AVX-512 VNNI, and VL below 16 lanes), `dot4_add` (vpdpbusd)."""
+    AVX-512BW), with `vnni` (AVX-512 VNNI, and VL below 16 lanes) `dot4_add` (vpdpbusd), and the
+    activations of adjacent channels broadcast straight from memory (vpbroadcastd)."""
     p, _, _, si = SHAPES[lanes]
-    dots = {"dot2": DOT2_HALVES if lanes == 16 and not bw else f"{p}_madd_epi16({p}_set1_epi32({{x}}), {PAIRS[lanes]})"}
+    bytes_at = "_mm_loadu_si{bits}((const void *)({{address}}))"
+    dots = {
+        "dot2": DOT2_HALVES if lanes == 16 and not bw else f"{p}_madd_epi16({{xs}}, {PAIRS[lanes]})",
+        "pair_uint8": f"{p}_broadcastd_epi32(_mm_cvtepu8_epi16({bytes_at.format(bits=16)}))",
+        "pair_int8": f"{p}_broadcastd_epi32(_mm_cvtepi8_epi16({bytes_at.format(bits=16)}))",
+        "quad_uint8": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",
+    }
     if vnni:
-        dots["dot4_add"] = f"{p}_dpbusd_epi32({{acc}}, {p}_set1_epi32({{x}}), {p}_loadu_{si}((const void *)({{address}})))"
+        dots["dot4_add"] = f"{p}_dpbusd_epi32({{acc}}, {{xs}}, {p}_loadu_{si}((const void *)({{address}})))"
     return dots
 
 
@@ -76,7 +83,7 @@ SSE2 = {
     "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
     "*": "_mm_madd_epi16({a}, _mm_and_si128({b}, _mm_set1_epi32(0xFFFF)))",
     # int8 -> int16 without pmovsxbw: each byte into the high half of its int16, shifted down arithmetically
-    "dot2": "_mm_madd_epi16(_mm_set1_epi32({x}), "
+    "dot2": "_mm_madd_epi16({xs}, "
     "_mm_srai_epi16(_mm_unpacklo_epi8(_mm_setzero_si128(), _mm_loadl_epi64((const __m128i *)({address}))), 8))",
 }
 
@@ -84,7 +91,9 @@ SSE2 = {
 def sse2_integer() -> dict:
     """x86_integer(4) in SSE2 intrinsics, for the ssse3 target."""
     fields = x86_integer(4)
-    return {**fields, "ints": {**fields["ints"], **SSE2}}
+    sse41 = ("pair_uint8", "pair_int8", "quad_uint8")  # pmovzxbw and vpbroadcastd: packed in a scalar int instead
+    ints = {op: t for op, t in fields["ints"].items() if op not in sse41}
+    return {**fields, "ints": {**ints, **SSE2}}
 
 
 def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:
