@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from helpers import skip_unless_host_runs
-from int8_models import _model, _weights, compare, quantized, random_feeds
+from int8_models import _model, _weights, compare, quantized, random_feeds, residual_model
 from onnx import helper
 
 import nncg
@@ -69,6 +69,16 @@ def test_saturation_at_both_ends(activations, target):
     # uint8 activations take vpdpbusd's u8 quads; int8 ones 512-bit pmaddwd pairs there
     expected = "_mm512_madd_epi16(" if (target, activations) == ("avx512vnni", "int8") else DOT[target]
     assert expected in compiled.source
+
+
+@pytest.mark.parametrize("target", ["avx2", "avx512", "avx512vnni"])
+@pytest.mark.parametrize("activations", ["uint8", "int8"])
+def test_residual_add_runs_on_vectors(activations, target):
+    """QLinearAdd in vector fused multiply-adds (onnxruntime's arithmetic) where the target has FMA,
+    saturated at both ends by inputs 4 times beyond the calibration."""
+    compiled = check(residual_model(), target, activations, scale=4.0)
+    add = compiled.source.split("QLinearAdd */")[1].split("/* ")[0]
+    assert "_fmadd_ps(" in add and "nncg_requantize(" not in add
 
 
 def test_zero_point_is_folded_into_the_bias():

@@ -12,8 +12,9 @@ depend on the loop become broadcasts. A call (exp, ...) becomes a vector call: b
 vector version call the function per lane.
 
 The int8 kernels are vectorised the same way on targets with integer vectors (Target.integer_vectors):
-int32 accumulators over output channels, an invariant integer operand (the input value minus its
-zero point) broadcast whole, requantised per vector; where the target has integer dot products, the
+int32 accumulators over output channels, an invariant integer operand (the input value) broadcast
+whole, requantised per vector; a QLinearAdd on targets with FMA in float fused multiply-adds, as
+onnxruntime computes it; where the target has integer dot products, the
 reduction over input channels first becomes dot products of 2 or 4 channels (dot_product.py). A
 kernel in the fixed-point form stays scalar."""
 
@@ -21,9 +22,11 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
+
 from ..ir.analysis import is_accumulator, vector_instructions
 from ..ir.dtypes import is_integer_kernel
-from ..ir.kinds import LoopKind
+from ..ir.kinds import DType, LoopKind
 from ..ir.loops import (
     Affine,
     Assign,
@@ -34,6 +37,7 @@ from ..ir.loops import (
     Const,
     Dot,
     Expr,
+    Fma,
     If,
     Kernel,
     Let,
@@ -81,16 +85,20 @@ def vectorize(program: Program, target: Target) -> Program:
     return replace(program, kernels=tuple(kernels))
 
 
-INTEGER_OPS = ("QLinearConv", "QLinearDense")  # the multiply-accumulate kernels; the other int8 kernels stay scalar
+INTEGER_OPS = ("QLinearConv", "QLinearDense")  # the multiply-accumulate kernels
+# onnxruntime computes these in float fused multiply-adds (lowering/quantized_add.py), which vectors of a
+# target with FMA do too; the other int8 kernels stay scalar
+FUSED_OPS = ("QLinearAdd",)
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
-    """A convolution or matrix product of int8 on a target with integer vectors, requantised in the
-    float form."""
+    """A convolution or matrix product of int8 on a target with integer vectors, or a QLinearAdd on
+    one with FMA as well, requantised in the float form."""
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
-    return target.integer_vectors and kernel.op in INTEGER_OPS and not fixed
+    ops = INTEGER_OPS + (FUSED_OPS if target.fma else ())
+    return target.integer_vectors and kernel.op in ops and not fixed
 
 
 # ---------------------------------------------------------------------------- choice
@@ -240,6 +248,11 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
         return Const(e.values * lanes, e.dtype) if e.dtype.is_integer else Const.splat(e.values[0], lanes)
     if isinstance(e, Dot):
         return Dot(e.x, Load(e.w.buffer, e.w.index, lanes * len(e.x)))
+    fused = _fused_multiply_add(e)
+    if fused is not None:
+        return _vector(fused, var, lanes, vector_locals)
+    if isinstance(e, Fma):
+        return Fma(*(_vector(x, var, lanes, vector_locals) for x in (e.a, e.b, e.c)))
     if isinstance(e, Cast | Binary) and _invariant_integer(e, var, vector_locals):
         return Broadcast(e, lanes)  # x - x_zero_point: one broadcast, not a vector subtraction
     if isinstance(e, Cast | Requantize):
@@ -254,6 +267,22 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
     if isinstance(e, Call):
         return Call(e.fn, _vector(e.arg, var, lanes, vector_locals))
     raise TypeError(f"cannot vectorize {e!r}")
+
+
+def _fused_multiply_add(e: Expr) -> Fma | None:
+    """float32(double(x) * r + double(c)), the scalar spelling of a fused multiply-add of an integer x
+    (lowering/quantized_add.py), as the Fma a vector computes it in one rounding; None for anything else."""
+    if not (isinstance(e, Cast) and e.dtype == DType.FLOAT32 and isinstance(e.value, Binary) and e.value.op == "+"):
+        return None
+    product, addend = e.value.a, e.value.b
+    if not (isinstance(product, Binary) and product.op == "*" and isinstance(product.b, Const)):
+        return None
+    x, ratio = product.a, product.b
+    if not (isinstance(x, Cast) and x.dtype == DType.FLOAT64 and isinstance(addend, Cast) and addend.dtype == DType.FLOAT64):
+        return None
+    if ratio.dtype != DType.FLOAT64 or float(np.float32(ratio.values[0])) != ratio.values[0]:
+        return None
+    return Fma(Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]), addend.value)
 
 
 def _invariant_integer(e: Expr, var: str, vector_locals: set[str]) -> bool:
