@@ -2,7 +2,8 @@
 bias, the reduction over input channels as loops.Dot with weights packed per lane, printed as pmaddwd
 (ssse3, avx2, avx512) or vpdpbusd (avx512vnni), and every result still identical to onnxruntime's:
 input-channel counts that are not multiples of 2 or 4, padded borders (where the folded zero point is
-added back), uint8 and int8 activations with zero points != 0, inputs and outputs saturated at both ends."""
+added back), uint8 and int8 activations with zero points != 0, inputs and outputs saturated at both ends;
+and the vectorised QuantizeLinear and QLinearAdd."""
 
 from __future__ import annotations
 
@@ -69,6 +70,8 @@ def test_saturation_at_both_ends(activations, target):
     # uint8 activations take vpdpbusd's u8 quads; int8 ones 512-bit pmaddwd pairs there
     expected = "_mm512_madd_epi16(" if (target, activations) == ("avx512vnni", "int8") else DOT[target]
     assert expected in compiled.source
+    quantize = compiled.source.split(": QuantizeLinear */")[1].split("/* ")[0]  # the input's, on vectors
+    assert "_div_ps(" in quantize and "_cvtps_epi32(" in quantize
 
 
 @pytest.mark.parametrize("target", ["avx2", "avx512", "avx512vnni"])
@@ -82,8 +85,9 @@ def test_residual_add_runs_on_vectors(activations, target):
 
 
 def test_zero_point_is_folded_into_the_bias():
-    """No per-tap subtraction of the input zero point: the border taps add back a constant instead."""
-    model = quantized(padded_conv_model(3))
+    """No per-tap subtraction of the input zero point (from 4 input channels on): the border taps add
+    back a constant instead. With fewer, the dot products take x - x_zero_point (test_channel_tails)."""
+    model = quantized(padded_conv_model(5))
     source = nncg.compile(model, target="ansi-c").source
     assert "zw_" in source and ") - " not in source.split("QLinearConv */")[1].split("/* ")[0]
 

@@ -20,6 +20,7 @@ from .requantize import Scales
 from .window import outside_window_nest, spatial_names, window_nest
 
 INT32, FLOAT32 = DType.INT32, DType.FLOAT32
+FOLD_MIN_CHANNELS = 4
 
 
 def widened(ref: TensorRef, index, zero_point: int = 0) -> Expr:
@@ -43,7 +44,8 @@ def folded_bias(bias: np.ndarray, x_zero_point: int, weight_sums: np.ndarray) ->
 def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
     """As lower_conv (conv.py), in integers. A tap outside the image reads the zero point (x -
     x_zero_point = 0). The zero point is folded into the bias (folded_bias) for every tap; the taps
-    outside the image then add back x_zero_point * sum_ci w[tap, ci, co], a constant per tap."""
+    outside the image then add back x_zero_point * sum_ci w[tap, ci, co], a constant per tap (with
+    at least FOLD_MIN_CHANNELS input channels per group)."""
     attrs: QConvAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     rank = len(attrs.kernel)
@@ -54,7 +56,10 @@ def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
     w = ctx.add_constant(f"w_{node.name}", packed)
     zx = attrs.x_zero_point
     tap_sums = packed.astype(np.int64).sum(axis=rank)  # [k..., c_out]
-    folded = folded_bias(ctx.graph.constants[node.inputs[2]], zx, tap_sums.sum(axis=tuple(range(rank)))) if zx else None
+    # the border table holds an int32 per tap and output channel, no more than the int8 weights from
+    # FOLD_MIN_CHANNELS input channels on; with fewer the zero point is subtracted per tap
+    fold = zx and c_in >= FOLD_MIN_CHANNELS
+    folded = folded_bias(ctx.graph.constants[node.inputs[2]], zx, tap_sums.sum(axis=tuple(range(rank)))) if fold else None
     bias = ctx.add_constant(f"b_{node.name}", ctx.graph.constants[node.inputs[2]] if folded is None else folded)
     border = ctx.add_constant(f"zw_{node.name}", (zx * tap_sums).astype(np.int32)) if folded is not None else None
     x_zero_point = 0 if folded is not None else zx

@@ -2,7 +2,7 @@
 of K channels (loops.Dot) on targets that have them (Target.dot_uint8, dot_int8: K = 2, pmaddwd on
 int16 pairs; K = 4, vpdpbusd on u8 x s8 quads).
 
-    for ci < C: acc += int32(x[.. ci ..]) * int32(w[lead + Cs * ci + co])
+    for ci < C: acc += int32(x[.. ci ..]) * int32(w[lead + Cs * ci + co])   (x minus its zero point, or not)
 becomes
     for cp < C / K: acc += dot(x[.. K cp ..], ..., x[.. K cp + K - 1 ..]; wK[lead' + K Cs cp + K co : K])
 and, when K does not divide C, one more dot of the last channels, the missing ones read as 0.
@@ -92,11 +92,13 @@ class _Packer:
         match = _multiply_accumulate(loop)
         if match is None:
             return None
-        acc, x, w = match
+        acc, x, zero_point, w = match
         wbuf, xbuf = self.buffers.get(w.buffer), self.buffers.get(x.buffer)
         if wbuf is None or xbuf is None or w.buffer not in self.program.constants:
             return None
-        k = {DType.UINT8: target.dot_uint8, DType.INT8: target.dot_int8}.get(xbuf.dtype, 0)
+        # x - x_zero_point (a zero point the lowering did not fold) is signed whatever x's type
+        signed = xbuf.dtype == DType.INT8 or zero_point
+        k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
         array = self.program.constants[w.buffer]
         if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
             return None
@@ -108,7 +110,9 @@ class _Packer:
 
         def dot(group: Affine, count: int) -> Stmt:
             """acc += the dot of channels K group .. K group + count - 1 (the rest read as 0)."""
-            xs = tuple(_at_channel(x, loop.var, group * k + j) if j < count else Const.integer(0) for j in range(k))
+            xs = tuple(
+                _at_channel(x, zero_point, loop.var, group * k + j) if j < count else Const.integer(0) for j in range(k)
+            )
             weights = Load(packed, index.substitute({loop.var: group}), k)
             return Assign(acc, Binary("+", LocalRef(acc), Dot(xs, weights)))
 
@@ -137,8 +141,9 @@ class _Packer:
         return new
 
 
-def _multiply_accumulate(loop: Loop) -> tuple[str, Load, Load] | None:
-    """(acc, x load, w load) of a loop whose one statement is acc += int32(x) * int32(w)."""
+def _multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
+    """(acc, x load, x zero point, w load) of a loop whose one statement is acc += (int32(x) - zero
+    point) * int32(w), the zero point 0 where there is no subtraction."""
     if len(loop.body) != 1 or not isinstance(loop.body[0], Assign):
         return None
     stmt = loop.body[0]
@@ -148,13 +153,19 @@ def _multiply_accumulate(loop: Loop) -> tuple[str, Load, Load] | None:
     product = value.b
     if not (isinstance(product, Binary) and product.op == "*"):
         return None
-    operands = []
-    for e in (product.a, product.b):
-        if not (isinstance(e, Cast) and e.dtype == INT32 and isinstance(e.value, Load) and e.value.lanes == 1):
-            return None
-        operands.append(e.value)
-    x, w = operands
-    return (stmt.name, x, w) if loop.var in w.index.vars and loop.var in x.index.vars else None
+    x, zero_point = product.a, 0
+    if isinstance(x, Binary) and x.op == "-" and isinstance(x.b, Const) and x.b.dtype == INT32:
+        x, zero_point = x.a, int(x.b.values[0])
+    loads = [_widened_load(e) for e in (x, product.b)]
+    if None in loads or not all(loop.var in load.index.vars for load in loads):
+        return None
+    return stmt.name, loads[0], zero_point, loads[1]
+
+
+def _widened_load(e: Expr) -> Load | None:
+    """The 8-bit load of int32(load)."""
+    scalar = isinstance(e, Cast) and e.dtype == INT32 and isinstance(e.value, Load) and e.value.lanes == 1
+    return e.value if scalar else None
 
 
 def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, extents: dict[str, int]) -> Affine | None:
@@ -182,8 +193,9 @@ def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, exten
     return Affine._make(lead_terms, lead_const * packed_block) + co * k + Affine.of(var) * (k * cs)
 
 
-def _at_channel(x: Load, var: str, channel: Affine) -> Expr:
-    return Cast(INT32, replace(x, index=x.index.substitute({var: channel})))
+def _at_channel(x: Load, zero_point: int, var: str, channel: Affine) -> Expr:
+    value = Cast(INT32, replace(x, index=x.index.substitute({var: channel})))
+    return Binary("-", value, Const.integer(zero_point)) if zero_point else value
 
 
 def _fresh(name: str, taken: set[str]) -> str:

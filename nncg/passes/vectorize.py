@@ -13,7 +13,7 @@ vector version call the function per lane.
 
 The int8 kernels are vectorised the same way on targets with integer vectors (Target.integer_vectors):
 int32 accumulators over output channels, an invariant integer operand (the input value) broadcast
-whole, requantised per vector; a QLinearAdd on targets with FMA in float fused multiply-adds, as
+whole, requantised per vector; QuantizeLinear as its float quotient requantised; a QLinearAdd on targets with FMA in float fused multiply-adds, as
 onnxruntime computes it; where the target has integer dot products, the
 reduction over input channels first becomes dot products of 2 or 4 channels (dot_product.py). A
 kernel in the fixed-point form stays scalar."""
@@ -85,15 +85,16 @@ def vectorize(program: Program, target: Target) -> Program:
     return replace(program, kernels=tuple(kernels))
 
 
-INTEGER_OPS = ("QLinearConv", "QLinearDense")  # the multiply-accumulate kernels
+# the multiply-accumulate kernels, and QuantizeLinear (float division, then requantised as they are)
+INTEGER_OPS = ("QLinearConv", "QLinearDense", "QuantizeLinear")
 # onnxruntime computes these in float fused multiply-adds (lowering/quantized_add.py), which vectors of a
 # target with FMA do too; the other int8 kernels stay scalar
 FUSED_OPS = ("QLinearAdd",)
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
-    """A convolution or matrix product of int8 on a target with integer vectors, or a QLinearAdd on
-    one with FMA as well, requantised in the float form."""
+    """A convolution or matrix product of int8 or a QuantizeLinear on a target with integer vectors,
+    or a QLinearAdd on one with FMA as well, requantised in the float form."""
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
@@ -278,7 +279,8 @@ def _fused_multiply_add(e: Expr) -> Fma | None:
     if not (isinstance(product, Binary) and product.op == "*" and isinstance(product.b, Const)):
         return None
     x, ratio = product.a, product.b
-    if not (isinstance(x, Cast) and x.dtype == DType.FLOAT64 and isinstance(addend, Cast) and addend.dtype == DType.FLOAT64):
+    integer = isinstance(x, Cast) and isinstance(x.value, Cast) and x.value.dtype.is_integer
+    if not (integer and x.dtype == DType.FLOAT64 and isinstance(addend, Cast) and addend.dtype == DType.FLOAT64):
         return None
     if ratio.dtype != DType.FLOAT64 or float(np.float32(ratio.values[0])) != ratio.values[0]:
         return None
