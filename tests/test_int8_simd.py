@@ -29,7 +29,12 @@ def check(float_model, target: str, **options) -> nncg.CompiledModel:
 
 
 # the dot product of input channels each target prints (ssse3's channel-by-channel product is a pmaddwd too)
-MULTIPLY = {"ssse3": "_mm_madd_epi16(", "avx2": "_madd_epi16(", "avx512": "_madd_epi16(", "avx512vnni": "_dpbusd_epi32("}
+MULTIPLY = {
+    "ssse3": "_mm_madd_epi16(",
+    "avx2": "_madd_epi16(",
+    "avx512": "_madd_epi16(",
+    "avx512vnni": "_dpbusd_epi32(",
+}
 
 
 @pytest.mark.parametrize("target", sorted(MULTIPLY))

@@ -274,7 +274,9 @@ class Dot:
         return self.w.lanes // len(self.x)
 
 
-Expr = Union[Const, Load, Lookup, LocalRef, Broadcast, Binary, Select, Call, Fma, Cast, Requantize, RequantizeFixed, Dot]
+Expr = Union[
+    Const, Load, Lookup, LocalRef, Broadcast, Binary, Select, Call, Fma, Cast, Requantize, RequantizeFixed, Dot
+]
 
 BINARY_OPS = tuple(BinaryOp)
 COMPARISONS = tuple(Comparison)

@@ -59,8 +59,9 @@ def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
     # the border table holds an int32 per tap and output channel, no more than the int8 weights from
     # FOLD_MIN_CHANNELS input channels on; with fewer the zero point is subtracted per tap
     fold = zx and c_in >= FOLD_MIN_CHANNELS
-    folded = folded_bias(ctx.graph.constants[node.inputs[2]], zx, tap_sums.sum(axis=tuple(range(rank)))) if fold else None
-    bias = ctx.add_constant(f"b_{node.name}", ctx.graph.constants[node.inputs[2]] if folded is None else folded)
+    b = ctx.graph.constants[node.inputs[2]]
+    folded = folded_bias(b, zx, tap_sums.sum(axis=tuple(range(rank)))) if fold else None
+    bias = ctx.add_constant(f"b_{node.name}", b if folded is None else folded)
     border = ctx.add_constant(f"zw_{node.name}", (zx * tap_sums).astype(np.int32)) if folded is not None else None
     x_zero_point = 0 if folded is not None else zx
     scales = Scales(ctx, node.name, ctx.graph.constants[node.inputs[3]])
