@@ -2,7 +2,7 @@
 onnxruntime running the same QDQ model and against NNCG's own float C, per x86 target; and the models'
 Cortex-M4 builds, int8 next to float.
 
-    python3 -m benchmarks.int8_suite [--models dscnn ...] [--targets ansi-c ssse3 avx2 avx512] [--cpu 0]
+    python3 -m benchmarks.int8_suite [--models dscnn ...] [--targets ansi-c ssse3 avx2 avx512 avx512vnni] [--cpu 0]
                                      [--batches 15] [--no-cortex-m4]
 
 Each model is quantised with nncg.quantize's defaults (uint8 activations, per-channel int8 weights) on seeded

@@ -27,7 +27,11 @@ ValueSpec = Shape | onnx.ValueInfoProto
 
 RNG = np.random.default_rng(1234)
 # The CPU flags a target's code needs to run on this host (cross targets run under qemu elsewhere).
-CPU_FLAGS = {"avx2": {"avx2", "fma"}, "avx512": {"avx512f"}}
+CPU_FLAGS = {
+    "avx2": {"avx2", "fma"},
+    "avx512": {"avx512f"},
+    "avx512vnni": {"avx512f", "avx512bw", "avx512vl", "avx512_vnni"},
+}
 ROOT = Path(__file__).resolve().parent.parent
 NNCG_CLI = (sys.executable, "-m", "nncg")  # run from ROOT: this checkout's nncg, not an installed one
 CLI_TIMEOUT_S = 600

@@ -92,7 +92,7 @@ def test_int8_activations(model):
     check(conv_model(model) if model == "depthwise" else MODELS[model](), activations="int8")
 
 
-@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512"])
+@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512", "avx512vnni"])
 @pytest.mark.parametrize("model", ["clip_gemm", "residual"])
 def test_x86_targets_print_the_integer_kernels(model, target):
     check(MODELS[model](), target)
@@ -104,6 +104,7 @@ def test_x86_targets_print_the_integer_kernels(model, target):
         ("benchmarks/models/resnet8.onnx", "ansi-c"),
         ("benchmarks/models/dscnn.onnx", "avx2"),
         ("benchmarks/models/mobilenet_v1_025.onnx", "ssse3"),
+        ("benchmarks/models/resnet8.onnx", "avx512vnni"),
         ("examples/robot.onnx", "ansi-c"),
     ],
 )

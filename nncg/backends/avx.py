@@ -5,7 +5,8 @@ on the comparison's mask.
 Both also print narrower blocks, so a loop too short for a full vector still runs on vectors
 (12 channels on avx512: one __m256 and one __m128 block): every AVX-512F CPU has AVX2 and FMA, and
 with -mavx2 -mfma the 4-lane SSE intrinsics are VEX-encoded and have fmadd and blendv too. Both
-vectorise the int8 convolutions and matrix products on int32 lanes (x86_integer.py)."""
+vectorise the int8 convolutions and matrix products on int32 lanes, two input channels per pmaddwd
+(x86_integer.py); avx512vnni adds AVX-512 VNNI's vpdpbusd, four channels per instruction."""
 
 from __future__ import annotations
 
@@ -19,6 +20,9 @@ from .x86_integer import x86_integer
 AVX_128 = replace(x86_width("_mm", "__m128", select="blendv", fma=True), **x86_integer(4))
 AVX_256 = replace(x86_width("_mm256", "__m256", select="blendv", fma=True), **x86_integer(8))
 AVX_512 = replace(x86_width("_mm512", "__m512", select="mask", fma=True), **x86_integer(16))
+VNNI_128 = replace(AVX_128, **x86_integer(4, bw=True, vnni=True))
+VNNI_256 = replace(AVX_256, **x86_integer(8, bw=True, vnni=True))
+VNNI_512 = replace(AVX_512, **x86_integer(16, bw=True, vnni=True))
 X86 = {
     "registers": 16,
     "fma": True,
@@ -26,6 +30,8 @@ X86 = {
     "l2_bytes": X86_L2,
     "integer_vectors": True,
     "memory_operands": True,
+    "dot_uint8": 2,
+    "dot_int8": 2,
 }
 
 
@@ -41,5 +47,17 @@ class Avx512(SimdPrinter):
     target = Target("avx512", vector_widths=(16, 8, 4), **{**X86, "registers": 32})
     widths = {16: AVX_512, 8: AVX_256, 4: AVX_128}
     cflags = ("-mavx512f", "-mavx2", "-mfma")
+    strict_cflags = ("-Wall", "-Wextra", "-Werror")
+    includes = ("<math.h>", "<immintrin.h>")
+
+
+class Avx512Vnni(SimdPrinter):
+    """avx512 plus AVX-512BW, VL and VNNI (Cascade Lake, Ice Lake and later; Zen 4): the int8
+    convolutions and matrix products take 4 input channels per vpdpbusd (uint8 activations times int8
+    weights) and int8 activations 2 per 512-bit vpmaddwd; float code is avx512's."""
+
+    target = Target("avx512vnni", vector_widths=(16, 8, 4), **{**X86, "registers": 32, "dot_uint8": 4})
+    widths = {16: VNNI_512, 8: VNNI_256, 4: VNNI_128}
+    cflags = ("-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512vnni", "-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<immintrin.h>")

@@ -110,7 +110,7 @@ def integer_preamble(program: Program) -> list[str]:
         for s in walk_stmts(k.body)
         for top in stmt_exprs(s)
         for e in walk_exprs(top)
-        if isinstance(e, Requantize | RequantizeFixed)
+        if isinstance(e, Requantize | RequantizeFixed) and e.lanes == 1  # vectors requantise inline
     }
     typedefs = TYPEDEFS
     if has_integer_io(program):  # the header has <limits.h> and nncg_int32

@@ -16,6 +16,7 @@ from ..ir.loops import (
     Call,
     Cast,
     Const,
+    Dot,
     Expr,
     Fma,
     If,
@@ -190,6 +191,9 @@ class ScalarPrinter:
             return f"({a} < {b} ? {a} : {b})"
         return f"({a} {e.op} {b})"
 
+    def _expr_Dot(self, e: Dot) -> str:
+        return scalar_dot(self, e, lane=0)
+
     def _expr_Fma(self, e: Fma) -> str:
         # Scalar C has no fused multiply-add in C89, and the FMA legalisation forms one only on
         # vectors; one formed by hand still prints, as a multiply and an add (two roundings).
@@ -205,6 +209,17 @@ class ScalarPrinter:
         if e.fn in HELPERS:  # not in C89's math.h either
             return f"{helper_name(e.fn)}({self.expr(e.arg)})"
         return f"(float){C89_NAMES.get(e.fn, e.fn)}({self.expr(e.arg)})"  # C89 has only the double versions
+
+
+def scalar_dot(printer: ScalarPrinter, e: Dot, lane: int) -> str:
+    """Lane `lane` of a dot product as plain int32 products (channels that read 0 left out)."""
+    k = len(e.x)
+    terms = [
+        f"{printer.expr(x)} * (({c_type(DType.INT32)}){e.w.buffer}[{c_affine(e.w.index + (lane * k + j))}])"
+        for j, x in enumerate(e.x)
+        if x != Const.integer(0)
+    ]
+    return f"({' + '.join(terms)})"
 
 
 C89_NAMES = {"abs": "fabs"}  # math.h's name of a MathFunction, where it is not the same

@@ -1,7 +1,8 @@
 """Backend: the SIMD printer's int8 part — int32 vectors of the vectorised int8 convolutions and
 matrix products, printed from each width's `ints` table (vector_width.INTEGER_OPERATIONS): int32
-loads and arithmetic, 8-bit loads widened to int32, the conversion to float, the float form of
-requantisation and the narrowing 8-bit stores."""
+loads and arithmetic, 8-bit loads widened to int32, dot products (`dot2`: int16 pairs, `dot4_add`:
+u8 x s8 quads accumulated; a width without its template computes each lane in scalar C), the
+conversion to float, the float form of requantisation and the narrowing 8-bit stores."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from ..ir.loops import (
     Broadcast,
     Cast,
     Const,
+    Dot,
     Expr,
     Load,
     LocalRef,
@@ -26,6 +28,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from .c_text import c_affine, c_float, c_int
+from .scalar import scalar_dot
 from .vector_width import VectorWidth
 
 
@@ -65,12 +68,46 @@ class IntegerVectors:
             return _integer_const(e.values, ints)
         if isinstance(e, Broadcast):
             return ints["splat"].format(value=self.expr(e.value))
+        if isinstance(e, Binary) and e.op == "+" and isinstance(e.b, Dot) and f"dot{len(e.b.x)}_add" in ints:
+            # vpdpbusd accumulates: acc + dot is one instruction
+            return self._dot(e.b, width, accumulator=self.expr(e.a))
         if isinstance(e, Binary):
             return ints[e.op].format(a=self.expr(e.a), b=self.expr(e.b))
+        if isinstance(e, Dot):
+            return self._dot(e, width)
         if isinstance(e, Requantize):
             low, high = (c_float(float(v - e.zero_point)) for v in (e.low, e.high))
             return ints["requantize"].format(value=self.expr(e.value), low=low, high=high, zero_point=e.zero_point)
         return self._integer_cast(e, width)
+
+    def _dot(self, e: Dot, width: VectorWidth, accumulator: str | None = None) -> str:
+        """A dot product from the width's template (with the accumulator: `dot4_add`), its activations
+        in every lane (2 int16 or 4 bytes, the lowest channel lowest); lane by lane without one."""
+        k, ints = len(e.x), width.ints
+        address = f"&{e.w.buffer}[{c_affine(e.w.index)}]"
+        if f"dot{k}_add" in ints:
+            acc = accumulator or ints["splat"].format(value="0")
+            return ints[f"dot{k}_add"].format(acc=acc, xs=self._activations(e, ints), address=address)
+        if f"dot{k}" in ints:
+            return ints[f"dot{k}"].format(xs=self._activations(e, ints), address=address)
+        return ints["vector"].format(values=", ".join(scalar_dot(self, e, lane) for lane in range(e.lanes)))
+
+    def _activations(self, e: Dot, ints: dict[str, str]) -> str:
+        """The K activations of a dot in every int32 lane: one broadcast from memory where they are
+        adjacent bytes, else packed in a scalar int and splat."""
+        k = len(e.x)
+        first = e.x[0].value if isinstance(e.x[0], Cast) and isinstance(e.x[0].value, Load) else None
+        adjacent = first is not None and all(
+            x == Cast(DType.INT32, Load(first.buffer, first.index + j)) for j, x in enumerate(e.x)
+        )
+        template = f"{'pair' if k == 2 else 'quad'}_{self.dtypes[first.buffer].value}" if first else ""
+        if adjacent and template in ints:
+            return ints[template].format(address=f"&{first.buffer}[{c_affine(first.index)}]")
+        bits, mask = 32 // k, "0xFFFFu" if k == 2 else "0xFFu"
+        parts = [
+            f"(((unsigned){self.expr(x)} & {mask}) << {bits * j})" for j, x in enumerate(e.x) if x != Const.integer(0)
+        ]
+        return ints["splat"].format(value=f"(int)({' | '.join(parts) or '0u'})")
 
     def _integer_cast(self, e: Cast, width: VectorWidth) -> str:
         if e.dtype == DType.FLOAT32:

@@ -1,7 +1,9 @@
 """Backend: x86 SSE/SSSE3 intrinsics, 4 float lanes. max/min (ReLU, leaky ReLU, max-pool) are single
 _mm_max_ps/_mm_min_ps instructions; SSE has no blend (a select is and/andnot/or on the comparison),
 no fused multiply-add, and no exp, log or tanh (a vector call calls math.h once per lane). The int8
-convolutions and matrix products run on SSE2's int32 vectors (x86_integer.py)."""
+convolutions and matrix products run on SSE2's int32 vectors, two input channels per pmaddwd
+(x86_integer.py). pmaddubsw (u8 x s8 pairs into int16) is not used: its int16 sums saturate for the
+weights quantisers write (255 * (|w0| + |w1|) > 32767 for |w| > 64), so it would not be exact."""
 
 from __future__ import annotations
 
@@ -23,6 +25,8 @@ class Ssse3(SimdPrinter):
         l2_bytes=X86_L2,
         integer_vectors=True,
         memory_operands=True,
+        dot_uint8=2,
+        dot_int8=2,
     )
     widths = {4: replace(x86_width("_mm", "__m128", select="bitwise", fma=False), **sse2_integer())}
     cflags = ("-mssse3",)

@@ -51,6 +51,15 @@ INTEGER_OPERATIONS = {
     "store_uint8": ("address", "value"),  # int32 lanes already in the type's range, stored as bytes
     "store_int8": ("address", "value"),
 }
+# optional: the dot products of loops.Dot (without them a width computes each lane in scalar C)
+INTEGER_DOTS = {
+    "dot2": ("xs", "address"),  # pmaddwd: xs two int16 in each lane, address 2 int8 weights per lane
+    "dot4_add": ("acc", "xs", "address"),  # acc + vpdpbusd: xs four uint8 in each lane, address 4 int8 per lane
+    # xs from 2 (4) adjacent 8-bit activations in memory, in every lane; else from a scalar int (splat)
+    "pair_uint8": ("address",),
+    "pair_int8": ("address",),
+    "quad_uint8": ("address",),
+}
 
 
 @dataclass(frozen=True)
@@ -89,5 +98,5 @@ class VectorWidth:
             unknown += [f"bits {op}" for op in self.bits if op not in BIT_OPERATIONS]
         if self.ints:
             missing += [f"ints {op}" for op in INTEGER_OPERATIONS if op not in self.ints]
-            unknown += [f"ints {op}" for op in self.ints if op not in INTEGER_OPERATIONS]
+            unknown += [f"ints {op}" for op in self.ints if op not in {**INTEGER_OPERATIONS, **INTEGER_DOTS}]
         return [f"no template for {op}" for op in missing] + [f"unknown operation {op}" for op in unknown]

@@ -1,6 +1,9 @@
 """Backend: the int8 kernels' int32 vectors on x86 (SSE4.1, AVX2, AVX-512F intrinsics, which every
 avx2 and avx512 target CPU has): widening byte loads (pmovzxbd/pmovsxbd), 32-bit multiply (pmulld),
-or, on ssse3 (no SSE4.1), byte unpacks and pmaddwd (below); and requantisation as onnxruntime's
+or, on ssse3 (no SSE4.1), byte unpacks and pmaddwd (below); dot products of 2 input channels as
+pmaddwd on int16 pairs (exact: no two int16 products of an 8-bit activation and an int8 weight sum
+beyond int32), of 4 as AVX-512 VNNI's vpdpbusd on u8 x s8 quads (no saturation: the non-saturating
+form); and requantisation as onnxruntime's
 MLAS does it per vector: clamp in float, cvtps2dq (round half to even in the default rounding mode),
 add the zero point, pack to bytes (the lanes are in range, so the saturating packs change nothing)."""
 
@@ -14,8 +17,39 @@ SHAPES = {
 }
 
 
-def x86_integer(lanes: int) -> dict:
-    """VectorWidth fields `ints` and `int_helpers` of one x86 width."""
+# lanes -> the int16 pairs of `lanes` output channels' packed weights, sign-extended from int8 (SSE4.1, AVX2, AVX-512BW)
+PAIRS = {
+    4: "_mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)({address})))",
+    8: "_mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)({address})))",
+    16: "_mm512_cvtepi8_epi16(_mm256_loadu_si256((const __m256i *)({address})))",
+}
+# AVX-512F without BW has no 512-bit pmaddwd: two 256-bit halves (both halves of {xs} are the same)
+DOT2_HALVES = (
+    "_mm512_inserti64x4(_mm512_castsi256_si512(_mm256_madd_epi16(_mm512_castsi512_si256({xs}), "
+    "_mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)({address}))))), _mm256_madd_epi16("
+    "_mm512_castsi512_si256({xs}), _mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)(({address}) + 16)))), 1)"
+)
+
+
+def x86_dots(lanes: int, bw: bool = False, vnni: bool = False) -> dict[str, str]:
+    """The dot-product templates of one x86 width: `dot2` (pmaddwd; 16 lanes in halves without
+    AVX-512BW), with `vnni` (AVX-512 VNNI, and VL below 16 lanes) `dot4_add` (vpdpbusd), and the
+    activations of adjacent channels broadcast straight from memory (vpbroadcastd)."""
+    p, _, _, si = SHAPES[lanes]
+    bytes_at = "_mm_loadu_si{bits}((const void *)({{address}}))"
+    dots = {
+        "dot2": DOT2_HALVES if lanes == 16 and not bw else f"{p}_madd_epi16({{xs}}, {PAIRS[lanes]})",
+        "pair_uint8": f"{p}_broadcastd_epi32(_mm_cvtepu8_epi16({bytes_at.format(bits=16)}))",
+        "pair_int8": f"{p}_broadcastd_epi32(_mm_cvtepi8_epi16({bytes_at.format(bits=16)}))",
+        "quad_uint8": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",
+    }
+    if vnni:
+        dots["dot4_add"] = f"{p}_dpbusd_epi32({{acc}}, {{xs}}, {p}_loadu_{si}((const void *)({{address}})))"
+    return dots
+
+
+def x86_integer(lanes: int, bw: bool = False, vnni: bool = False) -> dict:
+    """VectorWidth fields `ints` and `int_helpers` of one x86 width (with AVX-512BW, VNNI: dots)."""
     p, vt, bytes_load, si = SHAPES[lanes]
     name = f"nncg{p.removeprefix('_mm')}_store"
     ints = {
@@ -33,6 +67,7 @@ def x86_integer(lanes: int) -> dict:
         f"{p}_set1_ps({{high}}))), {p}_set1_epi32({{zero_point}}))",
         "store_uint8": f"{name}_uint8({{address}}, {{value}})",
         "store_int8": f"{name}_int8({{address}}, {{value}})",
+        **x86_dots(lanes, bw, vnni),
     }
     return {"ints": ints, "int_helpers": _stores(lanes, name, vt)}
 
@@ -47,13 +82,18 @@ SSE2 = {
     "widen_uint8": f"_mm_unpacklo_epi16(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {ZERO})",
     "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
     "*": "_mm_madd_epi16({a}, _mm_and_si128({b}, _mm_set1_epi32(0xFFFF)))",
+    # int8 -> int16 without pmovsxbw: each byte into the high half of its int16, shifted down arithmetically
+    "dot2": "_mm_madd_epi16({xs}, "
+    "_mm_srai_epi16(_mm_unpacklo_epi8(_mm_setzero_si128(), _mm_loadl_epi64((const __m128i *)({address}))), 8))",
 }
 
 
 def sse2_integer() -> dict:
     """x86_integer(4) in SSE2 intrinsics, for the ssse3 target."""
     fields = x86_integer(4)
-    return {**fields, "ints": {**fields["ints"], **SSE2}}
+    sse41 = ("pair_uint8", "pair_int8", "quad_uint8")  # pmovzxbw and vpbroadcastd: packed in a scalar int instead
+    ints = {op: t for op, t in fields["ints"].items() if op not in sse41}
+    return {**fields, "ints": {**ints, **SSE2}}
 
 
 def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:

@@ -58,11 +58,21 @@ ISAS: dict[str, _Isa] = {
     "sse": _Isa(("sse2", "ssse3"), ("-O2", "-mssse3", "-ffp-contract=off"), "_mm", "__m128", 4, 14, False),
     "avx2-fma": _Isa(("avx2", "fma"), ("-O2", "-mavx2", "-mfma"), "_mm256", "__m256", 8, 12, True),
     "avx512-fma": _Isa(("avx512f",), ("-O2", "-mavx512f"), "_mm512", "__m512", 16, 16, True),
+    # the float peak of avx512; the flags are what the avx512vnni target's code needs to run
+    "avx512-vnni": _Isa(
+        ("avx512f", "avx512bw", "avx512vl", "avx512_vnni"), ("-O2", "-mavx512f"), "_mm512", "__m512", 16, 16, True
+    ),
 }
 
 # The ISA whose peak a target's code is measured against. ansi-c is built by the host compiler at
 # -O3 with its default x86-64 ISA, i.e. SSE2, so its ceiling is the SSE mul+add peak.
-TARGET_ISA = {"ansi-c": "sse", "ssse3": "sse", "avx2": "avx2-fma", "avx512": "avx512-fma"}
+TARGET_ISA = {
+    "ansi-c": "sse",
+    "ssse3": "sse",
+    "avx2": "avx2-fma",
+    "avx512": "avx512-fma",
+    "avx512vnni": "avx512-vnni",
+}
 
 # Calibrates the trip count until one run lasts min_seconds, then times `repeats` runs and prints the
 # best rate: the peak is what the core can do, and slower runs are interference (other VMs, interrupts).

@@ -14,6 +14,7 @@ from .loops import (
     Call,
     Cast,
     Const,
+    Dot,
     Expr,
     Fma,
     Kernel,
@@ -50,6 +51,8 @@ def expr_dtype(expr: Expr, buffers: Mapping[str, DType], locals_: Mapping[str, D
         return expr_dtype(expr.then, buffers, locals_)
     if isinstance(expr, Call | Fma):
         return FLOAT32
+    if isinstance(expr, Dot):
+        return DType.INT32
     raise TypeError(f"not a loop-IR expression: {expr!r}")
 
 

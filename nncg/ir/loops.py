@@ -259,7 +259,24 @@ class RequantizeFixed(_Converting):
     dtype: DType
 
 
-Expr = Union[Const, Load, Lookup, LocalRef, Broadcast, Binary, Select, Call, Fma, Cast, Requantize, RequantizeFixed]
+@dataclass(frozen=True)
+class Dot:
+    """The widening multiply-accumulate of K = len(x) input channels: lane l is the int32
+    sum_j x[j] * w[l * K + j], x the K int32 scalars every lane shares (activations), `w` the K *
+    lanes weights (int8) packed at generation time in exactly that order. Targets print it as one
+    pmaddwd (K = 2) or vpdpbusd (K = 4) per vector, scalar C as K products."""
+
+    x: tuple[Expr, ...]
+    w: Load
+
+    @property
+    def lanes(self) -> int:
+        return self.w.lanes // len(self.x)
+
+
+Expr = Union[
+    Const, Load, Lookup, LocalRef, Broadcast, Binary, Select, Call, Fma, Cast, Requantize, RequantizeFixed, Dot
+]
 
 BINARY_OPS = tuple(BinaryOp)
 COMPARISONS = tuple(Comparison)
@@ -458,6 +475,8 @@ def children(expr: Expr) -> tuple[Expr, ...]:
         return (expr.value,)
     if isinstance(expr, RequantizeFixed):
         return (expr.value, expr.multiplier, expr.shift)
+    if isinstance(expr, Dot):
+        return (*expr.x, expr.w)
     return ()
 
 
@@ -479,6 +498,8 @@ def with_children(expr: Expr, new: tuple[Expr, ...]) -> Expr:
         return replace(expr, value=new[0])
     if isinstance(expr, RequantizeFixed):
         return replace(expr, value=new[0], multiplier=new[1], shift=new[2])
+    if isinstance(expr, Dot):
+        return Dot(tuple(new[:-1]), new[-1])
     return expr
 
 

@@ -19,7 +19,10 @@ class Target:
     integer_vectors: its widths also hold int32 lanes with a 32-bit multiply, widening 8-bit loads and
     narrowing 8-bit stores, so the vectorize pass vectorises the int8 kernels too.
     memory_operands: an arithmetic instruction may read one operand straight from memory (x86), so a
-    fused multiply-add needs no register for the weight vector it reads."""
+    fused multiply-add needs no register for the weight vector it reads.
+    dot_uint8, dot_int8: the input channels one integer dot product (loops.Dot) multiplies per lane,
+    for uint8 and for int8 activations: 2 (pmaddwd on int16 pairs), 4 (vpdpbusd on u8 x s8 quads);
+    0: none, the int8 kernels multiply channel by channel."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -29,6 +32,8 @@ class Target:
     l2_bytes: int = 0
     integer_vectors: bool = False
     memory_operands: bool = False
+    dot_uint8: int = 0
+    dot_int8: int = 0
 
     @property
     def lanes(self) -> int:

@@ -16,6 +16,7 @@ from .loops import (
     Call,
     Cast,
     Const,
+    Dot,
     Expr,
     Fma,
     If,
@@ -162,6 +163,8 @@ def expr_to_text(expr: Expr) -> str:
         return f"({parts[0]} {expr.cmp} {parts[1]} ? {parts[2]} : {parts[3]})"
     if isinstance(expr, Call):
         return f"{expr.fn}({expr_to_text(expr.arg)})"
+    if isinstance(expr, Dot):
+        return f"dot({', '.join(expr_to_text(x) for x in expr.x)}; {expr_to_text(expr.w)})"
     if isinstance(expr, Fma):
         return f"fma({expr_to_text(expr.a)}, {expr_to_text(expr.b)}, {expr_to_text(expr.c)})"
     raise TypeError(f"not a loop-IR expression: {expr!r}")

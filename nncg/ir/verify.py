@@ -13,6 +13,7 @@ from ..ir.loops import (
     Buffer,
     Call,
     Cast,
+    Dot,
     Expr,
     Fma,
     If,
@@ -218,6 +219,11 @@ def _type_problems(e: Expr, dtypes: dict[str, DType]) -> list[str]:
             return [f"cast of {dtype(e.value)} to {e.dtype}: float to integer is a Requantize"]
     elif isinstance(e, Requantize | RequantizeFixed):
         return _requantize_problems(e, dtype)
+    elif isinstance(e, Dot):
+        if any(dtype(x) != INT32 or x.lanes != 1 for x in e.x) or dtype(e.w) not in (DType.INT8, DType.INT16):
+            return ["dot of values that are not int32 scalars and int8 or int16 weights"]
+        if e.w.lanes % len(e.x):
+            return [f"dot of {len(e.x)} channels reads {e.w.lanes} weights"]
     elif isinstance(e, Lookup) and dtype(e.index) != INT32:
         return [f"lookup at a {dtype(e.index)} index, not int32"]
     return []

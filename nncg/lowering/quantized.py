@@ -17,9 +17,10 @@ from .context import LoweringContext, TensorRef, channels_last, nest, row_major
 from .elementwise import elementwise
 from .pool import window_counts
 from .requantize import Scales
-from .window import spatial_names, window_nest
+from .window import outside_window_nest, spatial_names, window_nest
 
 INT32, FLOAT32 = DType.INT32, DType.FLOAT32
+FOLD_MIN_CHANNELS = 4
 
 
 def widened(ref: TensorRef, index, zero_point: int = 0) -> Expr:
@@ -32,17 +33,37 @@ def accumulate(product: Expr) -> Assign:
     return Assign("acc", Binary("+", LocalRef("acc"), product))
 
 
+def folded_bias(bias: np.ndarray, x_zero_point: int, weight_sums: np.ndarray) -> np.ndarray | None:
+    """b - x_zero_point * sum(w) per output channel: sum (x - zx) * w = sum x * w - zx * sum w, so the
+    zero point costs nothing per tap. None where the folded bias leaves int32 (then it is not folded)."""
+    folded = bias.astype(np.int64) - int(x_zero_point) * weight_sums.astype(np.int64)
+    info = np.iinfo(np.int32)
+    return folded.astype(np.int32) if folded.min() >= info.min and folded.max() <= info.max else None
+
+
 def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
-    """As lower_conv (conv.py), in integers: taps outside the image are skipped, which is reading
-    the zero point there (x - x_zero_point = 0)."""
+    """As lower_conv (conv.py), in integers. A tap outside the image reads the zero point (x -
+    x_zero_point = 0). The zero point is folded into the bias (folded_bias) for every tap; the taps
+    outside the image then add back x_zero_point * sum_ci w[tap, ci, co], a constant per tap (with
+    at least FOLD_MIN_CHANNELS input channels per group)."""
     attrs: QConvAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     rank = len(attrs.kernel)
     weights = ctx.graph.constants[node.inputs[1]]  # [c_out, c_in/group, k...] -> [k..., c_in/group, c_out]
     c_out, c_in = weights.shape[:2]
     c_out_g = c_out // attrs.group
-    w = ctx.add_constant(f"w_{node.name}", np.transpose(weights, (*range(2, rank + 2), 1, 0)))
-    bias = ctx.add_constant(f"b_{node.name}", ctx.graph.constants[node.inputs[2]])
+    packed = np.transpose(weights, (*range(2, rank + 2), 1, 0))
+    w = ctx.add_constant(f"w_{node.name}", packed)
+    zx = attrs.x_zero_point
+    tap_sums = packed.astype(np.int64).sum(axis=rank)  # [k..., c_out]
+    # the border table holds an int32 per tap and output channel, no more than the int8 weights from
+    # FOLD_MIN_CHANNELS input channels on; with fewer the zero point is subtracted per tap
+    fold = zx and c_in >= FOLD_MIN_CHANNELS
+    b = ctx.graph.constants[node.inputs[2]]
+    folded = folded_bias(b, zx, tap_sums.sum(axis=tuple(range(rank)))) if fold else None
+    bias = ctx.add_constant(f"b_{node.name}", b if folded is None else folded)
+    border = ctx.add_constant(f"zw_{node.name}", (zx * tap_sums).astype(np.int32)) if folded is not None else None
+    x_zero_point = 0 if folded is not None else zx
     scales = Scales(ctx, node.name, ctx.graph.constants[node.inputs[3]])
     out = ctx.output(node.outputs[0], channels_last(rank + 2))
     names = spatial_names(rank)
@@ -53,11 +74,16 @@ def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
         ci = Affine.of("ci") if c_in > 1 else Affine()
 
         def tap(positions: list[Affine], k_vars: list[Affine]) -> tuple[Stmt, ...]:
-            x_value = widened(x, [n, env["g"] * c_in + ci, *positions], attrs.x_zero_point)
+            x_value = widened(x, [n, env["g"] * c_in + ci, *positions], x_zero_point)
             update = (accumulate(Binary("*", x_value, widened(w, [*k_vars, ci, co]))),)
             return (Loop("ci", c_in, update),) if c_in > 1 else update
 
+        def outside_tap(_positions: list[Affine], k_vars: list[Affine]) -> tuple[Stmt, ...]:
+            return (accumulate(Load(border.buffer, border.at([*k_vars, co]))),)
+
         window = window_nest(attrs, env, dict(out_loops), x.spatial_ranges, tap)
+        if border is not None:
+            window += outside_window_nest(attrs, env, dict(out_loops), x.spatial_ranges, outside_tap)
         index = [n, co, *(env["o" + s] for s in names)]
         store = Store(out.buffer, out.at(index), scales.requantized(LocalRef("acc"), co, attrs.out))
         return (Let("acc", Load(bias.buffer, bias.at([co])), (*window, store)),)
@@ -67,11 +93,16 @@ def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
 
 
 def lower_qlinear_dense(ctx: LoweringContext, node: Node) -> None:
-    """y[m, n] = requantized(b[n] + sum_k (x[m, k] - x_zero_point) * w[k, n])."""
+    """y[m, n] = requantized(b[n] + sum_k (x[m, k] - x_zero_point) * w[k, n]), the zero point folded
+    into the bias (folded_bias)."""
     attrs: QDenseAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
-    w = ctx.add_constant(f"w_{node.name}", ctx.graph.constants[node.inputs[1]])
-    bias = ctx.add_constant(f"b_{node.name}", ctx.graph.constants[node.inputs[2]])
+    weights = ctx.graph.constants[node.inputs[1]]
+    w = ctx.add_constant(f"w_{node.name}", weights)
+    b = ctx.graph.constants[node.inputs[2]]
+    folded = folded_bias(b, attrs.x_zero_point, weights.astype(np.int64).sum(axis=0)) if attrs.x_zero_point else None
+    bias = ctx.add_constant(f"b_{node.name}", b if folded is None else folded)
+    x_zero_point = attrs.x_zero_point if folded is None else 0
     scales = Scales(ctx, node.name, ctx.graph.constants[node.inputs[3]])
     out = ctx.output(node.outputs[0], row_major(2))
     k = w.shape[0]
@@ -79,7 +110,7 @@ def lower_qlinear_dense(ctx: LoweringContext, node: Node) -> None:
     def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
         m, n = env["m"], env["n"]
         kk = Affine.of("k") if k > 1 else Affine()
-        update = (accumulate(Binary("*", widened(x, [m, kk], attrs.x_zero_point), widened(w, [kk, n]))),)
+        update = (accumulate(Binary("*", widened(x, [m, kk], x_zero_point), widened(w, [kk, n]))),)
         reduce = (Loop("k", k, update),) if k > 1 else update
         store = Store(out.buffer, out.at([m, n]), scales.requantized(LocalRef("acc"), n, attrs.out))
         return (Let("acc", Load(bias.buffer, bias.at([n])), (*reduce, store)),)

@@ -28,6 +28,44 @@ def window_nest(
     `attrs` has kernel, strides, dilations and pads_begin: output o reads input o*stride +
     k*dilation - pad_begin. in_ranges[i] = [lo, hi) are the positions along dim i that may be read
     (TensorRef.spatial_ranges: the input, and the zero halo around it if it has one)."""
+    loops, k_vars, positions = _taps(attrs, out_env)
+    return guarded_taps(loops, positions, in_ranges, out_extents, lambda: tap(positions, k_vars))
+
+
+def outside_window_nest(
+    attrs,
+    out_env: dict[str, Affine],
+    out_extents: dict[str, int],
+    in_ranges: list[tuple[int, int]],
+    tap: Tap,
+) -> tuple[Stmt, ...]:
+    """The taps window_nest skips, each once: for each dim i, the taps inside the input along the
+    dims before i, outside it along dim i (below, then above), anywhere along the dims after i.
+    Empty where no tap can leave the input."""
+    loops, k_vars, positions = _taps(attrs, out_env)
+    extents = out_extents | dict(loops)
+    ranges = [positions[i].bounds(extents) for i in range(len(loops))]
+    stmts: list[Stmt] = []
+    for i, ((lo, hi), (first, stop)) in enumerate(zip(ranges, in_ranges)):
+        sides = ([Bound(positions[i], None, first)] if lo < first else []) + (
+            [Bound(positions[i], stop, None)] if hi >= stop else []
+        )
+        for side in sides:
+            body = tap(positions, k_vars)
+            for j in reversed(range(len(loops))):
+                if j == i:
+                    body = (If((side,), body),)
+                elif j < i:
+                    body = guarded_taps([loops[j]], [positions[j]], [in_ranges[j]], extents, lambda b=body: b)
+                    continue
+                var, extent = loops[j]
+                body = (Loop(var, extent, body),) if extent > 1 else body
+            stmts += body
+    return tuple(stmts)
+
+
+def _taps(attrs, out_env: dict[str, Affine]) -> tuple[list[tuple[str, int]], list[Affine], list[Affine]]:
+    """The tap loops, their variables and the input position each tap reads, per spatial dim."""
     names = spatial_names(len(attrs.kernel))
     loops = [("k" + s, attrs.kernel[i]) for i, s in enumerate(names)]
     k_vars = [Affine.of(var) if extent > 1 else Affine() for var, extent in loops]
@@ -35,7 +73,7 @@ def window_nest(
         out_env["o" + s] * attrs.strides[i] + k_vars[i] * attrs.dilations[i] - attrs.pads_begin[i]
         for i, s in enumerate(names)
     ]
-    return guarded_taps(loops, positions, in_ranges, out_extents, lambda: tap(positions, k_vars))
+    return loops, k_vars, positions
 
 
 def guarded_taps(

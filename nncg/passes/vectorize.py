@@ -12,16 +12,21 @@ depend on the loop become broadcasts. A call (exp, ...) becomes a vector call: b
 vector version call the function per lane.
 
 The int8 kernels are vectorised the same way on targets with integer vectors (Target.integer_vectors):
-int32 accumulators over output channels, an invariant integer operand (the input value minus its
-zero point) broadcast whole, requantised per vector. A kernel in the fixed-point form stays scalar."""
+int32 accumulators over output channels, an invariant integer operand (the input value) broadcast
+whole, requantised per vector; where the target has integer dot products, the reduction over input
+channels first becomes dot products of 2 or 4 channels (dot_product.py). QuantizeLinear runs as its
+float quotient requantised per vector; QLinearAdd, on targets with FMA, in vector fused
+multiply-adds as onnxruntime computes it. A kernel in the fixed-point form stays scalar."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
+
 from ..ir.analysis import is_accumulator, vector_instructions
 from ..ir.dtypes import is_integer_kernel
-from ..ir.kinds import LoopKind
+from ..ir.kinds import DType, LoopKind
 from ..ir.loops import (
     Affine,
     Assign,
@@ -30,7 +35,9 @@ from ..ir.loops import (
     Call,
     Cast,
     Const,
+    Dot,
     Expr,
+    Fma,
     If,
     Kernel,
     Let,
@@ -49,6 +56,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from ..ir.target import Target
+from .dot_product import dot_products
 from .substitute import interior, iterations, substitute_body
 
 
@@ -59,9 +67,12 @@ def vectorize(program: Program, target: Target) -> Program:
         return program
     if list(widths) != sorted(set(widths), reverse=True):
         raise ValueError(f"vector widths {widths} are not strictly decreasing")
+    integer = {k.name for k in program.kernels if is_integer_kernel(k, program)}
+    vectorizable_integer = {k.name for k in program.kernels if k.name in integer and _integer_vectorizable(k, target)}
+    program = dot_products(program, vectorizable_integer, target)
     kernels = []
     for kernel in program.kernels:
-        if is_integer_kernel(kernel, program) and not _integer_vectorizable(kernel, target):
+        if kernel.name in integer and kernel.name not in vectorizable_integer:
             kernels.append(kernel)
             continue
         body = mark_vector_loop(kernel.body, widths)
@@ -74,16 +85,21 @@ def vectorize(program: Program, target: Target) -> Program:
     return replace(program, kernels=tuple(kernels))
 
 
-INTEGER_OPS = ("QLinearConv", "QLinearDense")  # the multiply-accumulate kernels; the other int8 kernels stay scalar
+# the multiply-accumulate kernels, and QuantizeLinear (float division, then requantised as they are)
+INTEGER_OPS = ("QLinearConv", "QLinearDense", "QuantizeLinear")
+# onnxruntime computes these in float fused multiply-adds (lowering/quantized_add.py), which vectors of a
+# target with FMA do too; the other int8 kernels stay scalar
+FUSED_OPS = ("QLinearAdd",)
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
-    """A convolution or matrix product of int8 on a target with integer vectors, requantised in the
-    float form."""
+    """A convolution or matrix product of int8 or a QuantizeLinear on a target with integer vectors,
+    or a QLinearAdd on one with FMA as well, requantised in the float form."""
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
-    return target.integer_vectors and kernel.op in INTEGER_OPS and not fixed
+    ops = INTEGER_OPS + (FUSED_OPS if target.fma else ())
+    return target.integer_vectors and kernel.op in ops and not fixed
 
 
 # ---------------------------------------------------------------------------- choice
@@ -133,10 +149,21 @@ def vectorizable(loop: Loop, lanes: int, borders: bool = False) -> bool:
         if isinstance(stmt, If) and not borders and any(b.expr.coeff(var) for b in stmt.bounds):
             return False
         for expr in stmt_exprs(stmt):
+            dots = [e for e in walk_exprs(expr) if isinstance(e, Dot)]
+            if any(not _dot_vectorizable(d, var) for d in dots):
+                return False
+            weights = {d.w for d in dots}
             for e in walk_exprs(expr):
-                if isinstance(e, Load) and e.index.coeff(var) not in (0, 1):
+                if isinstance(e, Load) and e not in weights and e.index.coeff(var) not in (0, 1):
                     return False
     return stores > 0
+
+
+def _dot_vectorizable(dot: Dot, var: str) -> bool:
+    """The lanes of a dot product run along `var`: its weights are packed K per lane, its
+    activations do not depend on var."""
+    shared = all(not (isinstance(e, Load) and e.index.coeff(var)) for x in dot.x for e in walk_exprs(x))
+    return shared and dot.w.index.coeff(var) == len(dot.x)
 
 
 # ---------------------------------------------------------------------------- mechanism
@@ -220,6 +247,13 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
         return Load(e.buffer, e.index, lanes) if e.index.coeff(var) else Broadcast(e, lanes)
     if isinstance(e, Const):
         return Const(e.values * lanes, e.dtype) if e.dtype.is_integer else Const.splat(e.values[0], lanes)
+    if isinstance(e, Dot):
+        return Dot(e.x, Load(e.w.buffer, e.w.index, lanes * len(e.x)))
+    fused = _fused_multiply_add(e)
+    if fused is not None:
+        return _vector(fused, var, lanes, vector_locals)
+    if isinstance(e, Fma):
+        return Fma(*(_vector(x, var, lanes, vector_locals) for x in (e.a, e.b, e.c)))
     if isinstance(e, Cast | Binary) and _invariant_integer(e, var, vector_locals):
         return Broadcast(e, lanes)  # x - x_zero_point: one broadcast, not a vector subtraction
     if isinstance(e, Cast | Requantize):
@@ -234,6 +268,23 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
     if isinstance(e, Call):
         return Call(e.fn, _vector(e.arg, var, lanes, vector_locals))
     raise TypeError(f"cannot vectorize {e!r}")
+
+
+def _fused_multiply_add(e: Expr) -> Fma | None:
+    """float32(double(x) * r + double(c)), the scalar spelling of a fused multiply-add of an integer x
+    (lowering/quantized_add.py), as the Fma a vector computes it in one rounding; None for anything else."""
+    if not (isinstance(e, Cast) and e.dtype == DType.FLOAT32 and isinstance(e.value, Binary) and e.value.op == "+"):
+        return None
+    product, addend = e.value.a, e.value.b
+    if not (isinstance(product, Binary) and product.op == "*" and isinstance(product.b, Const)):
+        return None
+    x, ratio = product.a, product.b
+    integer = isinstance(x, Cast) and isinstance(x.value, Cast) and x.value.dtype.is_integer
+    if not (integer and x.dtype == DType.FLOAT64 and isinstance(addend, Cast) and addend.dtype == DType.FLOAT64):
+        return None
+    if ratio.dtype != DType.FLOAT64 or float(np.float32(ratio.values[0])) != ratio.values[0]:
+        return None
+    return Fma(Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]), addend.value)
 
 
 def _invariant_integer(e: Expr, var: str, vector_locals: set[str]) -> bool:

@@ -1,0 +1,205 @@
+"""Part of the loop pass `vectorize`: the int8 kernels' reduction over input channels as dot products
+of K channels (loops.Dot) on targets that have them (Target.dot_uint8, dot_int8: K = 2, pmaddwd on
+int16 pairs; K = 4, vpdpbusd on u8 x s8 quads).
+
+    for ci < C: acc += int32(x[.. ci ..]) * int32(w[lead + Cs * ci + co])   (x minus its zero point, or not)
+becomes
+    for cp < C / K: acc += dot(x[.. K cp ..], ..., x[.. K cp + K - 1 ..]; wK[lead' + K Cs cp + K co : K])
+and, when K does not divide C, one more dot of the last channels, the missing ones read as 0.
+
+The weights [lead..., C, Cs] are repacked at generation time as wK [lead..., C / K (rounded up), Cs, K]
+(the missing channels' weights 0): the K weights of one output channel side by side, the output
+channels one after another, exactly the order one vector instruction reads them. Exact: the products
+and sums are those of the loop, in int32."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..ir.kinds import DType
+from ..ir.loops import (
+    Affine,
+    Assign,
+    Binary,
+    Buffer,
+    Cast,
+    Const,
+    Dot,
+    Expr,
+    If,
+    Let,
+    Load,
+    LocalRef,
+    Loop,
+    Program,
+    Stmt,
+    read_buffer,
+    stmt_exprs,
+    walk_exprs,
+    walk_stmts,
+)
+from ..ir.target import Target
+
+INT32 = DType.INT32
+
+
+def dot_products(program: Program, kernels: set[str], target: Target) -> Program:
+    """The reductions of the named kernels as dot products where the target has them."""
+    packer = _Packer(program)
+    out = []
+    for kernel in program.kernels:
+        if kernel.name in kernels:
+            kernel = replace(kernel, body=packer.body(kernel.body, {}, target))
+        out.append(kernel)
+    read = {read_buffer(e) for k in out for s in walk_stmts(k.body) for t in stmt_exprs(s) for e in walk_exprs(t)}
+    unread = {name for name in packer.replaced if name not in read}
+    buffers = tuple(b for b in program.buffers if b.name not in unread) + tuple(packer.added)
+    constants = {n: a for n, a in program.constants.items() if n not in unread} | packer.arrays
+    return replace(program, kernels=tuple(out), buffers=buffers, constants=constants)
+
+
+class _Packer:
+    """Rewrites reduction loops, packing each weight array once per K."""
+
+    def __init__(self, program: Program):
+        self.program = program
+        self.buffers = {b.name: b for b in program.buffers}
+        self.names = set(self.buffers)
+        self.packed: dict[tuple[str, int], str] = {}
+        self.added: list[Buffer] = []
+        self.arrays: dict[str, np.ndarray] = {}
+        self.replaced: set[str] = set()
+
+    def body(self, body: tuple[Stmt, ...], extents: dict[str, int], target: Target) -> tuple[Stmt, ...]:
+        out: list[Stmt] = []
+        for stmt in body:
+            if isinstance(stmt, Loop):
+                rewritten = self.reduction(stmt, extents, target)
+                if rewritten is not None:
+                    out += rewritten
+                    continue
+                stmt = replace(stmt, body=self.body(stmt.body, extents | {stmt.var: stmt.extent}, target))
+            elif isinstance(stmt, Let | If):
+                stmt = replace(stmt, body=self.body(stmt.body, extents, target))
+            out.append(stmt)
+        return tuple(out)
+
+    def reduction(self, loop: Loop, extents: dict[str, int], target: Target) -> tuple[Stmt, ...] | None:
+        """The loop as dot products, or None when it is not `acc += int32(x) * int32(w)` over all the
+        input channels of a constant int8 weight array."""
+        match = _multiply_accumulate(loop)
+        if match is None:
+            return None
+        acc, x, zero_point, w = match
+        wbuf, xbuf = self.buffers.get(w.buffer), self.buffers.get(x.buffer)
+        if wbuf is None or xbuf is None or w.buffer not in self.program.constants:
+            return None
+        # x - x_zero_point (a zero point the lowering did not fold) is signed whatever x's type
+        signed = xbuf.dtype == DType.INT8 or zero_point
+        k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
+        array = self.program.constants[w.buffer]
+        if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
+            return None
+        index = _packed_index(w.index, loop.var, array.shape, k, extents)
+        if index is None:
+            return None
+        packed = self.packed_buffer(w.buffer, k)
+        channels, groups = loop.extent, loop.extent // k
+
+        def dot(group: Affine, count: int) -> Stmt:
+            """acc += the dot of channels K group .. K group + count - 1 (the rest read as 0)."""
+            xs = tuple(
+                _at_channel(x, zero_point, loop.var, group * k + j) if j < count else Const.integer(0) for j in range(k)
+            )
+            weights = Load(packed, index.substitute({loop.var: group}), k)
+            return Assign(acc, Binary("+", LocalRef(acc), Dot(xs, weights)))
+
+        # the groups stay a loop even of one iteration: register-block finds accumulators by their loops
+        stmts: list[Stmt] = [Loop(loop.var, groups, (dot(Affine.of(loop.var), k),))] if groups else []
+        if channels % k:
+            stmts.append(dot(Affine.of(groups), channels % k))
+        return tuple(stmts) if groups else (Loop(loop.var, 1, tuple(stmts)),)
+
+    def packed_buffer(self, name: str, k: int) -> str:
+        """The weights of `name` as [lead..., C / K, Cs, K], once per (array, K)."""
+        if (name, k) in self.packed:
+            return self.packed[(name, k)]
+        array = self.program.constants[name]
+        *lead, c, cs = array.shape
+        groups = -(-c // k)
+        padded = np.zeros((*lead, groups * k, cs), np.int8)
+        padded[..., :c, :] = array
+        packed = np.ascontiguousarray(np.moveaxis(padded.reshape(*lead, groups, k, cs), -2, -1))
+        new = _fresh(f"{name}_dot{k}", self.names)
+        self.names.add(new)
+        self.added.append(replace(self.buffers[name], name=new, size=packed.size, shape=packed.shape, offset=None))
+        self.arrays[new] = packed
+        self.packed[(name, k)] = new
+        self.replaced.add(name)
+        return new
+
+
+def _multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
+    """(acc, x load, x zero point, w load) of a loop whose one statement is acc += (int32(x) - zero
+    point) * int32(w), the zero point 0 where there is no subtraction."""
+    if len(loop.body) != 1 or not isinstance(loop.body[0], Assign):
+        return None
+    stmt = loop.body[0]
+    value = stmt.value
+    if not (isinstance(value, Binary) and value.op == "+" and value.a == LocalRef(stmt.name)):
+        return None
+    product = value.b
+    if not (isinstance(product, Binary) and product.op == "*"):
+        return None
+    x, zero_point = product.a, 0
+    if isinstance(x, Binary) and x.op == "-" and isinstance(x.b, Const) and x.b.dtype == INT32:
+        x, zero_point = x.a, int(x.b.values[0])
+    loads = [_widened_load(e) for e in (x, product.b)]
+    if None in loads or not all(loop.var in load.index.vars for load in loads):
+        return None
+    return stmt.name, loads[0], zero_point, loads[1]
+
+
+def _widened_load(e: Expr) -> Load | None:
+    """The 8-bit load of int32(load)."""
+    scalar = isinstance(e, Cast) and e.dtype == INT32 and isinstance(e.value, Load) and e.value.lanes == 1
+    return e.value if scalar else None
+
+
+def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, extents: dict[str, int]) -> Affine | None:
+    """w's index [lead..., C, Cs] mapped to the packed [lead..., C / K, Cs, K] at group `var` (lane
+    0 of the group), or None when it is not lead + Cs * var + co with co in [0, Cs)."""
+    c, cs = shape[-2], shape[-1]
+    block, packed_block = c * cs, -(-c // k) * k * cs
+    if index.coeff(var) != cs:
+        return None
+    lead_terms, co_terms = {}, {}
+    for name, coeff in index.terms:
+        if name == var:
+            continue
+        if coeff % block == 0:
+            lead_terms[name] = coeff // block * packed_block
+        else:
+            co_terms[name] = coeff
+    lead_const, co_const = divmod(index.const, block)
+    co = Affine._make(co_terms, co_const)
+    if any(name not in extents for name in co.vars):
+        return None
+    low, high = co.bounds(extents)
+    if low < 0 or high >= cs:
+        return None
+    return Affine._make(lead_terms, lead_const * packed_block) + co * k + Affine.of(var) * (k * cs)
+
+
+def _at_channel(x: Load, zero_point: int, var: str, channel: Affine) -> Expr:
+    value = Cast(INT32, replace(x, index=x.index.substitute({var: channel})))
+    return Binary("-", value, Const.integer(zero_point)) if zero_point else value
+
+
+def _fresh(name: str, taken: set[str]) -> str:
+    candidate, n = name, 1
+    while candidate in taken:
+        candidate, n = f"{name}_{n}", n + 1
+    return candidate
