@@ -378,3 +378,11 @@ def test_cli_memory_min_writes_the_smaller_arena_in_the_header(tmp_path):
     assert result.returncode == 0, result.stderr
     arena = nncg.compile(ROBOT, target="ansi-c", memory="min").arena_bytes
     assert f"#define ROBOT_ARENA_BYTES {arena}\n" in (tmp_path / "robot.h").read_text()
+
+
+def test_every_backend_has_its_band_costs():
+    """A target missing from band_costs.COSTS would be priced as a 4-lane one without anyone noticing."""
+    from nncg.backends import BACKENDS
+    from nncg.lowering.band_costs import COSTS
+
+    assert set(BACKENDS) <= set(COSTS)

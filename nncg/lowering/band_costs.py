@@ -38,7 +38,14 @@ class BandCosts:
 SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0)
 VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5)
 VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25)
-COSTS = {"ansi-c": SCALAR, "ssse3": VECTOR4, "neon": VECTOR4, "avx2": VECTOR8, "avx512": VECTOR8}
+COSTS = {
+    "ansi-c": SCALAR,
+    "ssse3": VECTOR4,
+    "neon": VECTOR4,
+    "avx2": VECTOR8,
+    "avx512": VECTOR8,
+    "avx512vnni": VECTOR8,  # its float kernels are avx512's
+}
 
 
 def band_costs(target: str | None) -> BandCosts:
