@@ -11,10 +11,10 @@ from helpers import check_against_onnxruntime, nncg_onnx, onnx_model, weights
 from onnx import helper
 
 import nncg
-from nncg.backends import get_target
+from nncg.backends import BACKENDS, get_target
 from nncg.frontend import import_onnx
 from nncg.lowering import band_plan
-from nncg.lowering.band_costs import band_costs
+from nncg.lowering.band_costs import COSTS, band_costs
 from nncg.lowering.band_plan import layer_bound_floats, plan_bands
 from nncg.lowering.bands import BandGroup, geometry
 from nncg.passes import PassManager, default_pipeline
@@ -382,7 +382,4 @@ def test_cli_memory_min_writes_the_smaller_arena_in_the_header(tmp_path):
 
 def test_every_backend_has_its_band_costs():
     """A target missing from band_costs.COSTS would be priced as a 4-lane one without anyone noticing."""
-    from nncg.backends import BACKENDS
-    from nncg.lowering.band_costs import COSTS
-
     assert set(BACKENDS) <= set(COSTS)
