@@ -21,31 +21,28 @@ def winograd_applies(graph: Graph, node: Node) -> bool:
     )
 
 
-def cache_block_applies(graph: Graph, node: Node) -> bool:
-    """A direct, ungrouped Conv vectorised over its output channels, with constant weights."""
+def _direct_channel_conv(graph: Graph, node: Node) -> bool:
+    """A direct Conv vectorised over its output channels, with constant weights."""
     attrs = node.attrs
     return (
         node.op == "Conv"
         and isinstance(attrs, ConvAttrs)
         and attrs.algorithm == ConvAlgorithm.DIRECT
         and attrs.vector_axis == VectorAxis.CHANNELS
-        and attrs.group == 1
         and graph.is_constant(node.inputs[1])
     )
+
+
+def cache_block_applies(graph: Graph, node: Node) -> bool:
+    """A direct, ungrouped Conv vectorised over its output channels, with constant weights."""
+    return _direct_channel_conv(graph, node) and node.attrs.group == 1
 
 
 def group_panels_apply(graph: Graph, node: Node) -> bool:
     """A direct, grouped (not depthwise) Conv vectorised over its output channels, with constant weights:
     computed one group at a time, a group being one panel."""
-    attrs = node.attrs
     return (
-        node.op == "Conv"
-        and isinstance(attrs, ConvAttrs)
-        and attrs.algorithm == ConvAlgorithm.DIRECT
-        and attrs.vector_axis == VectorAxis.CHANNELS
-        and attrs.group > 1
-        and graph.shape(node.inputs[1])[0] > attrs.group
-        and graph.is_constant(node.inputs[1])
+        _direct_channel_conv(graph, node) and node.attrs.group > 1 and graph.shape(node.inputs[1])[0] > node.attrs.group
     )
 
 
