@@ -53,7 +53,9 @@ def test_integer_ops_without_a_kernel_are_refused_by_name():
     ]
     init = {"s": np.float32(0.1), "z": np.uint8(0), "w": np.ones((3, 2), np.uint8)}
     model = onnx_model(nodes, inputs={"x": (2, 3)}, initializers=init)
-    with pytest.raises(UnsupportedOpsError, match=r"int8 with MatMulInteger, which NNCG does not compile yet"):
+    with pytest.raises(
+        UnsupportedOpsError, match=r"int8 with MatMulInteger, whose int32 output tensors NNCG does not compile"
+    ):
         nncg.compile(model)
 
 

@@ -14,6 +14,10 @@ import onnx
 import pytest
 from int8_models import average_pool_model, quantized, residual_model, softmax_head_model
 from onnx import TensorProto, helper, numpy_helper
+from test_int8_concat import contrib_model as concat_contrib_model
+from test_int8_lookup import contrib_model as lookup_contrib_model
+from test_int8_lookup import qdq_model as lookup_qdq_model
+from test_int8_mul import contrib_model as mul_contrib_model
 
 import nncg.onnx_backend
 from nncg import conformance
@@ -28,6 +32,9 @@ README = Path(__file__).resolve().parent.parent / "README.md"
 
 # Parameter inputs the adapter binds that no converter reads: Dropout's ratio (inference ignores it).
 BOUND_BUT_UNREAD = {("Dropout", 1)}
+# A record lists fixed slots; QLinearConcat's inputs are y_scale, y_zero_point, then x, x_scale,
+# x_zero_point per input, so which slots are its scales and zero points is checked here.
+VARIADIC_PARAMETERS = {"QLinearConcat": lambda slot: slot < 2 or slot % 3 != 2}
 
 
 def test_every_ir_op_has_a_lowering_and_every_lowering_an_ir_op() -> None:
@@ -98,6 +105,9 @@ def test_converters_yield_their_ir_ops_and_read_only_their_parameter_inputs(monk
             pass
     assert dict(yielded) == {name: set(op.ir_ops) for name, op in ONNX_OPS.items()}
     for name, op in ONNX_OPS.items():
+        if name in VARIADIC_PARAMETERS:
+            assert all(map(VARIADIC_PARAMETERS[name], read[name])), f"{name} reads constants at data slots"
+            continue
         assert read[name] <= set(op.parameter_inputs), f"{name} reads constants at slots missing from its record"
     unread = {(n, i) for n, op in ONNX_OPS.items() for i in op.parameter_inputs if i not in read[n]}
     assert unread == BOUND_BUT_UNREAD
@@ -144,6 +154,13 @@ def _int8_models() -> Iterator[onnx.ModelProto]:
     models = (residual_model(), softmax_head_model(), average_pool_model(), average_pool_model(whole_image=True))
     for model in models:
         yield quantized(model)
+    # QDQ groups and com.microsoft nodes of the table lookups, QLinearMul and QLinearConcat
+    for op in ("LeakyRelu", "Sigmoid", "HardSwish", "Tanh"):
+        yield lookup_qdq_model(op, "uint8")
+    for op in ("LeakyRelu", "Sigmoid"):
+        yield lookup_contrib_model(op, "uint8")
+    yield mul_contrib_model("uint8", "same")
+    yield concat_contrib_model("uint8")
 
 
 def _model(nodes: list[onnx.NodeProto], initializers: list[onnx.TensorProto], opset: int) -> onnx.ModelProto:

@@ -154,12 +154,21 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "LogSoftmax": ConvertedOp(convert_log_softmax, ("LogSoftmax",)),
     "LRN": ConvertedOp(convert_lrn, ("LRN",)),
     # axes (opset 18+, 13+ for ReduceSum); the spatial mean with keepdims is a global AveragePool,
-    # the sum, mean, max or min over no axes with noop_with_empty_axes an Identity
+    # the sum, mean, max or min over no axes with noop_with_empty_axes an Identity; every reduction
+    # over an empty axis an Identity of its constant value (empty_reductions.py)
     "ReduceMean": ConvertedOp(convert_reduce, ("ReduceMean", "AveragePool", "Identity"), (1,)),
-    **{op: ConvertedOp(convert_reduce, (op, "Identity"), (1,)) for op in ("ReduceSum", "ReduceMax", "ReduceMin")},
     **{
-        op: ConvertedOp(convert_reduce, (op,), (1,))
-        for op in ("ReduceL1", "ReduceL2", "ReduceSumSquare", "ReduceLogSum", "ReduceLogSumExp")
+        op: ConvertedOp(convert_reduce, (op, "Identity"), (1,))
+        for op in (
+            "ReduceSum",
+            "ReduceMax",
+            "ReduceMin",
+            "ReduceL1",
+            "ReduceL2",
+            "ReduceSumSquare",
+            "ReduceLogSum",
+            "ReduceLogSumExp",
+        )
     },
     "ArgMax": ConvertedOp(convert_arg_extreme, ("ArgMax",)),
     "ArgMin": ConvertedOp(convert_arg_extreme, ("ArgMin",)),
