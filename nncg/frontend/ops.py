@@ -75,6 +75,7 @@ from nncg.frontend.ops_shape import (
     convert_unsqueeze,
 )
 from nncg.ir.graph import Node
+from nncg.ir.ops import REDUCE_OPS
 
 # One IR node, or several computing the op's output in steps (the last writes it).
 Converter = Callable[[OnnxOp, Context], Node | tuple[Node, ...]]
@@ -157,19 +158,7 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     # the sum, mean, max or min over no axes with noop_with_empty_axes an Identity; every reduction
     # over an empty axis an Identity of its constant value (empty_reductions.py)
     "ReduceMean": ConvertedOp(convert_reduce, ("ReduceMean", "AveragePool", "Identity"), (1,)),
-    **{
-        op: ConvertedOp(convert_reduce, (op, "Identity"), (1,))
-        for op in (
-            "ReduceSum",
-            "ReduceMax",
-            "ReduceMin",
-            "ReduceL1",
-            "ReduceL2",
-            "ReduceSumSquare",
-            "ReduceLogSum",
-            "ReduceLogSumExp",
-        )
-    },
+    **{op: ConvertedOp(convert_reduce, (op, "Identity"), (1,)) for op in REDUCE_OPS if op != "ReduceMean"},
     "ArgMax": ConvertedOp(convert_arg_extreme, ("ArgMax",)),
     "ArgMin": ConvertedOp(convert_arg_extreme, ("ArgMin",)),
     "InstanceNormalization": ConvertedOp(convert_instance_norm, ("InstanceNormalization",)),
