@@ -32,7 +32,7 @@ import nncg
 from nncg.bench.benchmark import interleaved_medians, pinned
 from nncg.bench.harness import CompiledHarness
 from nncg.bench.onnxruntime_timer import OnnxruntimeTimer
-from nncg.bench.peak import TARGET_ISA, measure_peaks, supported_isas
+from nncg.bench.peak import TARGET_ISA, host_targets, measure_peaks
 from nncg.bench.steps import Comparison, compare_steps
 from nncg.compiler import CompiledModel
 from nncg.ir.kinds import BufferRole
@@ -282,8 +282,7 @@ def section_markdown(
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=MLPERF_TINY, choices=MLPERF_TINY)
-    host = [t for t, isa in TARGET_ISA.items() if isa in supported_isas()]
-    parser.add_argument("--targets", nargs="+", default=host, choices=list(TARGET_ISA))
+    parser.add_argument("--targets", nargs="+", default=host_targets(), choices=list(TARGET_ISA))
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
     parser.add_argument("--no-cortex-m4", action="store_true", help="skip the Cortex-M4 builds and runs")

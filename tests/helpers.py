@@ -18,6 +18,7 @@ from onnx import TensorProto, helper, numpy_helper
 import nncg
 from nncg.backends.ansi_c import AnsiC
 from nncg.backends.scalar_math import helper_definitions, helper_name
+from nncg.bench.peak import TARGET_CPU_FLAGS, cpu_flags
 from nncg.ir.target import Target
 from nncg.verify import VerifyReport, verify
 
@@ -26,12 +27,6 @@ Shape = Sequence[int | str] | None
 ValueSpec = Shape | onnx.ValueInfoProto
 
 RNG = np.random.default_rng(1234)
-# The CPU flags a target's code needs to run on this host (cross targets run under qemu elsewhere).
-CPU_FLAGS = {
-    "avx2": {"avx2", "fma"},
-    "avx512": {"avx512f"},
-    "avx512vnni": {"avx512f", "avx512bw", "avx512vl", "avx512_vnni"},
-}
 ROOT = Path(__file__).resolve().parent.parent
 NNCG_CLI = (sys.executable, "-m", "nncg")  # run from ROOT: this checkout's nncg, not an installed one
 CLI_TIMEOUT_S = 600
@@ -78,20 +73,12 @@ def weights(*shape: int) -> np.ndarray:
     return (RNG.standard_normal(shape) / np.sqrt(np.prod(shape[1:]) or 1)).astype(np.float32)
 
 
-def host_flags() -> set[str]:
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return set()
-    return {flag for line in text.splitlines() if line.startswith("flags") for flag in line.split(":")[1].split()}
-
-
-HOST = host_flags()
+HOST = set(cpu_flags())
 
 
 def missing_flags(target: str) -> set[str]:
     """The CPU flags `target`'s code needs that this host lacks (empty: it runs here)."""
-    return CPU_FLAGS.get(target, set()) - HOST
+    return set(TARGET_CPU_FLAGS.get(target, ())) - HOST
 
 
 def skip_unless_host_runs(target: str) -> None:

@@ -58,20 +58,26 @@ ISAS: dict[str, _Isa] = {
     "sse": _Isa(("sse2", "ssse3"), ("-O2", "-mssse3", "-ffp-contract=off"), "_mm", "__m128", 4, 14, False),
     "avx2-fma": _Isa(("avx2", "fma"), ("-O2", "-mavx2", "-mfma"), "_mm256", "__m256", 8, 12, True),
     "avx512-fma": _Isa(("avx512f",), ("-O2", "-mavx512f"), "_mm512", "__m512", 16, 16, True),
-    # the float peak of avx512; the flags are what the avx512vnni target's code needs to run
-    "avx512-vnni": _Isa(
-        ("avx512f", "avx512bw", "avx512vl", "avx512_vnni"), ("-O2", "-mavx512f"), "_mm512", "__m512", 16, 16, True
-    ),
 }
 
 # The ISA whose peak a target's code is measured against. ansi-c is built by the host compiler at
-# -O3 with its default x86-64 ISA, i.e. SSE2, so its ceiling is the SSE mul+add peak.
+# -O3 with its default x86-64 ISA, i.e. SSE2, so its ceiling is the SSE mul+add peak. avx512vnni's
+# float code is avx512's, so it shares that peak.
 TARGET_ISA = {
     "ansi-c": "sse",
     "ssse3": "sse",
     "avx2": "avx2-fma",
     "avx512": "avx512-fma",
-    "avx512vnni": "avx512-vnni",
+    "avx512vnni": "avx512-fma",
+}
+
+# The /proc/cpuinfo flags an x86 target's generated code needs to run (ansi-c needs none).
+TARGET_CPU_FLAGS = {
+    "ansi-c": (),
+    "ssse3": ("sse2", "ssse3"),
+    "avx2": ("avx2", "fma"),
+    "avx512": ("avx512f",),
+    "avx512vnni": ("avx512f", "avx512bw", "avx512vl", "avx512_vnni"),
 }
 
 # Calibrates the trip count until one run lasts min_seconds, then times `repeats` runs and prints the
@@ -188,17 +194,28 @@ def clock_source() -> str:
     )
 
 
-def supported_isas() -> list[str]:
-    """The ISAs of ISAS the host CPU supports, from /proc/cpuinfo; [] where that cannot be read."""
+def cpu_flags() -> frozenset[str]:
+    """The host x86 CPU's /proc/cpuinfo flags; empty on other machines or where that cannot be read."""
     if platform.machine().lower() not in ("x86_64", "amd64", "i386", "i686"):
-        return []
+        return frozenset()
     try:
         cpuinfo = Path("/proc/cpuinfo").read_text()
     except OSError:
-        return []  # not Linux: nothing we can determine without running code
+        return frozenset()  # not Linux: nothing we can determine without running code
     match = re.search(r"^flags\s*:(.*)$", cpuinfo, re.MULTILINE)
-    flags = set(match.group(1).split()) if match else set()
+    return frozenset(match.group(1).split()) if match else frozenset()
+
+
+def supported_isas() -> list[str]:
+    """The ISAs of ISAS the host CPU supports; [] where that cannot be determined."""
+    flags = cpu_flags()
     return [name for name, spec in ISAS.items() if flags.issuperset(spec.cpu_flags)]
+
+
+def host_targets() -> list[str]:
+    """The targets whose code runs on this CPU: ansi-c always, the x86 ones whose flags it has."""
+    flags = cpu_flags()
+    return [target for target, needs in TARGET_CPU_FLAGS.items() if flags.issuperset(needs)]
 
 
 def measure_peak(isa: str, cc: str | None = None, min_seconds: float = 0.02, repeats: int = 7) -> float:

@@ -13,7 +13,7 @@ import numpy as np
 import onnx
 
 from ..backends import get_target
-from ..bench.peak import supported_isas
+from ..bench import peak
 from ..errors import NncgError
 from ..ir.applicability import cache_block_applies, panel_packing_applies
 from ..options import CompileOptions
@@ -22,7 +22,6 @@ from ..passes.unroll import CODE_BUDGET
 from ..tune import ir_before, tuning_candidates, with_layer_choices
 from .draw import Draw
 
-HOST_ISA_TARGETS = {"ssse3": "sse", "avx2": "avx2-fma", "avx512": "avx512-fma"}
 CROSS = {"neon": ("aarch64-linux-gnu-gcc", ("-static",), ("qemu-aarch64",))}  # cc, flags, runner
 UNROLLS = ("auto", "auto", "0", "1", "2", "none")
 BUDGETS = (CODE_BUDGET, 256, 1024, 4096, 64, None)  # None: no cap (--code-budget 0)
@@ -94,9 +93,8 @@ class Options:
 
 
 def host_targets() -> list[str]:
-    """ansi-c and the x86 targets whose instruction set this CPU has."""
-    isas = set(supported_isas())
-    return ["ansi-c"] + [target for target, isa in HOST_ISA_TARGETS.items() if isa in isas]
+    """ansi-c and the x86 targets whose code runs on this CPU."""
+    return peak.host_targets()
 
 
 def cross_available(target: str) -> bool:
