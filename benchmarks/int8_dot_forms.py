@@ -1,9 +1,10 @@
-"""Which dot product the int8 kernels should take on ssse3 and avx2 (issue 16): per model and target,
-timed interleaved on one input, NNCG's float C and the int8 C with
-  pairs:  pmaddwd on int16 pairs of input channels only (Target.dot_uint8_int16 = 0, as before),
-  quads:  pmaddubsw quads (the default): one pmaddubsw where the layer's weights are proven not to
-          saturate, else the weights in two halves, two pmaddubsw,
-  quads7: the same on the model quantised with onnxruntime's reduce_range (7-bit weights: always proven).
+"""Which dot product the int8 kernels take on ssse3 and avx2 (issue 16): per model and target, timed
+interleaved on one input, NNCG's float C and the int8 C of
+  pairs / quads:   the model nncg.quantize writes (full-range int8 weights), with pmaddwd on int16 pairs
+                   only (Target.dot_uint8_int16 = 0) / as compiled (pmaddubsw quads in the layers whose
+                   weights are proven not to saturate, pairs in the others);
+  pairs7 / quads7: the same model quantised with onnxruntime's reduce_range (7-bit weights: every layer
+                   proven).
 Every variant is checked against onnxruntime on the timed input (0 steps expected) before it is timed.
 
     python3 -m benchmarks.int8_dot_forms [--models resnet8 ...] [--targets ssse3 avx2] [--cpu 0] [--batches 11]
@@ -61,11 +62,12 @@ def variants(name: str, target: str) -> dict[str, tuple]:
     with reduce_range():
         qdq7 = quantized_model(name)
     with without_quads(target):
-        pairs = nncg.compile(qdq, target=target)
+        pairs, pairs7 = (nncg.compile(m, target=target) for m in (qdq, qdq7))
     return {
         "float": (nncg.compile(model_path(name), target=target), None),
         "pairs": (pairs, qdq),
         "quads": (nncg.compile(qdq, target=target), qdq),
+        "pairs7": (pairs7, qdq7),
         "quads7": (nncg.compile(qdq7, target=target), qdq7),
     }
 
@@ -96,17 +98,16 @@ def main(argv=None) -> None:
     parser.add_argument("--cpu", type=int, default=None)
     parser.add_argument("--batches", type=int, default=11)
     args = parser.parse_args(argv)
-    print("| model | target | float µs | pairs µs | quads µs | quads7 µs | float / pairs | float / quads | float / quads7 |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    labels = ("pairs", "quads", "pairs7", "quads7")
+    columns = ("model", "target", "float µs", *(f"{k} µs" for k in labels), *(f"float / {k}" for k in labels))
+    print(f"| {' | '.join(columns)} |")
+    print("|---|---|---|" + "---|" * 2 * len(labels))
     for name in args.models:
         for target in args.targets:
             us = measure(name, target, args.cpu, args.batches)
-            f = us["float"]
-            print(
-                f"| {name} | {target} | {f:.1f} | {us['pairs']:.1f} | {us['quads']:.1f} | {us['quads7']:.1f} | "
-                f"{f / us['pairs']:.2f}x | {f / us['quads']:.2f}x | {f / us['quads7']:.2f}x |",
-                flush=True,
-            )
+            times = " | ".join(f"{us[k]:.1f}" for k in labels)
+            ratios = " | ".join(f"{us['float'] / us[k]:.2f}x" for k in labels)
+            print(f"| {name} | {target} | {us['float']:.1f} | {times} | {ratios} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,9 @@
 """pmaddubsw quads on ssse3 and avx2 (issue 16): uint8 activations times int8 weights four input channels
 per lane, exact only where no int16 pair sum saturates. Layers whose weights pass the generation-time
-proof take one pmaddubsw per quad, the others the weights split in two halves that do; every result is
+proof take one pmaddubsw + pmaddwd per quad, the others pmaddwd on int16 pairs; every result is
 identical to onnxruntime's. Hand-written QDQ Convs give the weights exactly: 7-bit weights (proven),
-full-range weights with both extremes side by side (a pmaddubsw without the split saturates: shown by
-compiling without it), channel tails, zero points != 0, uint8 and int8 activations, inputs and outputs
+full-range weights with both extremes side by side (pmaddubsw on them saturates: shown by compiling
+them as quads anyway), channel tails, zero points != 0, uint8 and int8 activations, inputs and outputs
 saturated at both ends."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 import nncg
 import nncg.passes.dot_product as dot_product
-from nncg.passes.dot_product import pair_sums_fit_int16, split_weights
+from nncg.passes.dot_product import pair_sums_fit_int16
 
 TARGETS = ("ssse3", "avx2")
 MADDUBS = {"ssse3": "_mm_maddubs_epi16(", "avx2": "_maddubs_epi16("}
@@ -104,8 +104,8 @@ def check(model, target: str, c_in: int):
     return compiled
 
 
-def test_the_proof_and_the_split():
-    """255 * (sum of a pair's positive weights) <= 32767 and of its negative ones >= -32768; a + b = w."""
+def test_the_proof():
+    """255 * (sum of a pair's positive weights) <= 32767 and of its negative ones >= -32768."""
     assert pair_sums_fit_int16(np.array([[64], [64]], np.int8))  # 255 * 128 = 32640
     assert not pair_sums_fit_int16(np.array([[65], [64]], np.int8))  # 255 * 129 = 32895
     assert pair_sums_fit_int16(np.array([[-64], [-64]], np.int8))
@@ -113,25 +113,21 @@ def test_the_proof_and_the_split():
     assert pair_sums_fit_int16(np.array([[127], [-128]], np.int8))  # opposite signs never add up
     assert pair_sums_fit_int16(np.array([[127]], np.int8))  # a lone last channel pairs with 0
     assert not pair_sums_fit_int16(np.array([[[1], [2]], [[100], [100]]], np.int8))  # any lead position
-    every = np.arange(-128, 128).astype(np.int8)
-    a, b = split_weights(np.stack(np.meshgrid(every, every)).reshape(2, -1))
-    assert (a.astype(int) + b == np.stack(np.meshgrid(every, every)).reshape(2, -1)).all()
-    assert a.min() >= -64 and a.max() <= 64 and b.min() >= -64 and b.max() <= 64
 
 
 @pytest.mark.parametrize("target", TARGETS)
 @pytest.mark.parametrize("kind", ["proven", "full"])
 @pytest.mark.parametrize("c_in", [1, 2, 3, 5, 8])
 def test_uint8_quads(c_in, kind, target):
-    """Channel tails (the missing channels' weights 0), no input zero point: pmaddubsw on raw uint8."""
+    """Channel tails (the missing channels' weights 0), no input zero point: pmaddubsw on raw uint8
+    where the weights are proven, pmaddwd pairs where not."""
     if kind == "full" and c_in < 2:
         pytest.skip("one channel pairs with 0: always proven")
     weights = int8_weights(kind, 6, c_in, seed=c_in)
     compiled = check(saturating_model(weights, "uint8", 0, 128), target, c_in)
+    assert pair_sums_fit_int16(weights.transpose(2, 3, 1, 0)) == (kind == "proven")
     # one channel is vectorised along the image row, not over channels: no dot product there
-    assert (MADDUBS[target] in compiled.source) == (c_in > 1)
-    halves = "_dot4_halves" in compiled.source
-    assert halves == (kind == "full") == (not pair_sums_fit_int16(weights.transpose(2, 3, 1, 0)))
+    assert (MADDUBS[target] in compiled.source) == (kind == "proven" and c_in > 1)
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -140,7 +136,7 @@ def test_uint8_zero_points(kind, target):
     """Input zero point 117 (folded into the bias), output zero point 30."""
     weights = int8_weights(kind, 6, 8, seed=3)
     compiled = check(saturating_model(weights, "uint8", 117, 30), target, 8)
-    assert MADDUBS[target] in compiled.source
+    assert (MADDUBS[target] in compiled.source) == (kind == "proven")
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -152,13 +148,13 @@ def test_int8_activations_keep_pairs(target):
 
 
 @pytest.mark.parametrize("target", TARGETS)
-def test_without_the_split_pmaddubsw_saturates(target, monkeypatch):
-    """The full-range weights taken by one pmaddubsw per quad (the split turned off): the int16 pair
-    sums saturate and the outputs leave onnxruntime's, so the tests above would catch a missing split."""
+def test_unproven_weights_saturate_pmaddubsw(target, monkeypatch):
+    """The full-range weights taken as pmaddubsw quads all the same (the proof overruled): the int16
+    pair sums saturate and the outputs leave onnxruntime's, so the tests above would catch a wrong proof."""
     skip_unless_host_runs(target)
     weights = int8_weights("full", 6, 8, seed=3)
     model = saturating_model(weights, "uint8", 0, 128)
-    monkeypatch.setattr(dot_product, "int16_halves", lambda array: 1)
+    monkeypatch.setattr(dot_product, "pair_sums_fit_int16", lambda array: True)
     compiled = nncg.compile(model, target=target)
-    assert MADDUBS[target] in compiled.source and "_dot4_halves" not in compiled.source
+    assert MADDUBS[target] in compiled.source
     assert compare(model, compiled, feeds(8)).identical < 1.0

@@ -3,9 +3,10 @@ avx2 and avx512 target CPU has): widening byte loads (pmovzxbd/pmovsxbd), 32-bit
 or, on ssse3 (no SSE4.1), byte unpacks and pmaddwd (below); dot products of 2 input channels as
 pmaddwd on int16 pairs (exact: no two int16 products of an 8-bit activation and an int8 weight sum
 beyond int32), of 4 as AVX-512 VNNI's vpdpbusd on u8 x s8 quads (no saturation: the non-saturating
-form) or as pmaddubsw quads where the weights are proven not to saturate (x86_quads.py); and requantisation as onnxruntime's
-MLAS does it per vector: clamp in float, cvtps2dq (round half to even in the default rounding mode),
-add the zero point, pack to bytes (the lanes are in range, so the saturating packs change nothing)."""
+form) or as pmaddubsw quads where the weights are proven not to saturate (x86_quads.py); and
+requantisation as onnxruntime's MLAS does it per vector: clamp in float, cvtps2dq (round half to even
+in the default rounding mode), add the zero point, pack to bytes (the lanes are in range, so the
+saturating packs change nothing)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,9 @@
 """Part of the loop pass `vectorize`: the int8 kernels' reduction over input channels as dot products
 of K channels (loops.Dot) on targets that have them (Target.dot_uint8, dot_int8: K = 2, pmaddwd on
-int16 pairs; K = 4, vpdpbusd on u8 x s8 quads, or pmaddubsw ones where Target.dot_uint8_int16 and the
-layer's weights are proven never to saturate its int16 pair sums).
+int16 pairs; K = 4, vpdpbusd on u8 x s8 quads), and K = Target.dot_uint8_int16 (pmaddubsw quads) for
+uint8 activations where the layer's weights are proven never to saturate the int16 pair sums; layers
+that fail the proof keep pmaddwd pairs (splitting their weights in two halves that pass, two pmaddubsw
+per quad, measured no faster than the pairs with twice the weight bytes: benchmarks/int8_dot_forms.py).
 
     for ci < C: acc += int32(x[.. ci ..]) * int32(w[lead + Cs * ci + co])   (x minus its zero point, or not)
 becomes
@@ -68,7 +70,7 @@ class _Packer:
         self.program = program
         self.buffers = {b.name: b for b in program.buffers}
         self.names = set(self.buffers)
-        self.packed: dict[tuple[str, int, int], str] = {}
+        self.packed: dict[tuple[str, int], str] = {}
         self.added: list[Buffer] = []
         self.arrays: dict[str, np.ndarray] = {}
         self.replaced: set[str] = set()
@@ -99,28 +101,25 @@ class _Packer:
             return None
         # x - x_zero_point (a zero point the lowering did not fold) is signed whatever x's type
         signed = xbuf.dtype == DType.INT8 or zero_point
-        array = self.program.constants[w.buffer]
         k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
+        array = self.program.constants[w.buffer]
         if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
             return None
-        halves = 1
-        if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16:
-            k, halves = target.dot_uint8_int16, int16_halves(array)
-        index = _packed_index(w.index, loop.var, array.shape, k, halves, extents)
+        if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16 and pair_sums_fit_int16(array):
+            k = target.dot_uint8_int16
+        index = _packed_index(w.index, loop.var, array.shape, k, extents)
         if index is None:
             return None
-        packed = self.packed_buffer(w.buffer, k, halves)
+        packed = self.packed_buffer(w.buffer, k)
         channels, groups = loop.extent, loop.extent // k
 
         def dot(group: Affine, count: int) -> Stmt:
-            """acc += the dot of channels K group .. K group + count - 1 (the rest read as 0), of
-            each half of the weights."""
+            """acc += the dot of channels K group .. K group + count - 1 (the rest read as 0)."""
             xs = tuple(
                 _at_channel(x, zero_point, loop.var, group * k + j) if j < count else Const.integer(0) for j in range(k)
             )
-            at = index.substitute({loop.var: group})
-            dots = [Dot(xs, Load(packed, at + half * k * array.shape[-1], k)) for half in range(halves)]
-            return Assign(acc, Binary("+", LocalRef(acc), dots[0] if halves == 1 else Binary("+", *dots)))
+            weights = Load(packed, index.substitute({loop.var: group}), k)
+            return Assign(acc, Binary("+", LocalRef(acc), Dot(xs, weights)))
 
         # the groups stay a loop even of one iteration: register-block finds accumulators by their loops
         stmts: list[Stmt] = [Loop(loop.var, groups, (dot(Affine.of(loop.var), k),))] if groups else []
@@ -128,44 +127,23 @@ class _Packer:
             stmts.append(dot(Affine.of(groups), channels % k))
         return tuple(stmts) if groups else (Loop(loop.var, 1, tuple(stmts)),)
 
-    def packed_buffer(self, name: str, k: int, halves: int) -> str:
-        """The weights of `name` as [lead..., C / K, Cs, K], or with two halves (int16_halves) as
-        [lead..., C / K, 2, Cs, K], once per (array, K, halves)."""
-        if (name, k, halves) in self.packed:
-            return self.packed[(name, k, halves)]
+    def packed_buffer(self, name: str, k: int) -> str:
+        """The weights of `name` as [lead..., C / K, Cs, K], once per (array, K)."""
+        if (name, k) in self.packed:
+            return self.packed[(name, k)]
         array = self.program.constants[name]
         *lead, c, cs = array.shape
         groups = -(-c // k)
         padded = np.zeros((*lead, groups * k, cs), np.int8)
         padded[..., :c, :] = array
-        parts = (padded,) if halves == 1 else split_weights(padded)
-        packed = np.ascontiguousarray(
-            np.stack([np.moveaxis(p.reshape(*lead, groups, k, cs), -2, -1) for p in parts], axis=-3)
-        )
-        if halves == 1:
-            packed = packed.reshape(*lead, groups, cs, k)
-        new = _fresh(f"{name}_dot{k}" + ("_halves" if halves == 2 else ""), self.names)
+        packed = np.ascontiguousarray(np.moveaxis(padded.reshape(*lead, groups, k, cs), -2, -1))
+        new = _fresh(f"{name}_dot{k}", self.names)
         self.names.add(new)
         self.added.append(replace(self.buffers[name], name=new, size=packed.size, shape=packed.shape, offset=None))
         self.arrays[new] = packed
-        self.packed[(name, k, halves)] = new
+        self.packed[(name, k)] = new
         self.replaced.add(name)
         return new
-
-
-def int16_halves(weights: np.ndarray) -> int:
-    """For pmaddubsw quads (Target.dot_uint8_int16): 1 where the weights themselves keep every int16
-    pair sum in range, else 2, the weights split in halves that do (split_weights)."""
-    return 1 if pair_sums_fit_int16(weights) else 2
-
-
-def split_weights(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """int8 weights w as a + b with a = floor(w / 2) in [-64, 63] and b = w - a in [-64, 64]: no two
-    of either half sum beyond 128 in magnitude, so each half's pair sums fit int16 (pair_sums_fit_int16)."""
-    a = weights >> 1
-    b = (weights.astype(np.int16) - a).astype(np.int8)
-    assert pair_sums_fit_int16(a) and pair_sums_fit_int16(b)
-    return a, b
 
 
 def pair_sums_fit_int16(weights: np.ndarray) -> bool:
@@ -209,13 +187,11 @@ def _widened_load(e: Expr) -> Load | None:
     return e.value if scalar else None
 
 
-def _packed_index(
-    index: Affine, var: str, shape: tuple[int, ...], k: int, halves: int, extents: dict[str, int]
-) -> Affine | None:
-    """w's index [lead..., C, Cs] mapped to the packed [lead..., C / K, halves, Cs, K] at group `var`
-    (lane 0 of the group, first half), or None when it is not lead + Cs * var + co with co in [0, Cs)."""
+def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, extents: dict[str, int]) -> Affine | None:
+    """w's index [lead..., C, Cs] mapped to the packed [lead..., C / K, Cs, K] at group `var` (lane
+    0 of the group), or None when it is not lead + Cs * var + co with co in [0, Cs)."""
     c, cs = shape[-2], shape[-1]
-    block, packed_block = c * cs, -(-c // k) * k * halves * cs
+    block, packed_block = c * cs, -(-c // k) * k * cs
     if index.coeff(var) != cs:
         return None
     lead_terms, co_terms = {}, {}
@@ -233,7 +209,7 @@ def _packed_index(
     low, high = co.bounds(extents)
     if low < 0 or high >= cs:
         return None
-    return Affine._make(lead_terms, lead_const * packed_block) + co * k + Affine.of(var) * (k * halves * cs)
+    return Affine._make(lead_terms, lead_const * packed_block) + co * k + Affine.of(var) * (k * cs)
 
 
 def _at_channel(x: Load, zero_point: int, var: str, channel: Affine) -> Expr:
