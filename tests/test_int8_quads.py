@@ -8,10 +8,13 @@ saturated at both ends."""
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
+import onnxruntime.quantization
 import pytest
 from helpers import skip_unless_host_runs
-from int8_models import OPSET, compare, onnxruntime_outputs
+from int8_models import OPSET, compare, onnxruntime_outputs, quantized, random_feeds, residual_model
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg
@@ -158,3 +161,26 @@ def test_unproven_weights_saturate_pmaddubsw(target, monkeypatch):
     compiled = nncg.compile(model, target=target)
     assert MADDUBS[target] in compiled.source
     assert compare(model, compiled, feeds(8)).identical < 1.0
+
+
+@pytest.mark.parametrize("target", TARGETS)
+def test_reduce_range_model_takes_quads_everywhere(target, monkeypatch):
+    """A whole model (Convs, a residual Add, MaxPool, MatMul) quantised with onnxruntime's reduce_range:
+    7-bit weights, every layer with more than one input channel proven, the Convs and the MatMul in
+    pmaddubsw quads and identical to onnxruntime."""
+    skip_unless_host_runs(target)
+    import int8_models
+
+    monkeypatch.setattr(
+        int8_models, "quantize_static", partial(onnxruntime.quantization.quantize_static, reduce_range=True)
+    )
+    float_model = residual_model()
+    model = quantized(float_model)
+    weights = [numpy_helper.to_array(t) for t in model.graph.initializer if t.data_type == TensorProto.INT8]
+    assert weights and all(np.abs(w.astype(int)).max() <= 64 for w in weights)  # any two sum to <= 128
+    compiled = nncg.compile(model, target=target, verify_ir=True)
+    result = compare(model, compiled, random_feeds(float_model, 3, 11))
+    assert result.max_steps == 0 and result.identical == 1.0, result
+    for kernel in ("QLinearConv */", "QLinearDense */"):
+        bodies = [body.split("/* ")[0] for body in compiled.source.split(kernel)[1:]]
+        assert bodies and all(MADDUBS[target] in body for body in bodies), kernel
