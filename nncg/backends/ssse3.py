@@ -1,9 +1,9 @@
 """Backend: x86 SSE/SSSE3 intrinsics, 4 float lanes. max/min (ReLU, leaky ReLU, max-pool) are single
 _mm_max_ps/_mm_min_ps instructions; SSE has no blend (a select is and/andnot/or on the comparison),
 no fused multiply-add, and no exp, log or tanh (a vector call calls math.h once per lane). The int8
-convolutions and matrix products run on SSE2's int32 vectors, two input channels per pmaddwd
-(x86_integer.py). pmaddubsw (u8 x s8 pairs into int16) is not used: its int16 sums saturate for the
-weights quantisers write (255 * (|w0| + |w1|) > 32767 for |w| > 64), so it would not be exact."""
+convolutions and matrix products run on SSE2's int32 vectors: uint8 activations four input channels
+per pmaddubsw + pmaddwd where the layer's weights are proven never to saturate pmaddubsw's int16 pair
+sums (x86_quads.py), else two per pmaddwd on int16 pairs (x86_integer.py)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ class Ssse3(SimdPrinter):
         memory_operands=True,
         dot_uint8=2,
         dot_int8=2,
+        dot_uint8_int16=4,
     )
     widths = {4: replace(x86_width("_mm", "__m128", select="bitwise", fma=False), **sse2_integer())}
     cflags = ("-mssse3",)

@@ -3,11 +3,14 @@ avx2 and avx512 target CPU has): widening byte loads (pmovzxbd/pmovsxbd), 32-bit
 or, on ssse3 (no SSE4.1), byte unpacks and pmaddwd (below); dot products of 2 input channels as
 pmaddwd on int16 pairs (exact: no two int16 products of an 8-bit activation and an int8 weight sum
 beyond int32), of 4 as AVX-512 VNNI's vpdpbusd on u8 x s8 quads (no saturation: the non-saturating
-form); and requantisation as onnxruntime's
-MLAS does it per vector: clamp in float, cvtps2dq (round half to even in the default rounding mode),
-add the zero point, pack to bytes (the lanes are in range, so the saturating packs change nothing)."""
+form) or as pmaddubsw quads where the weights are proven not to saturate (x86_quads.py); and
+requantisation as onnxruntime's MLAS does it per vector: clamp in float, cvtps2dq (round half to even
+in the default rounding mode), add the zero point, pack to bytes (the lanes are in range, so the
+saturating packs change nothing)."""
 
 from __future__ import annotations
+
+from .x86_quads import SSE2_QUAD, maddubs_dot4
 
 # lanes -> (prefix, vector type, the load of `lanes` bytes as a __m128i, int32 load/store suffix)
 SHAPES = {
@@ -31,10 +34,11 @@ DOT2_HALVES = (
 )
 
 
-def x86_dots(lanes: int, bw: bool = False, vnni: bool = False) -> dict[str, str]:
+def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = False) -> dict[str, str]:
     """The dot-product templates of one x86 width: `dot2` (pmaddwd; 16 lanes in halves without
-    AVX-512BW), with `vnni` (AVX-512 VNNI, and VL below 16 lanes) `dot4_add` (vpdpbusd), and the
-    activations of adjacent channels broadcast straight from memory (vpbroadcastd)."""
+    AVX-512BW), with `vnni` (AVX-512 VNNI, and VL below 16 lanes) `dot4_add` (vpdpbusd), with
+    `maddubs` `dot4` (pmaddubsw quads, x86_quads.py), and the activations of adjacent channels
+    broadcast straight from memory (vpbroadcastd)."""
     p, _, _, si = SHAPES[lanes]
     bytes_at = "_mm_loadu_si{bits}((const void *)({{address}}))"
     dots = {
@@ -43,13 +47,15 @@ def x86_dots(lanes: int, bw: bool = False, vnni: bool = False) -> dict[str, str]
         "pair_int8": f"{p}_broadcastd_epi32(_mm_cvtepi8_epi16({bytes_at.format(bits=16)}))",
         "quad_uint8": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",
     }
+    if maddubs:
+        dots["dot4"] = maddubs_dot4(lanes)
     if vnni:
         dots["dot4_add"] = f"{p}_dpbusd_epi32({{acc}}, {{xs}}, {p}_loadu_{si}((const void *)({{address}})))"
     return dots
 
 
-def x86_integer(lanes: int, bw: bool = False, vnni: bool = False) -> dict:
-    """VectorWidth fields `ints` and `int_helpers` of one x86 width (with AVX-512BW, VNNI: dots)."""
+def x86_integer(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = False) -> dict:
+    """VectorWidth fields `ints` and `int_helpers` of one x86 width (with AVX-512BW, VNNI, pmaddubsw: dots)."""
     p, vt, bytes_load, si = SHAPES[lanes]
     name = f"nncg{p.removeprefix('_mm')}_store"
     ints = {
@@ -67,7 +73,7 @@ def x86_integer(lanes: int, bw: bool = False, vnni: bool = False) -> dict:
         f"{p}_set1_ps({{high}}))), {p}_set1_epi32({{zero_point}}))",
         "store_uint8": f"{name}_uint8({{address}}, {{value}})",
         "store_int8": f"{name}_int8({{address}}, {{value}})",
-        **x86_dots(lanes, bw, vnni),
+        **x86_dots(lanes, bw, vnni, maddubs),
     }
     return {"ints": ints, "int_helpers": _stores(lanes, name, vt)}
 
@@ -89,11 +95,11 @@ SSE2 = {
 
 
 def sse2_integer() -> dict:
-    """x86_integer(4) in SSE2 intrinsics, for the ssse3 target."""
-    fields = x86_integer(4)
+    """x86_integer(4) in SSE2 intrinsics and SSSE3's pmaddubsw, for the ssse3 target."""
+    fields = x86_integer(4, maddubs=True)
     sse41 = ("pair_uint8", "pair_int8", "quad_uint8")  # pmovzxbw and vpbroadcastd: packed in a scalar int instead
     ints = {op: t for op, t in fields["ints"].items() if op not in sse41}
-    return {**fields, "ints": {**ints, **SSE2}}
+    return {**fields, "ints": {**ints, **SSE2, "quad_uint8": SSE2_QUAD}}
 
 
 def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:

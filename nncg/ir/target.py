@@ -22,7 +22,10 @@ class Target:
     fused multiply-add needs no register for the weight vector it reads.
     dot_uint8, dot_int8: the input channels one integer dot product (loops.Dot) multiplies per lane,
     for uint8 and for int8 activations: 2 (pmaddwd on int16 pairs), 4 (vpdpbusd on u8 x s8 quads);
-    0: none, the int8 kernels multiply channel by channel."""
+    0: none, the int8 kernels multiply channel by channel.
+    dot_uint8_int16: the input channels (4) of a uint8 dot product that sums its pairs of products in
+    int16 with saturation (pmaddubsw, then pmaddwd by ones); the dot product pass takes it instead of
+    dot_uint8 only for a layer whose weights it proves keep every pair sum within int16, 0: none."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -34,6 +37,7 @@ class Target:
     memory_operands: bool = False
     dot_uint8: int = 0
     dot_int8: int = 0
+    dot_uint8_int16: int = 0
 
     @property
     def lanes(self) -> int:

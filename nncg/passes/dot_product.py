@@ -1,6 +1,9 @@
 """Part of the loop pass `vectorize`: the int8 kernels' reduction over input channels as dot products
 of K channels (loops.Dot) on targets that have them (Target.dot_uint8, dot_int8: K = 2, pmaddwd on
-int16 pairs; K = 4, vpdpbusd on u8 x s8 quads).
+int16 pairs; K = 4, vpdpbusd on u8 x s8 quads), and K = Target.dot_uint8_int16 (pmaddubsw quads) for
+uint8 activations where the layer's weights are proven never to saturate the int16 pair sums; layers
+that fail the proof keep pmaddwd pairs (splitting their weights in two halves that pass, two pmaddubsw
+per quad, measured no faster than the pairs with twice the weight bytes: benchmarks/int8_dot_forms.py).
 
     for ci < C: acc += int32(x[.. ci ..]) * int32(w[lead + Cs * ci + co])   (x minus its zero point, or not)
 becomes
@@ -102,6 +105,8 @@ class _Packer:
         array = self.program.constants[w.buffer]
         if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
             return None
+        if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16 and pair_sums_fit_int16(array):
+            k = target.dot_uint8_int16
         index = _packed_index(w.index, loop.var, array.shape, k, extents)
         if index is None:
             return None
@@ -139,6 +144,20 @@ class _Packer:
         self.packed[(name, k)] = new
         self.replaced.add(name)
         return new
+
+
+def pair_sums_fit_int16(weights: np.ndarray) -> bool:
+    """Whether no sum of two products of uint8 activations (0..255) and the int8 weights of input
+    channels 2i and 2i + 1 ([lead..., C, Cs], the missing last channel 0) can leave int16, so that
+    pmaddubsw never saturates: per pair 255 * (sum of its positive weights) <= 32767 and
+    255 * (sum of its negative weights) >= -32768."""
+    *lead, c, cs = weights.shape
+    pairs = np.zeros((*lead, c + c % 2, cs), np.int32)
+    pairs[..., :c, :] = weights
+    pairs = pairs.reshape(*lead, -1, 2, cs)
+    highest = 255 * np.maximum(pairs, 0).sum(axis=-2)
+    lowest = 255 * np.minimum(pairs, 0).sum(axis=-2)
+    return bool(highest.max(initial=0) <= np.iinfo(np.int16).max and lowest.min(initial=0) >= np.iinfo(np.int16).min)
 
 
 def _multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
