@@ -43,7 +43,10 @@ def x86_dots(lanes: int, bw: bool = False, vnni: bool = False) -> dict[str, str]
         "pair_int8": f"{p}_broadcastd_epi32(_mm_cvtepi8_epi16({bytes_at.format(bits=16)}))",
         "quad_uint8": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",
     }
-    if vnni:
+    if vnni:  # and a depthwise's taps, each lane its own (passes/dot_taps.py), packed by shifts
+        dots["shift_left"] = f"{p}_slli_epi32({{a}}, {{bits}})"
+        dots["or"] = f"{p}_or_{si}({{a}}, {{b}})"
+        dots["and"] = f"{p}_and_{si}({{a}}, {{b}})"
         dots["dot4_add"] = f"{p}_dpbusd_epi32({{acc}}, {{xs}}, {p}_loadu_{si}((const void *)({{address}})))"
     return dots
 

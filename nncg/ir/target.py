@@ -22,7 +22,9 @@ class Target:
     fused multiply-add needs no register for the weight vector it reads.
     dot_uint8, dot_int8: the input channels one integer dot product (loops.Dot) multiplies per lane,
     for uint8 and for int8 activations: 2 (pmaddwd on int16 pairs), 4 (vpdpbusd on u8 x s8 quads);
-    0: none, the int8 kernels multiply channel by channel."""
+    0: none, the int8 kernels multiply channel by channel.
+    tap_dots: the dot products also take a depthwise convolution's taps, each lane its own channel's
+    activations (loops.Dot with vector x; passes/dot_taps.py)."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -34,6 +36,7 @@ class Target:
     memory_operands: bool = False
     dot_uint8: int = 0
     dot_int8: int = 0
+    tap_dots: bool = False
 
     @property
     def lanes(self) -> int:

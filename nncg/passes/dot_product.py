@@ -7,6 +7,10 @@ becomes
     for cp < C / K: acc += dot(x[.. K cp ..], ..., x[.. K cp + K - 1 ..]; wK[lead' + K Cs cp + K co : K])
 and, when K does not divide C, one more dot of the last channels, the missing ones read as 0.
 
+The same rewrite takes a depthwise convolution's taps (the loop over kernel columns, Cs its channels,
+x depending on the channel too) on targets with Target.tap_dots: the dots' activations are then
+vectors, each lane its own channel's K taps (passes/dot_taps.py splits off the border columns first).
+
 The weights [lead..., C, Cs] are repacked at generation time as wK [lead..., C / K (rounded up), Cs, K]
 (the missing channels' weights 0): the K weights of one output channel side by side, the output
 channels one after another, exactly the order one vector instruction reads them. Exact: the products
@@ -99,13 +103,13 @@ class _Packer:
         # x - x_zero_point (a zero point the lowering did not fold) is signed whatever x's type
         signed = xbuf.dtype == DType.INT8 or zero_point
         k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
-        array = self.program.constants[w.buffer]
+        array = _squeezed(self.program.constants[w.buffer])
         if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
             return None
         index = _packed_index(w.index, loop.var, array.shape, k, extents)
-        if index is None:
+        if index is None or (_per_lane(x, w, loop.var, array.shape) and not target.tap_dots):
             return None
-        packed = self.packed_buffer(w.buffer, k)
+        packed = self.packed_buffer(w.buffer, array, k)
         channels, groups = loop.extent, loop.extent // k
 
         def dot(group: Affine, count: int) -> Stmt:
@@ -122,11 +126,10 @@ class _Packer:
             stmts.append(dot(Affine.of(groups), channels % k))
         return tuple(stmts) if groups else (Loop(loop.var, 1, tuple(stmts)),)
 
-    def packed_buffer(self, name: str, k: int) -> str:
-        """The weights of `name` as [lead..., C / K, Cs, K], once per (array, K)."""
+    def packed_buffer(self, name: str, array: np.ndarray, k: int) -> str:
+        """The weights of `name` (`array`) as [lead..., C / K, Cs, K], once per (array, K)."""
         if (name, k) in self.packed:
             return self.packed[(name, k)]
-        array = self.program.constants[name]
         *lead, c, cs = array.shape
         groups = -(-c // k)
         padded = np.zeros((*lead, groups * k, cs), np.int8)
@@ -139,6 +142,12 @@ class _Packer:
         self.packed[(name, k)] = new
         self.replaced.add(name)
         return new
+
+
+def _squeezed(array: np.ndarray) -> np.ndarray:
+    """A convolution's weights [k..., C, Cs] without C when it is 1 (a depthwise's [kh, kw, 1, Cs]):
+    the reduction over kernel columns then reads the second-last axis."""
+    return array.reshape(array.shape[:-2] + array.shape[-1:]) if array.ndim > 2 and array.shape[-2] == 1 else array
 
 
 def _multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
@@ -191,6 +200,13 @@ def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, exten
     if low < 0 or high >= cs:
         return None
     return Affine._make(lead_terms, lead_const * packed_block) + co * k + Affine.of(var) * (k * cs)
+
+
+def _per_lane(x: Load, w: Load, var: str, shape: tuple[int, ...]) -> bool:
+    """Whether x varies with w's output channel (a depthwise convolution's taps: each lane its own
+    activations) rather than being shared by all of them."""
+    block = shape[-2] * shape[-1]
+    return any(name != var and coeff % block and name in x.index.vars for name, coeff in w.index.terms)
 
 
 def _at_channel(x: Load, zero_point: int, var: str, channel: Affine) -> Expr:

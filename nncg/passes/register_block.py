@@ -164,9 +164,11 @@ def first_pixel_loop(body: tuple[Stmt, ...]) -> Loop | None:
 
 
 def block_shape(body: tuple[Stmt, ...]) -> tuple[int, int] | None:
-    """(pixel loop extent, accumulators per pixel) of the first blockable nest, or None."""
+    """(pixel loop extent, accumulators per pixel) of the first blockable nest, or None (also when
+    its pixels hold their accumulators only in inner loops, as split border columns do)."""
     pixel = first_pixel_loop(body)
-    return None if pixel is None else (pixel.extent, sum(_vectors(s) for s in pixel.body))
+    vectors = 0 if pixel is None else sum(_vectors(s) for s in pixel.body)
+    return (pixel.extent, vectors) if vectors else None
 
 
 def _vectors(stmt: Stmt) -> int:
