@@ -90,6 +90,8 @@ class IntegerVectors:
             return ints[f"dot{k}_add"].format(acc=acc, xs=self._activations(e, ints), address=address)
         if f"dot{k}" in ints:
             return ints[f"dot{k}"].format(xs=self._activations(e, ints), address=address)
+        if any(x.lanes > 1 for x in e.x):  # Target.tap_dots promises the templates
+            raise TypeError(f"no dot{k} template for a depthwise's per-lane taps")
         return ints["vector"].format(values=", ".join(scalar_dot(self, e, lane) for lane in range(e.lanes)))
 
     def _activations(self, e: Dot, ints: dict[str, str]) -> str:
