@@ -80,6 +80,21 @@ def test_channel_multiplier(target):
     check(depthwise_model(8, 3, 1, multiplier=2), target, "uint8")
 
 
+@pytest.mark.parametrize("target", ["avx2", "avx512vnni"])
+def test_one_input_channel_taps(target):
+    """A first layer of one input channel (as DS-CNN's 10x4 stem), padded and strided: its kernel
+    columns' taps become dots of shared activations (x - x_zero_point: pmaddwd pairs)."""
+    rng = np.random.default_rng(9)
+    init = {"w": _weights(rng, 16, 1, 5, 4), "b": rng.standard_normal(16) * 0.3}
+    conv = helper.make_node("Conv", ["x", "w", "b"], ["y"], pads=[2, 1, 2, 2], strides=[2, 2])
+    skip_unless_host_runs(target)
+    model = quantized(_model([conv], [1, 1, 15, 10], init), "uint8")
+    compiled = nncg.compile(model, target=target, verify_ir=True)
+    result = compare(model, compiled, random_feeds(model, 2, 14))
+    assert result.max_steps == 0 and result.identical == 1.0, result
+    assert "_madd_epi16(" in compiled.source.split("QLinearConv */")[1]
+
+
 @pytest.mark.parametrize("target", ["ssse3", "avx512"])
 def test_other_targets_multiply_tap_by_tap(target):
     """Without Target.tap_dots (ssse3: no faster; avx512: its 512-bit pmaddwd is two 256-bit halves

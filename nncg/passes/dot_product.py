@@ -7,9 +7,10 @@ becomes
     for cp < C / K: acc += dot(x[.. K cp ..], ..., x[.. K cp + K - 1 ..]; wK[lead' + K Cs cp + K co : K])
 and, when K does not divide C, one more dot of the last channels, the missing ones read as 0.
 
-The same rewrite takes a depthwise convolution's taps (the loop over kernel columns, Cs its channels,
-x depending on the channel too) on targets with Target.tap_dots: the dots' activations are then
-vectors, each lane its own channel's K taps (passes/dot_taps.py splits off the border columns first).
+On targets with Target.tap_dots the same rewrite takes the taps of a convolution of one input channel
+per group (the loop over kernel columns): a first layer's (one input channel, the taps' activations
+shared by all lanes) and a depthwise's (x depends on the channel too: the dots' activations are then
+vectors, each lane its own channel's K taps). passes/dot_taps.py splits off the border columns first.
 
 The weights [lead..., C, Cs] are repacked at generation time as wK [lead..., C / K (rounded up), Cs, K]
 (the missing channels' weights 0): the K weights of one output channel side by side, the output
@@ -103,11 +104,12 @@ class _Packer:
         # x - x_zero_point (a zero point the lowering did not fold) is signed whatever x's type
         signed = xbuf.dtype == DType.INT8 or zero_point
         k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
-        array = _squeezed(self.program.constants[w.buffer])
+        array = self.program.constants[w.buffer]
+        array = _squeezed(array) if target.tap_dots else array
         if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
             return None
         index = _packed_index(w.index, loop.var, array.shape, k, extents)
-        if index is None or (_per_lane(x, w, loop.var, array.shape) and not target.tap_dots):
+        if index is None or (_per_lane(x, w, loop.var) and not target.tap_dots):
             return None
         packed = self.packed_buffer(w.buffer, array, k)
         channels, groups = loop.extent, loop.extent // k
@@ -145,8 +147,9 @@ class _Packer:
 
 
 def _squeezed(array: np.ndarray) -> np.ndarray:
-    """A convolution's weights [k..., C, Cs] without C when it is 1 (a depthwise's [kh, kw, 1, Cs]):
-    the reduction over kernel columns then reads the second-last axis."""
+    """A convolution's weights [k..., C, Cs] without C when it is 1 (a depthwise's [kh, kw, 1, Cs],
+    or a first layer's of one input channel): the reduction over kernel columns then reads the
+    second-last axis, as dots of K taps."""
     return array.reshape(array.shape[:-2] + array.shape[-1:]) if array.ndim > 2 and array.shape[-2] == 1 else array
 
 
@@ -202,11 +205,11 @@ def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, exten
     return Affine._make(lead_terms, lead_const * packed_block) + co * k + Affine.of(var) * (k * cs)
 
 
-def _per_lane(x: Load, w: Load, var: str, shape: tuple[int, ...]) -> bool:
-    """Whether x varies with w's output channel (a depthwise convolution's taps: each lane its own
-    activations) rather than being shared by all of them."""
-    block = shape[-2] * shape[-1]
-    return any(name != var and coeff % block and name in x.index.vars for name, coeff in w.index.terms)
+def _per_lane(x: Load, w: Load, var: str) -> bool:
+    """Whether x walks the output channels as w does (a depthwise convolution's taps: each lane its
+    own activations) rather than being shared by all of them (a grouped convolution's x depends on
+    the group, but not on the output channel within it, along which the lanes run)."""
+    return any(name != var and coeff == 1 and x.index.coeff(name) == 1 for name, coeff in w.index.terms)
 
 
 def _at_channel(x: Load, zero_point: int, var: str, channel: Affine) -> Expr:

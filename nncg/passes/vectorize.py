@@ -14,7 +14,9 @@ vector version call the function per lane.
 The int8 kernels are vectorised the same way on targets with integer vectors (Target.integer_vectors):
 int32 accumulators over output channels, an invariant integer operand (the input value) broadcast
 whole, requantised per vector; where the target has integer dot products, the reduction over input
-channels first becomes dot products of 2 or 4 channels (dot_product.py). QuantizeLinear runs as its
+channels first becomes dot products of 2 or 4 channels (dot_product.py), and with Target.tap_dots a
+depthwise's interior columns (split from the borders, dot_taps.py) dot products of 2 or 4 taps whose
+activations are vectors, each lane its own channel's. QuantizeLinear runs as its
 float quotient requantised per vector; QLinearAdd, on targets with FMA, in vector fused
 multiply-adds as onnxruntime computes it. A kernel in the fixed-point form stays scalar."""
 
