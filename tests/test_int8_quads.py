@@ -19,6 +19,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 import nncg
 import nncg.passes.dot_product as dot_product
+from nncg.backends import get_target
 from nncg.passes.dot_product import pair_sums_fit_int16
 
 TARGETS = ("ssse3", "avx2")
@@ -128,9 +129,13 @@ def test_uint8_quads(c_in, kind, target):
         pytest.skip("one channel pairs with 0: always proven")
     weights = int8_weights(kind, 6, c_in, seed=c_in)
     compiled = check(saturating_model(weights, "uint8", 0, 128), target, c_in)
-    assert pair_sums_fit_int16(weights.transpose(2, 3, 1, 0)) == (kind == "proven")
-    # one channel is vectorised along the image row, not over channels: no dot product there
-    assert (MADDUBS[target] in compiled.source) == (kind == "proven" and c_in > 1)
+    packed = weights.transpose(2, 3, 1, 0)  # [kh, kw, c_in, c_out], as the kernel reads them
+    assert pair_sums_fit_int16(packed) == (kind == "proven")
+    if c_in > 1:
+        assert (MADDUBS[target] in compiled.source) == (kind == "proven")
+    else:  # one channel: a tap-dot target pairs the kernel columns instead, proven on those
+        taps = get_target(target).tap_dots and pair_sums_fit_int16(packed[:, :, 0, :])
+        assert (MADDUBS[target] in compiled.source) == taps
 
 
 @pytest.mark.parametrize("target", TARGETS)

@@ -40,7 +40,7 @@ X86 = {
 
 
 class Avx2(SimdPrinter):
-    target = Target("avx2", vector_widths=(8, 4), **X86, dot_uint8_int16=4)
+    target = Target("avx2", vector_widths=(8, 4), **X86, dot_uint8_int16=4, tap_dots=True)
     widths = {8: AVX2_256, 4: AVX2_128}
     cflags = ("-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
@@ -60,7 +60,9 @@ class Avx512Vnni(SimdPrinter):
     convolutions and matrix products take 4 input channels per vpdpbusd (uint8 activations times int8
     weights) and int8 activations 2 per 512-bit vpmaddwd; float code is avx512's."""
 
-    target = Target("avx512vnni", vector_widths=(16, 8, 4), **{**X86, "registers": 32, "dot_uint8": 4})
+    target = Target(
+        "avx512vnni", vector_widths=(16, 8, 4), **{**X86, "registers": 32, "dot_uint8": 4, "tap_dots": True}
+    )
     widths = {16: VNNI_512, 8: VNNI_256, 4: VNNI_128}
     cflags = ("-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512vnni", "-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")

@@ -90,12 +90,16 @@ class IntegerVectors:
             return ints[f"dot{k}_add"].format(acc=acc, xs=self._activations(e, ints), address=address)
         if f"dot{k}" in ints:
             return ints[f"dot{k}"].format(xs=self._activations(e, ints), address=address)
+        if any(x.lanes > 1 for x in e.x):  # Target.tap_dots promises the templates
+            raise TypeError(f"no dot{k} template for a depthwise's per-lane taps")
         return ints["vector"].format(values=", ".join(scalar_dot(self, e, lane) for lane in range(e.lanes)))
 
     def _activations(self, e: Dot, ints: dict[str, str]) -> str:
         """The K activations of a dot in every int32 lane: one broadcast from memory where they are
         adjacent bytes, else packed in a scalar int and splat."""
         k = len(e.x)
+        if any(x.lanes > 1 for x in e.x):
+            return self._lane_activations(e, ints)
         first = e.x[0].value if isinstance(e.x[0], Cast) and isinstance(e.x[0].value, Load) else None
         adjacent = first is not None and all(
             x == Cast(DType.INT32, Load(first.buffer, first.index + j)) for j, x in enumerate(e.x)
@@ -108,6 +112,26 @@ class IntegerVectors:
             f"(((unsigned){self.expr(x)} & {mask}) << {bits * j})" for j, x in enumerate(e.x) if x != Const.integer(0)
         ]
         return ints["splat"].format(value=f"(int)({' | '.join(parts) or '0u'})")
+
+    def _lane_activations(self, e: Dot, ints: dict[str, str]) -> str:
+        """The K activation vectors of a depthwise's taps packed into each lane, tap j in bits
+        [32 j / K, 32 (j + 1) / K): widened to int32, the lower ones masked to their field unless
+        they are uint8 (a signed or zero-point-shifted value would spill its sign bits)."""
+        k = len(e.x)
+        bits = 32 // k
+        parts = []
+        for j, x in enumerate(e.x):
+            if isinstance(x, Const) and not any(x.values):
+                continue
+            value = self.expr(x)
+            unsigned = isinstance(x, Cast) and isinstance(x.value, Load) and self.dtypes[x.value.buffer] == DType.UINT8
+            if j < k - 1 and not unsigned:
+                value = ints["and"].format(a=value, b=ints["splat"].format(value=(1 << bits) - 1))
+            parts.append(ints["shift_left"].format(a=value, bits=bits * j) if j else value)
+        packed = parts[0] if parts else ints["splat"].format(value="0")
+        for part in parts[1:]:
+            packed = ints["or"].format(a=packed, b=part)
+        return packed
 
     def _integer_cast(self, e: Cast, width: VectorWidth) -> str:
         if e.dtype == DType.FLOAT32:

@@ -60,6 +60,10 @@ INTEGER_DOTS = {
     "pair_uint8": ("address",),
     "pair_int8": ("address",),
     "quad_uint8": ("address",),
+    # a depthwise's per-lane taps packed into the lanes (simd_integer._lane_activations)
+    "shift_left": ("a", "bits"),
+    "or": ("a", "b"),
+    "and": ("a", "b"),
 }
 
 

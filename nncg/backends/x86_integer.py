@@ -37,8 +37,9 @@ DOT2_HALVES = (
 def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = False) -> dict[str, str]:
     """The dot-product templates of one x86 width: `dot2` (pmaddwd; 16 lanes in halves without
     AVX-512BW), with `vnni` (AVX-512 VNNI, and VL below 16 lanes) `dot4_add` (vpdpbusd), with
-    `maddubs` `dot4` (pmaddubsw quads, x86_quads.py), and the activations of adjacent channels
-    broadcast straight from memory (vpbroadcastd)."""
+    `maddubs` `dot4` (pmaddubsw quads, x86_quads.py), the activations of adjacent channels broadcast
+    straight from memory (vpbroadcastd), and the shifts and masks that pack a depthwise's per-lane
+    taps."""
     p, _, _, si = SHAPES[lanes]
     bytes_at = "_mm_loadu_si{bits}((const void *)({{address}}))"
     dots = {
@@ -46,6 +47,10 @@ def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = F
         "pair_uint8": f"{p}_broadcastd_epi32(_mm_cvtepu8_epi16({bytes_at.format(bits=16)}))",
         "pair_int8": f"{p}_broadcastd_epi32(_mm_cvtepi8_epi16({bytes_at.format(bits=16)}))",
         "quad_uint8": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",
+        # a depthwise's taps, each lane its own (passes/dot_taps.py), packed into the lanes by shifts
+        "shift_left": f"{p}_slli_epi32({{a}}, {{bits}})",
+        "or": f"{p}_or_{si}({{a}}, {{b}})",
+        "and": f"{p}_and_{si}({{a}}, {{b}})",
     }
     if maddubs:
         dots["dot4"] = maddubs_dot4(lanes)

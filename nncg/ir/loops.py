@@ -264,7 +264,9 @@ class Dot:
     """The widening multiply-accumulate of K = len(x) input channels: lane l is the int32
     sum_j x[j] * w[l * K + j], x the K int32 scalars every lane shares (activations), `w` the K *
     lanes weights (int8) packed at generation time in exactly that order. Targets print it as one
-    pmaddwd (K = 2) or vpdpbusd (K = 4) per vector, scalar C as K products."""
+    pmaddwd (K = 2) or vpdpbusd (K = 4) per vector, scalar C as K products. A depthwise
+    convolution's taps (passes/dot_taps.py): x the K int32 vectors of the lanes' own activations,
+    lane l summing x[j][l] * w[l * K + j]."""
 
     x: tuple[Expr, ...]
     w: Load

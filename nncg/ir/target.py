@@ -25,7 +25,9 @@ class Target:
     0: none, the int8 kernels multiply channel by channel.
     dot_uint8_int16: the input channels (4) of a uint8 dot product that sums its pairs of products in
     int16 with saturation (pmaddubsw, then pmaddwd by ones); the dot product pass takes it instead of
-    dot_uint8 only for a layer whose weights it proves keep every pair sum within int16, 0: none."""
+    dot_uint8 only for a layer whose weights it proves keep every pair sum within int16, 0: none.
+    tap_dots: the dot products also take a depthwise convolution's taps, each lane its own channel's
+    activations (loops.Dot with vector x; passes/dot_taps.py)."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -38,6 +40,7 @@ class Target:
     dot_uint8: int = 0
     dot_int8: int = 0
     dot_uint8_int16: int = 0
+    tap_dots: bool = False
 
     @property
     def lanes(self) -> int:

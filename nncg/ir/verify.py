@@ -220,8 +220,10 @@ def _type_problems(e: Expr, dtypes: dict[str, DType]) -> list[str]:
     elif isinstance(e, Requantize | RequantizeFixed):
         return _requantize_problems(e, dtype)
     elif isinstance(e, Dot):
-        if any(dtype(x) != INT32 or x.lanes != 1 for x in e.x) or dtype(e.w) not in (DType.INT8, DType.INT16):
-            return ["dot of values that are not int32 scalars and int8 or int16 weights"]
+        lanes = e.w.lanes // len(e.x)  # x: shared scalars, or a depthwise's per-lane taps
+        weights = dtype(e.w) in (DType.INT8, DType.INT16)
+        if any(dtype(x) != INT32 or x.lanes not in (1, lanes) for x in e.x) or not weights:
+            return ["dot of values that are not int32 scalars or vectors and int8 or int16 weights"]
         if e.w.lanes % len(e.x):
             return [f"dot of {len(e.x)} channels reads {e.w.lanes} weights"]
     elif isinstance(e, Lookup) and dtype(e.index) != INT32:

@@ -10,6 +10,11 @@ becomes
     for cp < C / K: acc += dot(x[.. K cp ..], ..., x[.. K cp + K - 1 ..]; wK[lead' + K Cs cp + K co : K])
 and, when K does not divide C, one more dot of the last channels, the missing ones read as 0.
 
+On targets with Target.tap_dots the same rewrite takes the taps of a convolution of one input channel
+per group (the loop over kernel columns): a first layer's (one input channel, the taps' activations
+shared by all lanes) and a depthwise's (x depends on the channel too: the dots' activations are then
+vectors, each lane its own channel's K taps). passes/dot_taps.py splits off the border columns first.
+
 The weights [lead..., C, Cs] are repacked at generation time as wK [lead..., C / K (rounded up), Cs, K]
 (the missing channels' weights 0): the K weights of one output channel side by side, the output
 channels one after another, exactly the order one vector instruction reads them. Exact: the products
@@ -103,14 +108,15 @@ class _Packer:
         signed = xbuf.dtype == DType.INT8 or zero_point
         k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
         array = self.program.constants[w.buffer]
+        array = _squeezed(array) if target.tap_dots else array
         if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
             return None
         if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16 and pair_sums_fit_int16(array):
             k = target.dot_uint8_int16
         index = _packed_index(w.index, loop.var, array.shape, k, extents)
-        if index is None:
+        if index is None or (_per_lane(x, w, loop.var) and not target.tap_dots):
             return None
-        packed = self.packed_buffer(w.buffer, k)
+        packed = self.packed_buffer(w.buffer, array, k)
         channels, groups = loop.extent, loop.extent // k
 
         def dot(group: Affine, count: int) -> Stmt:
@@ -127,11 +133,10 @@ class _Packer:
             stmts.append(dot(Affine.of(groups), channels % k))
         return tuple(stmts) if groups else (Loop(loop.var, 1, tuple(stmts)),)
 
-    def packed_buffer(self, name: str, k: int) -> str:
-        """The weights of `name` as [lead..., C / K, Cs, K], once per (array, K)."""
+    def packed_buffer(self, name: str, array: np.ndarray, k: int) -> str:
+        """The weights of `name` (`array`) as [lead..., C / K, Cs, K], once per (array, K)."""
         if (name, k) in self.packed:
             return self.packed[(name, k)]
-        array = self.program.constants[name]
         *lead, c, cs = array.shape
         groups = -(-c // k)
         padded = np.zeros((*lead, groups * k, cs), np.int8)
@@ -158,6 +163,13 @@ def pair_sums_fit_int16(weights: np.ndarray) -> bool:
     highest = 255 * np.maximum(pairs, 0).sum(axis=-2)
     lowest = 255 * np.minimum(pairs, 0).sum(axis=-2)
     return bool(highest.max(initial=0) <= np.iinfo(np.int16).max and lowest.min(initial=0) >= np.iinfo(np.int16).min)
+
+
+def _squeezed(array: np.ndarray) -> np.ndarray:
+    """A convolution's weights [k..., C, Cs] without C when it is 1 (a depthwise's [kh, kw, 1, Cs],
+    or a first layer's of one input channel): the reduction over kernel columns then reads the
+    second-last axis, as dots of K taps."""
+    return array.reshape(array.shape[:-2] + array.shape[-1:]) if array.ndim > 2 and array.shape[-2] == 1 else array
 
 
 def _multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
@@ -210,6 +222,13 @@ def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, exten
     if low < 0 or high >= cs:
         return None
     return Affine._make(lead_terms, lead_const * packed_block) + co * k + Affine.of(var) * (k * cs)
+
+
+def _per_lane(x: Load, w: Load, var: str) -> bool:
+    """Whether x walks the output channels as w does (a depthwise convolution's taps: each lane its
+    own activations) rather than being shared by all of them (a grouped convolution's x depends on
+    the group, but not on the output channel within it, along which the lanes run)."""
+    return any(name != var and coeff == 1 and x.index.coeff(name) == 1 for name, coeff in w.index.terms)
 
 
 def _at_channel(x: Load, zero_point: int, var: str, channel: Affine) -> Expr:

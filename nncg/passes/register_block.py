@@ -28,6 +28,7 @@ from ..ir.kinds import BufferRole, Layout
 from ..ir.loops import (
     Affine,
     Assign,
+    Dot,
     If,
     Kernel,
     Let,
@@ -164,9 +165,11 @@ def first_pixel_loop(body: tuple[Stmt, ...]) -> Loop | None:
 
 
 def block_shape(body: tuple[Stmt, ...]) -> tuple[int, int] | None:
-    """(pixel loop extent, accumulators per pixel) of the first blockable nest, or None."""
+    """(pixel loop extent, accumulators per pixel) of the first blockable nest, or None (also when
+    its pixels hold their accumulators only in inner loops, as split border columns do)."""
     pixel = first_pixel_loop(body)
-    return None if pixel is None else (pixel.extent, sum(_vectors(s) for s in pixel.body))
+    vectors = 0 if pixel is None else sum(_vectors(s) for s in pixel.body)
+    return (pixel.extent, vectors) if vectors else None
 
 
 def _vectors(stmt: Stmt) -> int:
@@ -243,8 +246,15 @@ def fma_from_memory(target: Target) -> bool:
 
 
 def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
-    """fma_from_memory for a float kernel (an int8 kernel's int32 multiply and add are two instructions)."""
-    return fma_from_memory(target) and not is_integer_kernel(kernel, program)
+    """fma_from_memory for a float kernel, and for an int8 kernel whose products are all dots of 4
+    shared activations (vpdpbusd: acc + dot is one instruction reading its weights from memory); other
+    int8 kernels multiply and add in two instructions."""
+    if not fma_from_memory(target):
+        return False
+    if not is_integer_kernel(kernel, program):
+        return True
+    dots = [e for s in walk_stmts(kernel.body) for top in stmt_exprs(s) for e in walk_exprs(top) if isinstance(e, Dot)]
+    return bool(dots) and all(len(d.x) == 4 and all(x.lanes == 1 for x in d.x) for d in dots)
 
 
 def choose_blocks(shape: tuple[int, int], registers: int, fused: bool = False) -> tuple[int, int]:

@@ -14,7 +14,9 @@ vector version call the function per lane.
 The int8 kernels are vectorised the same way on targets with integer vectors (Target.integer_vectors):
 int32 accumulators over output channels, an invariant integer operand (the input value) broadcast
 whole, requantised per vector; where the target has integer dot products, the reduction over input
-channels first becomes dot products of 2 or 4 channels (dot_product.py). QuantizeLinear runs as its
+channels first becomes dot products of 2 or 4 channels (dot_product.py), and with Target.tap_dots a
+depthwise's interior columns (split from the borders, dot_taps.py) dot products of 2 or 4 taps whose
+activations are vectors, each lane its own channel's. QuantizeLinear runs as its
 float quotient requantised per vector; QLinearAdd, on targets with FMA, in vector fused
 multiply-adds as onnxruntime computes it. A kernel in the fixed-point form stays scalar."""
 
@@ -57,6 +59,7 @@ from ..ir.loops import (
 )
 from ..ir.target import Target
 from .dot_product import dot_products
+from .dot_taps import split_tap_borders
 from .substitute import interior, iterations, substitute_body
 
 
@@ -69,7 +72,7 @@ def vectorize(program: Program, target: Target) -> Program:
         raise ValueError(f"vector widths {widths} are not strictly decreasing")
     integer = {k.name for k in program.kernels if is_integer_kernel(k, program)}
     vectorizable_integer = {k.name for k in program.kernels if k.name in integer and _integer_vectorizable(k, target)}
-    program = dot_products(program, vectorizable_integer, target)
+    program = dot_products(split_tap_borders(program, vectorizable_integer, target), vectorizable_integer, target)
     kernels = []
     for kernel in program.kernels:
         if kernel.name in integer and kernel.name not in vectorizable_integer:
@@ -161,9 +164,10 @@ def vectorizable(loop: Loop, lanes: int, borders: bool = False) -> bool:
 
 def _dot_vectorizable(dot: Dot, var: str) -> bool:
     """The lanes of a dot product run along `var`: its weights are packed K per lane, its
-    activations do not depend on var."""
-    shared = all(not (isinstance(e, Load) and e.index.coeff(var)) for x in dot.x for e in walk_exprs(x))
-    return shared and dot.w.index.coeff(var) == len(dot.x)
+    activations do not depend on var (shared by all lanes) or all walk it contiguously (each lane
+    its own channel's taps)."""
+    steps = {e.index.coeff(var) for x in dot.x for e in walk_exprs(x) if isinstance(e, Load)}
+    return steps in ({0}, {1}, set()) and dot.w.index.coeff(var) == len(dot.x)
 
 
 # ---------------------------------------------------------------------------- mechanism
@@ -248,7 +252,9 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
     if isinstance(e, Const):
         return Const(e.values * lanes, e.dtype) if e.dtype.is_integer else Const.splat(e.values[0], lanes)
     if isinstance(e, Dot):
-        return Dot(e.x, Load(e.w.buffer, e.w.index, lanes * len(e.x)))
+        per_lane = any(isinstance(n, Load) and n.index.coeff(var) for x in e.x for n in walk_exprs(x))
+        xs = tuple(_vector(x, var, lanes, vector_locals) for x in e.x) if per_lane else e.x
+        return Dot(xs, Load(e.w.buffer, e.w.index, lanes * len(e.x)))
     fused = _fused_multiply_add(e)
     if fused is not None:
         return _vector(fused, var, lanes, vector_locals)
