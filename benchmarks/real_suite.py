@@ -1,13 +1,14 @@
 """The real-size benchmark suite: torchvision architectures and a Keras NHWC model, NNCG against onnxruntime.
 
     python3 -m benchmarks.real_suite [--models resnet18 ...] [--targets avx512] [--cpu 0] [--batches 15]
-                                     [--size 96] [--profile]
+                                     [--size 96] [--profile [--cpu-time]]
 
 Models (benchmarks/real_models.py) are exported when missing (needs torch: pip install -e .[bench]), compiled
 with NNCG's untuned defaults (unroll auto; weights in NAME.weights above 4 MiB) and timed as benchmarks/suite.py
 times its models: one onnxruntime thread, interleaved, medians, % of the measured peak. The table replaces the
 "real-models" section of benchmarks/RESULTS.md (the small-model table stays) and the chart is redrawn from all
-tables. Models NNCG cannot compile are listed with the reason. --profile prints each model's per-layer times.
+tables. Models NNCG cannot compile are listed with the reason. --profile prints each model's per-layer times
+(with --cpu-time in the thread's CPU time, which leaves out the time other processes hold the core).
 """
 
 from __future__ import annotations
@@ -53,13 +54,14 @@ def section_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str, b
     return "\n".join(lines) + "\n" + results_table(rows)
 
 
-def print_profiles(cases: dict, targets: list[str], cpu: int | None) -> None:
-    """The per-layer profile of each case and target (nncg-onnx --profile), or why there is none."""
+def print_profiles(cases: dict, targets: list[str], cpu: int | None, cpu_time: bool = False) -> None:
+    """The per-layer profile of each case and target (nncg-onnx --profile), or why there is none;
+    `cpu_time`: timed in the thread's CPU time."""
     for name, (model, size) in cases.items():
         for target in targets:
             print(f"\n## profile: {name} / {target}")
             try:
-                print(format_profile(profile(ensure(model, size), target, cpu=cpu)))
+                print(format_profile(profile(ensure(model, size), target, cpu=cpu, cpu_time=cpu_time)))
             except Exception as exc:  # noqa: BLE001 - report it and go on with the next model
                 print(f"failed: {type(exc).__name__}: {first_line(exc)}")
 
@@ -72,6 +74,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
     parser.add_argument("--size", type=int, help="input height and width of every model (default: 96 and 224)")
     parser.add_argument("--profile", action="store_true", help="also print each model's per-layer profile")
+    parser.add_argument(
+        "--cpu-time", action="store_true",
+        help="time the profile in the thread's CPU time, not the wall clock (steadier on a shared core)",
+    )  # fmt: skip
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)
     cases = select_cases(args.models, args.size)
@@ -82,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     write_section(args.out_dir, SECTION, section)
     print(section)
     if args.profile:
-        print_profiles(cases, args.targets, args.cpu)
+        print_profiles(cases, args.targets, args.cpu, args.cpu_time)
     return 0
 
 

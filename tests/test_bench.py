@@ -47,6 +47,26 @@ def test_profile_reports_every_layer_with_its_macs():
     assert format_profile(rows).splitlines()[-1].split()[0] == "total"
 
 
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
+def test_profile_in_cpu_time_reports_every_layer(target):
+    # the build with the thread-CPU-time clock compiles (ansi-c: C89 with the harness's flags) and times
+    rows = profile(BALL, target=target, min_seconds=0.01, cpu_time=True)
+    assert [r.layer for r in rows] == ["conv1", "pool1", "conv2", "conv3", "softmax1"]
+    assert all(r.us >= 0 for r in rows) and sum(r.us for r in rows) > 0
+
+
+def test_profile_clock_is_the_wall_clock_unless_the_build_says_otherwise():
+    import nncg
+    from nncg.backends.c_file import PROFILE_CPU_TIME_FLAG
+    from nncg.c_harness import harness_source
+
+    compiled = nncg.compile(BALL, target="ansi-c", profile=True)
+    for source in (compiled.source, harness_source(compiled, commands=True, profile=True)):
+        assert "#ifndef NNCG_PROFILE_CLOCK\n#define NNCG_PROFILE_CLOCK CLOCK_MONOTONIC\n#endif" in source
+        assert "clock_gettime(NNCG_PROFILE_CLOCK, &" in source and "CLOCK_MONOTONIC, &" not in source
+    assert PROFILE_CPU_TIME_FLAG == "-DNNCG_PROFILE_CLOCK=CLOCK_THREAD_CPUTIME_ID"
+
+
 def test_cli_benchmark_and_profile_print_their_tables(tmp_path):
     args = [BALL, "--target", "ssse3", "-o", tmp_path, "--benchmark", "--profile", "--cpu", "0"]
     result = nncg_onnx(*args)

@@ -223,16 +223,17 @@ def profile(
     min_seconds: float = 0.2,
     cc: str | None = None,
     cpu: int | None = None,
+    cpu_time: bool = False,
     **compile_options,
 ) -> list[LayerTime]:
-    """Time per layer, from timers the profile build puts around each layer's function
-    (compile_options go to nncg.compile)."""
+    """Time per layer, from timers the profile build puts around each layer's function, in wall time
+    or with `cpu_time` in the thread's CPU time (compile_options go to nncg.compile)."""
     cc = find_c_compiler(cc)
     compiled = compile_model(model, target=target, unroll=unroll, profile=True, **compile_options)
     macs = dict(compiled.layer_macs)
     inputs = random_inputs(compiled.inputs, seed=0)
     with pinned(cpu), tempfile.TemporaryDirectory(prefix="nncg-profile-") as tmp:
-        harness = CompiledHarness(compiled, Path(tmp), cc, inputs, profile=True)
+        harness = CompiledHarness(compiled, Path(tmp), cc, inputs, profile=True, cpu_time=cpu_time)
         try:
             calls = calibrate(harness.run, min_seconds)  # also warms up
             harness.layer_seconds()  # discard what calibration accumulated

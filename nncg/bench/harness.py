@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..backends.c_file import PROFILE_CPU_TIME_FLAG
 from ..c_harness import harness_source
 from ..errors import NncgError
 from ..tools import run_tool
@@ -37,20 +38,24 @@ class CompiledHarness:
         inputs: list[np.ndarray],
         profile: bool = False,
         runner: tuple[str, ...] = (),
+        cpu_time: bool = False,
     ):
         """`runner` prefixes the harness's command line (an emulator such as qemu-aarch64, or a
-        script that runs it on a board), for a harness built with a cross compiler."""
+        script that runs it on a board), for a harness built with a cross compiler. `cpu_time`: `run`
+        and the profile timers read the thread's CPU time instead of the wall clock (on a shared core
+        it leaves out the time other processes run; each timer read is then a system call)."""
         self.compiled = compiled
         self.workdir = workdir
         compiled.write(workdir)
         # Commands on stdin, one per line: "run N", "profile", "outputs", "quit" (see c_harness).
         (workdir / "bench_main.c").write_text(harness_source(compiled, commands=True, profile=profile))
-        flags = ["-O3", *compiled.cflags]
+        clock = [PROFILE_CPU_TIME_FLAG] if cpu_time else []
+        flags = ["-O3", *compiled.cflags, *clock]
         start = time.perf_counter()
         model_c = f"{compiled.name}.c"
         run_tool([cc, *flags, "-c", model_c, "-o", f"{compiled.name}.o"], f"compiling {model_c}", cwd=workdir)
         self.compile_seconds = time.perf_counter() - start
-        run_tool([cc, "-O2", "-c", "bench_main.c", "-o", "bench_main.o"], "compiling bench_main.c", cwd=workdir)
+        run_tool([cc, "-O2", *clock, "-c", "bench_main.c", "-o", "bench_main.o"], "compiling bench_main.c", cwd=workdir)
         link = [cc, "bench_main.o", f"{compiled.name}.o", "-o", "bench", "-lm"]
         run_tool(link, "linking the benchmark harness", cwd=workdir)
         self.sizes = object_sizes(workdir / f"{compiled.name}.o")
