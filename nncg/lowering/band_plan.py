@@ -27,7 +27,7 @@ from .bands import STREAMABLE, BandGroup, geometry, row_floats, streamable
 from .conv import conv_extras
 from .halo import conv_halos
 from .in_place import in_place_lead
-from .winograd import scratch_floats
+from .winograd import band_scratch_floats, scratch_floats
 
 MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
@@ -173,7 +173,7 @@ def _band_step(
     geo = geometry(graph, group)
     if geo is None or (winograd and (j - i == 1 or not geo.winograd)):
         return None
-    scratch = sum(scratch_floats(graph, n, banded=True) for n in graph.nodes[i:j] if n.name in geo.winograd)
+    scratch = band_scratch_floats(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd])
     lines = sum(geo.rows[v].lines * row_floats(graph, v) for v in geo.internal) + scratch
     shifted = sum(
         (geo.rows[v].lines - geo.rows[v].step) * row_floats(graph, v) * geo.runs(0, geo.rows[v].level)

@@ -35,14 +35,14 @@ def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
         raise NncgError("the band plan names layers that cannot run in bands")
     by_name = {node.name: node for node in ctx.graph.nodes}
     ctx.written_as_is.add(geo.output)
-    stages, helpers = [], []
+    stages, helpers, scratch = [], [], {}
     for name in group.nodes:
         node = by_name[name]
         y = node.outputs[0]
         start = len(ctx.kernels)
         if name in geo.winograd:
             rows = geo.rows[y]
-            lower_winograd_band(ctx, node, _first_tile_row(geo, rows), rows.step // TILE)
+            lower_winograd_band(ctx, node, _first_tile_row(geo, rows), rows.step // TILE, scratch)
         else:
             STAGE_LOWERINGS[node.op](ctx, _direct(node))
         *helpers_now, stage = ctx.kernels[start:]

@@ -18,6 +18,7 @@ stored), so the loops have no border checks. Multiplies per output: 16/4 * C_in 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from itertools import groupby
 
@@ -43,7 +44,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from .activation import apply_activation
-from .context import LoweringContext, channels_last, nest, row_major
+from .context import LoweringContext, TensorRef, channels_last, nest, row_major
 from .conv import conv_extras
 from .weights import weight_operand
 
@@ -70,11 +71,15 @@ def lower_winograd(ctx: LoweringContext, node: Node) -> None:
     ctx.emit(node.name, "Conv", (Loop("n", batch, body),) if batch > 1 else body)  # serial: shared scratch
 
 
-def lower_winograd_band(ctx: LoweringContext, node: Node, first_tile_row: Affine, tile_rows: int) -> None:
+def lower_winograd_band(
+    ctx: LoweringContext, node: Node, first_tile_row: Affine, tile_rows: int, scratch: dict[str, str]
+) -> None:
     """The layer's nest over `tile_rows` tile rows from `first_tile_row` (an affine in the band loops;
     rows outside the output are skipped), for a group of bands (stream.py): per tile row, chunks of
-    BAND_CHUNK_TILES tiles along it, so its scratch is a band's, not the whole layer's."""
-    layer = _Layer(ctx, node, BAND_CHUNK_TILES)
+    BAND_CHUNK_TILES tiles along it, so its scratch is a band's, not the whole layer's. The layers of
+    one group run one after the other and share their scratch: `scratch` names its buffers (filled in
+    by the first)."""
+    layer = _Layer(ctx, node, BAND_CHUNK_TILES, scratch)
     row = first_tile_row + Affine.of(TILE_ROW) if tile_rows > 1 else first_tile_row
     body = layer.grid.band_row(row, layer.band_chunk)
     ctx.emit(node.name, "Conv", (Loop(TILE_ROW, tile_rows, body),) if tile_rows > 1 else body)
@@ -84,7 +89,7 @@ class _Layer:
     """One Winograd Conv's operands, scratch and the three nests of a chunk of tiles (the scratch
     holds `band_tiles` tiles, or the whole layer's chunk when None)."""
 
-    def __init__(self, ctx: LoweringContext, node: Node, band_tiles: int | None):
+    def __init__(self, ctx: LoweringContext, node: Node, band_tiles: int | None, shared: dict[str, str] | None = None):
         self.attrs: ConvAttrs = node.attrs
         self.x = ctx.ref(node.inputs[0])
         c_out, self.c_in = ctx.graph.shape(node.inputs[1])[:2]
@@ -98,8 +103,8 @@ class _Layer:
         self.out = ctx.output(node.outputs[0], channels_last(4))
         self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, band_tiles)
         tiles = self.grid.chunk_tiles
-        self.v = ctx.add_buffer(f"v_{node.name}", "internal", (PATCH * PATCH, tiles, self.c_in), row_major(3))
-        self.m = ctx.add_buffer(f"m_{node.name}", "internal", (PATCH * PATCH, tiles, self.width), row_major(3))
+        self.v = _scratch(ctx, f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in), shared)
+        self.m = _scratch(ctx, f"m_{node.name}", (PATCH * PATCH, tiles, self.width), shared)
 
     def transform_input(self, at: TileAt, rows, cols) -> tuple[Stmt, ...]:
         x, pads = self.x, self.attrs.pads_begin
@@ -169,6 +174,22 @@ class _Layer:
         )
 
 
+def _scratch(ctx: LoweringContext, name: str, shape: tuple[int, ...], shared: dict[str, str] | None) -> TensorRef:
+    """A scratch buffer of `shape`; with `shared`, the one its first user named (by the name's prefix),
+    grown to the largest shape."""
+    kind = name[:2]
+    if shared is None or kind not in shared:
+        ref = ctx.add_buffer(name, "internal", shape, row_major(len(shape)))
+        if shared is not None:
+            shared[kind] = ref.buffer
+        return ref
+    buffer = shared[kind]
+    for i, buf in enumerate(ctx.buffers):
+        if buf.name == buffer and buf.size < math.prod(shape):
+            ctx.buffers[i] = replace(buf, size=math.prod(shape), shape=shape)
+    return TensorRef(buffer, shape, row_major(len(shape)))
+
+
 def gemms(count: int, c_out: int, multiply) -> tuple[Stmt, ...]:
     """for e { for t [parallel] { for co [parallel] { multiply } } }. The loop over the 16 GEMMs is
     not marked parallel, though it is: register blocking across it would reuse no operand (each
@@ -200,12 +221,10 @@ class TileAt:
     channel: Affine
 
 
-def scratch_floats(graph: Graph, node: Node, banded: bool = False) -> int:
-    """The floats of a Winograd layer's two scratch buffers, run whole or in bands (what the band
-    planner counts)."""
+def scratch_floats(graph: Graph, node: Node) -> int:
+    """The floats of a Winograd layer's two scratch buffers (what the band planner counts)."""
     c_out, c_in = graph.shape(node.inputs[1])[:2]
-    out_hw = graph.shape(node.outputs[0])[2:]
-    tiles = band_chunk_tiles(out_hw) if banded else chunk_tiles(out_hw)[1]
+    tiles = chunk_tiles(graph.shape(node.outputs[0])[2:])[1]
     return PATCH * PATCH * tiles * (c_in + max(c_out, node.attrs.gemm_channels))
 
 
@@ -214,6 +233,14 @@ def chunk_tiles(out_hw: tuple[int, int]) -> tuple[int, int]:
     tiles = [-(-size // TILE) for size in out_hw]
     rows = max(1, min(tiles[0], -(-CHUNK_TILES // tiles[1])))
     return rows, rows * tiles[1]
+
+
+def band_scratch_floats(graph: Graph, nodes: list[Node]) -> int:
+    """The floats of the scratch the Winograd layers of one band group share."""
+    tiles = [band_chunk_tiles(graph.shape(n.outputs[0])[2:]) for n in nodes]
+    v = max((PATCH * PATCH * t * graph.shape(n.inputs[1])[1] for n, t in zip(nodes, tiles)), default=0)
+    width = [max(graph.shape(n.inputs[1])[0], n.attrs.gemm_channels) for n in nodes]
+    return v + max((PATCH * PATCH * t * w for w, t in zip(width, tiles)), default=0)
 
 
 def band_chunk_tiles(out_hw: tuple[int, int]) -> int:
