@@ -8,7 +8,9 @@ with some band height. A step needs the memory of the whole tensors live across 
 output, tensors passing over it to later layers) plus its line buffers, and a Winograd layer run
 whole its scratch; a plan needs the largest of its steps. Its latency is estimated per target
 (band_costs.py): a layer run whole keeps the graph passes' choices (Winograd, cache blocking), one in
-bands runs direct, and every band adds per-layer overhead and line-buffer shifts. Dynamic
+bands runs direct or, in a group's variant that keeps Winograd, Winograd over 2-row tiles (its scratch
+a band's, shared by the group's Winograd layers), and every band adds per-layer overhead and
+line-buffer shifts. Dynamic
 programming over the steps gives the fastest plan under a memory bound; `min` is the smallest bound
 any plan meets. The figures are estimates (no alignment, no fragmentation): the driver checks the
 planned arena against a budget. A single layer in bands is a Winograd layer run direct, without its

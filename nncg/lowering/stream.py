@@ -1,7 +1,9 @@
 """Band lowering: a group of layers (bands.py) as one kernel, a loop over bands whose body runs each
 layer's own loop nest over the rows that band computes.
 
-Each layer is lowered as usual (direct convolution, channels last) and then rebanded: its output-row
+A Winograd layer the group keeps (bands.py) is lowered over the band's 2-row tiles directly
+(winograd.py lower_winograd_band); every other layer is lowered as usual (direct convolution,
+channels last) and then rebanded: its output-row
 loop becomes the band's rows of it (row = step * band + first, skipped outside the tensor), and every
 access to a line buffer is moved by the buffer's origin, so the indices stay affine in the loop
 variables: a line buffer's rows are shifted up by `step` before its producer writes the new ones
