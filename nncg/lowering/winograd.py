@@ -166,7 +166,7 @@ class _Layer:
         )
 
     def band_chunk(self, row: Affine, kind: RowKind, first_col: Affine, cols: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
-        grid, n = self.grid, Affine()
+        grid = self.grid
         return (
             *grid.row_transform(row, kind.reads, first_col, cols, 0, ("ci", self.c_in), self.transform_input),
             *gemms(len(cols), self.width, self.multiply),
