@@ -3,8 +3,9 @@ in bands, in multiply-accumulates of a whole direct Conv (the unit).
 
 Run whole, a Conv keeps what the graph passes chose for it: Winograd does 2.25x fewer multiplies, but
 its transforms and scratch traffic take back part of that, more so the wider the vectors; cache
-blocking and pixel vectors gain less. In a group of bands, every Conv runs as a direct,
-channels-last nest over the band's rows (stream.py), which costs more than the same nest over the
+blocking and pixel vectors gain less. In a group of bands, a Conv runs as a direct,
+channels-last nest over the band's rows (stream.py), or as Winograd over its tiles (charged
+`winograd` x `banded`), which costs more than the same nest over the
 whole layer (the row loop cut into bands, line-buffer indices, shorter loops for register blocking
 and unrolling); a layer alone in bands has no line buffers, its nest is the whole layer's. On top,
 each band runs every layer's nest once (`per_band`) and shifts the line buffers (`shift`, per float).

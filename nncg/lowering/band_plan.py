@@ -8,7 +8,9 @@ with some band height. A step needs the memory of the whole tensors live across 
 output, tensors passing over it to later layers) plus its line buffers, and a Winograd layer run
 whole its scratch; a plan needs the largest of its steps. Its latency is estimated per target
 (band_costs.py): a layer run whole keeps the graph passes' choices (Winograd, cache blocking), one in
-bands runs direct, and every band adds per-layer overhead and line-buffer shifts. Dynamic
+bands runs direct or, in a group's variant that keeps Winograd, Winograd over 2-row tiles (its scratch
+a band's, shared by the group's Winograd layers), and every band adds per-layer overhead and
+line-buffer shifts. Dynamic
 programming over the steps gives the fastest plan under a memory bound; `min` is the smallest bound
 any plan meets. The figures are estimates (no alignment, no fragmentation): the driver checks the
 planned arena against a budget. A single layer in bands is a Winograd layer run direct, without its
@@ -27,7 +29,7 @@ from .bands import STREAMABLE, BandGroup, geometry, row_floats, streamable
 from .conv import conv_extras
 from .halo import conv_halos
 from .in_place import in_place_lead
-from .winograd import scratch_floats
+from .winograd import band_scratch_floats, scratch_floats
 
 MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
@@ -125,7 +127,11 @@ def describe_plan(groups: tuple[BandGroup, ...]) -> str:
     """The plan in words, the layers' names escaped (they come from the model)."""
     if not groups:
         return "every layer computed whole"
-    return "; ".join(f"{shown(g.nodes[0])}..{shown(g.nodes[-1])} in bands of {g.rows} output row(s)" for g in groups)
+    return "; ".join(
+        f"{shown(g.nodes[0])}..{shown(g.nodes[-1])} in bands of {g.rows} output row(s)"
+        + (", Winograd kept" if g.winograd else "")
+        for g in groups
+    )
 
 
 def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> list[Step]:
@@ -148,30 +154,39 @@ def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> l
         while stop < len(nodes) and streamable(graph, nodes[stop]):
             stop += 1
         for rows in BAND_ROWS:
-            for j in range(i + 1, stop + 1):  # one layer alone: run direct, without a Winograd scratch
-                step = _band_step(graph, live, costs, i, j, rows)
-                if step is not None and step.lines > ceiling:
-                    break  # a longer group only adds line buffers
-                if step is not None:
-                    steps.append(step)
+            for winograd in (False, True):
+                for j in range(i + 1, stop + 1):  # one layer alone: run direct, without a Winograd scratch
+                    step = _band_step(graph, live, costs, i, j, rows, winograd)
+                    if step is not None and step.lines > ceiling:
+                        break  # a longer group only adds line buffers
+                    if step is not None:
+                        steps.append(step)
     return steps
 
 
-def _band_step(graph: Graph, live: _Liveness, costs: BandCosts, i: int, j: int, rows: int) -> Step | None:
-    group = BandGroup(tuple(n.name for n in graph.nodes[i:j]), rows)
+def _band_step(
+    graph: Graph, live: _Liveness, costs: BandCosts, i: int, j: int, rows: int, winograd: bool
+) -> Step | None:
+    """The group of nodes [i, j) in bands of `rows`, keeping its Winograd layers with `winograd`
+    (None where that keeps none, or for one layer alone: it would be the layer run whole)."""
+    group = BandGroup(tuple(n.name for n in graph.nodes[i:j]), rows, winograd)
     if rows > graph.shape(graph.nodes[j - 1].outputs[0])[2]:
         return None
     geo = geometry(graph, group)
-    if geo is None:
+    if geo is None or (winograd and (j - i == 1 or not geo.winograd)):
         return None
-    lines = sum(geo.rows[v].lines * row_floats(graph, v) for v in geo.internal)
+    scratch = band_scratch_floats(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd])
+    lines = sum(geo.rows[v].lines * row_floats(graph, v) for v in geo.internal) + scratch
     shifted = sum(
         (geo.rows[v].lines - geo.rows[v].step) * row_floats(graph, v) * geo.runs(0, geo.rows[v].level)
         for v in geo.internal
     )
     runs = sum(geo.runs(0, geo.rows[n.outputs[0]].level) for n in graph.nodes[i:j])  # of the layers per band
     banded = costs.banded if j - i > 1 else 1.0  # one layer alone: its direct nest under a band loop
-    work = sum(_conv_macs(graph, n) * banded + _window_work(graph, n) for n in graph.nodes[i:j])
+    work = sum(
+        _conv_macs(graph, n) * banded * (costs.winograd if n.name in geo.winograd else 1.0) + _window_work(graph, n)
+        for n in graph.nodes[i:j]
+    )
     cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.floats(i, j, geo.internal) + lines, cost, lines)
 

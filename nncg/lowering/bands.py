@@ -23,21 +23,26 @@ import math
 from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
+from ..ir.kinds import ConvAlgorithm
 from ..ir.loops import Affine
 from .conv import conv_extras
+from .winograd import TILE
 
 STREAMABLE = ("Conv", "MaxPool", "AveragePool")
 
 
 @dataclass(frozen=True)
 class BandGroup:
-    """Layers (node names, consecutive in graph order) run together, `rows` output rows per band."""
+    """Layers (node names, consecutive in graph order) run together, `rows` output rows per band;
+    with `winograd`, the Convs the graph passes made Winograd stay Winograd where their rows advance
+    in whole 2-row tiles (else every Conv runs direct)."""
 
     nodes: tuple[str, ...]
     rows: int
+    winograd: bool = False
 
     def __str__(self) -> str:
-        return f"{self.nodes[0]}..{self.nodes[-1]}:{self.rows}"
+        return f"{self.nodes[0]}..{self.nodes[-1]}:{self.rows}{':winograd' if self.winograd else ''}"
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,7 @@ class Geometry:
     internal: tuple[str, ...]
     output: str
     first_band: int = 0
+    winograd: tuple[str, ...] = ()  # the layers run as Winograd tiles (stream.py)
 
     def runs(self, outer: int, inner: int) -> int:
         """Runs of level `inner` per run of level `outer` (<= inner)."""
@@ -110,16 +116,23 @@ def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
     internal = tuple(n.outputs[0] for n in nodes[:-1])
     if any(graph.is_graph_output(v) for v in internal) or not _kept_inside(graph, group, internal, output):
         return None
-    flat = _rows(nodes, group.rows, {}, (1,))
+    tiled = {n.name for n in nodes if group.winograd and getattr(n.attrs, "algorithm", None) == ConvAlgorithm.WINOGRAD}
+    flat = _rows(nodes, group.rows, {}, (1,), tiled)
     if flat is None:
         return None
     levels, reps = _levels(nodes, flat)
-    rows = _rows(nodes, group.rows, levels, reps)
+    rows = _rows(nodes, group.rows, levels, reps, tiled)
     if rows is None:
         rows, reps = flat, (1,)
     first_band = min((r.step - r.ahead) // (r.step * math.prod(reps[1 : r.level + 1])) for r in rows.values())
     bands = -(-graph.shape(output)[2] // group.rows) - first_band
-    return Geometry(rows, reps, bands, internal, output, first_band)
+    winograd = tuple(n.name for n in nodes if n.name in tiled and _whole_tiles(rows[n.outputs[0]]))
+    return Geometry(rows, reps, bands, internal, output, first_band, winograd)
+
+
+def _whole_tiles(rows: Rows) -> bool:
+    """Every run starts at an even row and computes an even number of rows: whole 2-row tiles."""
+    return rows.step % TILE == 0 and rows.ahead % TILE == 0
 
 
 def _kept_inside(graph: Graph, group: BandGroup, internal: tuple[str, ...], output: str) -> bool:
@@ -149,9 +162,12 @@ def _levels(nodes: list[Node], flat: dict[str, Rows]) -> tuple[dict[str, int], t
     return {v: distinct.index(r.step) for v, r in flat.items()}, (1, *ratios)
 
 
-def _rows(nodes: list[Node], rows: int, levels: dict[str, int], reps: tuple[int, ...]) -> dict[str, Rows] | None:
+def _rows(
+    nodes: list[Node], rows: int, levels: dict[str, int], reps: tuple[int, ...], tiled: set[str]
+) -> dict[str, Rows] | None:
     """Per tensor the group produces, from the output back: what its readers need of it, counted in
-    runs of its level (`levels`; absent: 0)."""
+    runs of its level (`levels`; absent: 0). A `tiled` layer (Winograd) whose step is even computes
+    from an even row: one row further ahead where its readers need an odd count."""
     produced = {n.outputs[0] for n in nodes}
     out: dict[str, Rows] = {nodes[-1].outputs[0]: Rows(rows, rows)}
     lowest: dict[str, int] = {}
@@ -159,6 +175,8 @@ def _rows(nodes: list[Node], rows: int, levels: dict[str, int], reps: tuple[int,
         y = out.get(node.outputs[0])
         if y is None:  # read by nobody in the group
             return None
+        if node.name in tiled and y.step % TILE == 0 and y.ahead % TILE:
+            y = out[node.outputs[0]] = replace(y, ahead=y.ahead + 1)
         for index, x in enumerate(node.inputs):
             if x not in produced:
                 continue

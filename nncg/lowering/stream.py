@@ -1,7 +1,9 @@
 """Band lowering: a group of layers (bands.py) as one kernel, a loop over bands whose body runs each
 layer's own loop nest over the rows that band computes.
 
-Each layer is lowered as usual (direct convolution, channels last) and then rebanded: its output-row
+A Winograd layer the group keeps (bands.py) is lowered over the band's 2-row tiles directly
+(winograd.py lower_winograd_band); every other layer is lowered as usual (direct convolution,
+channels last) and then rebanded: its output-row
 loop becomes the band's rows of it (row = step * band + first, skipped outside the tensor), and every
 access to a line buffer is moved by the buffer's origin, so the indices stay affine in the loop
 variables: a line buffer's rows are shifted up by `step` before its producer writes the new ones
@@ -22,6 +24,7 @@ from .bands import BandGroup, Geometry, Rows, geometry
 from .context import LoweringContext
 from .conv import lower_conv
 from .pool import lower_averagepool, lower_maxpool
+from .winograd import TILE, lower_winograd_band
 
 BAND, SUB, ROW, SHIFT = "band", "sub", "row", "shift"
 STAGE_LOWERINGS = {"Conv": lower_conv, "MaxPool": lower_maxpool, "AveragePool": lower_averagepool}
@@ -34,16 +37,21 @@ def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
         raise NncgError("the band plan names layers that cannot run in bands")
     by_name = {node.name: node for node in ctx.graph.nodes}
     ctx.written_as_is.add(geo.output)
-    stages, helpers = [], []
+    stages, helpers, scratch = [], [], {}
     for name in group.nodes:
         node = by_name[name]
+        y = node.outputs[0]
         start = len(ctx.kernels)
-        STAGE_LOWERINGS[node.op](ctx, _direct(node))
+        if name in geo.winograd:
+            rows = geo.rows[y]
+            lower_winograd_band(ctx, node, _first_tile_row(geo, rows), rows.step // TILE, scratch)
+        else:
+            STAGE_LOWERINGS[node.op](ctx, _direct(node))
         *helpers_now, stage = ctx.kernels[start:]
         del ctx.kernels[start:]
         helpers += helpers_now
-        y = node.outputs[0]
-        stages.append((y, _banded(stage.body, geo.rows[y], geo, ctx.graph.shape(y)[2])))
+        body = stage.body if name in geo.winograd else _banded(stage.body, geo.rows[y], geo, ctx.graph.shape(y)[2])
+        stages.append((y, body))
     strides = _line_buffers(ctx, geo)
     levels = []
     for y, stage in stages:
@@ -78,9 +86,15 @@ def _nested(levels: list[tuple[int, tuple[Stmt, ...]]], reps: tuple[int, ...], l
     return tuple(out)
 
 
+def _first_tile_row(geo: Geometry, rows: Rows) -> Affine:
+    """The first 2-row tile a Winograd layer's run computes (its step and ahead are even)."""
+    return _run(geo, rows.level) * (rows.step // TILE) + (rows.ahead - rows.step) // TILE
+
+
 def _direct(node: Node) -> Node:
     """A Conv as a direct, channels-last convolution: the form whose row loop bands (other choices
-    of the graph passes, Winograd's tiles or a cache-blocked layer's panels, do not apply)."""
+    of the graph passes, a cache-blocked layer's panels, or Winograd's tiles where the group does
+    not keep them, do not apply)."""
     if not isinstance(node.attrs, ConvAttrs):
         return node
     direct = {"algorithm": ConvAlgorithm.DIRECT, "gemm_channels": 0, "panel": 0, "ci_block": 0}

@@ -18,6 +18,7 @@ stored), so the loops have no border checks. Multiplies per output: 16/4 * C_in 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from itertools import groupby
 
@@ -28,8 +29,10 @@ from ..ir.loops import (
     Affine,
     Assign,
     Binary,
+    Bound,
     Const,
     Expr,
+    If,
     Let,
     Load,
     LocalRef,
@@ -41,7 +44,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from .activation import apply_activation
-from .context import LoweringContext, channels_last, nest, row_major
+from .context import LoweringContext, TensorRef, channels_last, nest, row_major
 from .conv import conv_extras
 from .weights import weight_operand
 
@@ -50,6 +53,8 @@ B_T = ((1, 0, -1, 0), (0, 1, 1, 0), (0, -1, 1, 0), (0, 1, 0, -1))
 G = ((1.0, 0.0, 0.0), (0.5, 0.5, 0.5), (0.5, -0.5, 0.5), (0.0, 0.0, 1.0))
 A_T = ((1, 1, 1, 0), (0, 1, -1, -1))
 CHUNK_TILES = 24  # tiles per chunk (rounded up to whole tile rows): scratch that stays in L1
+BAND_CHUNK_TILES = 8  # tiles per chunk of a layer in bands, along a tile row: a band's scratch
+TILE_ROW = "tr"  # the loop over a band's tile rows
 
 
 def transformed_filters(w: np.ndarray) -> np.ndarray:
@@ -60,31 +65,60 @@ def transformed_filters(w: np.ndarray) -> np.ndarray:
 
 
 def lower_winograd(ctx: LoweringContext, node: Node) -> None:
-    attrs: ConvAttrs = node.attrs
-    x = ctx.ref(node.inputs[0])
-    c_out, c_in = ctx.graph.shape(node.inputs[1])[:2]
-    width = max(c_out, attrs.gemm_channels)
-    filters = transformed_filters(ctx.graph.constants[node.inputs[1]])
-    filters = np.pad(filters, ((0, 0), (0, 0), (0, width - c_out)))  # padded channels compute zeros
-    u = ctx.add_constant(f"u_{node.name}", filters)
-    bias_name, residual_name = conv_extras(node)
-    bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
-    residual = ctx.ref(residual_name) if residual_name else None
-    out = ctx.output(node.outputs[0], channels_last(4))
-    grid = TileGrid(out.shape[2:], attrs.pads_begin, x.spatial_ranges)
-    v = ctx.add_buffer(f"v_{node.name}", "internal", (PATCH * PATCH, grid.chunk_tiles, c_in), row_major(3))
-    m = ctx.add_buffer(f"m_{node.name}", "internal", (PATCH * PATCH, grid.chunk_tiles, width), row_major(3))
+    layer = _Layer(ctx, node, None)
+    batch = layer.out.shape[0]
+    body = layer.grid.chunks(Affine.of("n") if batch > 1 else Affine(), layer.chunk)
+    ctx.emit(node.name, "Conv", (Loop("n", batch, body),) if batch > 1 else body)  # serial: shared scratch
 
-    def transform_input(at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+
+def lower_winograd_band(
+    ctx: LoweringContext, node: Node, first_tile_row: Affine, tile_rows: int, scratch: dict[str, str]
+) -> None:
+    """The layer's nest over `tile_rows` tile rows from `first_tile_row` (an affine in the band loops;
+    rows outside the output are skipped), for a group of bands (stream.py): per tile row, chunks of
+    BAND_CHUNK_TILES tiles along it, so its scratch is a band's, not the whole layer's. The layers of
+    one group run one after the other and share their scratch: `scratch` names its buffers (filled in
+    by the first)."""
+    layer = _Layer(ctx, node, BAND_CHUNK_TILES, scratch)
+    row = first_tile_row + Affine.of(TILE_ROW) if tile_rows > 1 else first_tile_row
+    body = layer.grid.band_row(row, layer.band_chunk)
+    ctx.emit(node.name, "Conv", (Loop(TILE_ROW, tile_rows, body),) if tile_rows > 1 else body)
+
+
+class _Layer:
+    """One Winograd Conv's operands, scratch and the three nests of a chunk of tiles (the scratch
+    holds `band_tiles` tiles, or the whole layer's chunk when None)."""
+
+    def __init__(self, ctx: LoweringContext, node: Node, band_tiles: int | None, shared: dict[str, str] | None = None):
+        self.attrs: ConvAttrs = node.attrs
+        self.x = ctx.ref(node.inputs[0])
+        c_out, self.c_in = ctx.graph.shape(node.inputs[1])[:2]
+        self.c_out, self.width = c_out, max(c_out, self.attrs.gemm_channels)
+        filters = transformed_filters(ctx.graph.constants[node.inputs[1]])
+        filters = np.pad(filters, ((0, 0), (0, 0), (0, self.width - c_out)))  # padded channels compute zeros
+        self.u = ctx.add_constant(f"u_{node.name}", filters)
+        bias_name, residual_name = conv_extras(node)
+        self.bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
+        self.residual = ctx.ref(residual_name) if residual_name else None
+        self.out = ctx.output(node.outputs[0], channels_last(4))
+        self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, band_tiles)
+        tiles = self.grid.chunk_tiles
+        self.v = _scratch(ctx, f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in), shared)
+        self.m = _scratch(ctx, f"m_{node.name}", (PATCH * PATCH, tiles, self.width), shared)
+
+    def transform_input(self, at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+        x, pads = self.x, self.attrs.pads_begin
+
         def patch(i: int, j: int) -> Expr | None:
             if not (rows[i] and cols[j]):
                 return None
-            h = at.row * TILE + (i - attrs.pads_begin[0])
-            w = at.col * TILE + (j - attrs.pads_begin[1])
+            h = at.row * TILE + (i - pads[0])
+            w = at.col * TILE + (j - pads[1])
             return Load(x.buffer, x.at([at.n, at.channel, h, w]))
 
         # r = B^T d, row by row, in locals: each patch value is loaded once
         r = {(a, j): combine(B_T[a], [patch(i, j) for i in range(PATCH)]) for a in range(PATCH) for j in range(PATCH)}
+        v = self.v
         stores = tuple(
             Store(v.buffer, v.at([a * PATCH + b, at.tile, at.channel]), or_zero(combine(B_T[b], row)))
             for a in range(PATCH)
@@ -93,15 +127,18 @@ def lower_winograd(ctx: LoweringContext, node: Node) -> None:
         )
         return with_locals("r", r, stores)
 
-    def multiply(env: dict[str, Affine]) -> tuple[Stmt, ...]:
+    def multiply(self, env: dict[str, Affine]) -> tuple[Stmt, ...]:
         e, t, co = env["e"], env["t"], env["co"]
-        ci = Affine.of("ci") if c_in > 1 else Affine()
+        v, u, m = self.v, self.u, self.m
+        ci = Affine.of("ci") if self.c_in > 1 else Affine()
         product = Binary("*", Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, u.at([e, ci, co])))
         update = Assign("acc", Binary("+", LocalRef("acc"), product))
-        reduction = (Loop("ci", c_in, (update,)),) if c_in > 1 else (Assign("acc", product),)
+        reduction = (Loop("ci", self.c_in, (update,)),) if self.c_in > 1 else (Assign("acc", product),)
         return (Let("acc", Const.splat(0.0), (*reduction, Store(m.buffer, m.at([e, t, co]), LocalRef("acc")))),)
 
-    def transform_output(at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+    def transform_output(self, at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+        m, out, bias, residual = self.m, self.out, self.bias, self.residual
+
         def product(a: int, b: int) -> Expr:
             return Load(m.buffer, m.at([a * PATCH + b, at.tile, at.channel]))
 
@@ -117,20 +154,40 @@ def lower_winograd(ctx: LoweringContext, node: Node) -> None:
                     value = Binary("+", value, Load(bias.buffer, bias.at([at.channel])))
                 if residual:
                     value = Binary("+", value, Load(residual.buffer, residual.at(index)))
-                stores.append(Store(out.buffer, out.at(index), apply_activation(value, attrs.activation)))
+                stores.append(Store(out.buffer, out.at(index), apply_activation(value, self.attrs.activation)))
         return with_locals("s", s, tuple(stores))
 
-    def chunk(n: Affine, first_row: Affine, rows: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
-        tiles = len(rows) * grid.tiles[1]
+    def chunk(self, n: Affine, first_row: Affine, rows: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
+        grid, tiles = self.grid, len(rows) * self.grid.tiles[1]
         return (
-            *grid.transform(n, first_row, [kind.reads for kind in rows], 0, ("ci", c_in), transform_input),
-            *gemms(tiles, width, multiply),
-            *grid.transform(n, first_row, [kind.writes for kind in rows], 1, ("co", c_out), transform_output),
+            *grid.transform(n, first_row, [kind.reads for kind in rows], 0, ("ci", self.c_in), self.transform_input),
+            *gemms(tiles, self.width, self.multiply),
+            *grid.transform(n, first_row, [kind.writes for kind in rows], 1, ("co", self.c_out), self.transform_output),
         )
 
-    batch = out.shape[0]
-    body = grid.chunks(Affine.of("n") if batch > 1 else Affine(), chunk)
-    ctx.emit(node.name, "Conv", (Loop("n", batch, body),) if batch > 1 else body)  # serial: shared scratch
+    def band_chunk(self, row: Affine, kind: RowKind, first_col: Affine, cols: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
+        grid = self.grid
+        return (
+            *grid.row_transform(row, kind.reads, first_col, cols, 0, ("ci", self.c_in), self.transform_input),
+            *gemms(len(cols), self.width, self.multiply),
+            *grid.row_transform(row, kind.writes, first_col, cols, 1, ("co", self.c_out), self.transform_output),
+        )
+
+
+def _scratch(ctx: LoweringContext, name: str, shape: tuple[int, ...], shared: dict[str, str] | None) -> TensorRef:
+    """A scratch buffer of `shape`; with `shared`, the one its first user named (by the name's prefix),
+    grown to the largest shape."""
+    kind = name[:2]
+    if shared is None or kind not in shared:
+        ref = ctx.add_buffer(name, "internal", shape, row_major(len(shape)))
+        if shared is not None:
+            shared[kind] = ref.buffer
+        return ref
+    buffer = shared[kind]
+    for i, buf in enumerate(ctx.buffers):
+        if buf.name == buffer and buf.size < math.prod(shape):
+            ctx.buffers[i] = replace(buf, size=math.prod(shape), shape=shape)
+    return TensorRef(buffer, shape, row_major(len(shape)))
 
 
 def gemms(count: int, c_out: int, multiply) -> tuple[Stmt, ...]:
@@ -178,16 +235,33 @@ def chunk_tiles(out_hw: tuple[int, int]) -> tuple[int, int]:
     return rows, rows * tiles[1]
 
 
+def band_scratch_floats(graph: Graph, nodes: list[Node]) -> int:
+    """The floats of the scratch the Winograd layers of one band group share."""
+    tiles = [band_chunk_tiles(graph.shape(n.outputs[0])[2:]) for n in nodes]
+    v = max((PATCH * PATCH * t * graph.shape(n.inputs[1])[1] for n, t in zip(nodes, tiles)), default=0)
+    width = [max(graph.shape(n.inputs[1])[0], n.attrs.gemm_channels) for n in nodes]
+    return v + max((PATCH * PATCH * t * w for w, t in zip(width, tiles)), default=0)
+
+
+def band_chunk_tiles(out_hw: tuple[int, int]) -> int:
+    """Tiles per chunk of a layer in bands: BAND_CHUNK_TILES, or a tile row if that is shorter."""
+    return min(BAND_CHUNK_TILES, -(-out_hw[1] // TILE))
+
+
 class TileGrid:
     """The output's 2x2 tiles, taken a chunk of CHUNK_TILES (whole tile rows) at a time, so the
     scratch of the transforms and GEMMs stays small and in cache. Tiles whose patch reaches into the
     padding or whose outputs reach past the output get loops of their own (see RowKind), so no
     loop has a border check."""
 
-    def __init__(self, out_hw: tuple[int, int], pads: tuple[int, ...], readable: list[tuple[int, int]]):
+    def __init__(
+        self, out_hw: tuple[int, int], pads: tuple[int, ...], readable: list[tuple[int, int]], band: int | None = None
+    ):
         self.out_hw, self.pads, self.readable = out_hw, pads, readable
         self.tiles = tuple(-(-size // TILE) for size in out_hw)
         self.rows_per_chunk, self.chunk_tiles = chunk_tiles(out_hw)
+        if band is not None:  # chunks along one tile row
+            self.rows_per_chunk, self.chunk_tiles = 1, band_chunk_tiles(out_hw)
         self.col_kinds = [self.kind(1, t) for t in range(self.tiles[1])]
 
     def kind(self, dim: int, t: int) -> RowKind:
@@ -207,6 +281,41 @@ class TileGrid:
             else:
                 first_row = (Affine.of("tc") + start) * size
                 out.append(Loop("tc", stop - start, chunk(n, first_row, rows)))
+        return tuple(out)
+
+    def band_row(self, row: Affine, chunk) -> tuple[Stmt, ...]:
+        """chunk(tile row, its kind, first tile column, kinds of its columns) for every chunk of the
+        tile row `row` (an affine of the band loops): one guarded copy per run of alike tile rows, as
+        which row a band reaches is known only at run time (rows outside the output: none); along
+        the row, runs of alike chunks share one loop."""
+        size, out = self.chunk_tiles, []
+        columns = range(self.tiles[1])
+        kinds = [tuple(self.col_kinds[k : k + size]) for k in range(0, len(columns), size)]
+        for row_start, row_stop, kind in runs(self.tiles[0], lambda r: self.kind(0, r)):
+            body: list[Stmt] = []
+            for start, stop, cols in runs(len(kinds), kinds.__getitem__):
+                if stop - start == 1:
+                    body.extend(chunk(row, kind, Affine.of(start * size), cols))
+                else:
+                    first_col = (Affine.of("tk") + start) * size
+                    body.append(Loop("tk", stop - start, chunk(row, kind, first_col, cols)))
+            out.append(If((Bound(row, row_start, row_stop),), tuple(body)))
+        return tuple(out)
+
+    def row_transform(self, row, row_flags, first_col, cols, side, channel, body) -> tuple[Stmt, ...]:
+        """body(TileAt, row flags, column flags) over a band chunk's tiles (one tile row from column
+        first_col) and channels, one loop nest per run of alike columns."""
+        flags = [(kind.reads, kind.writes)[side] for kind in cols]
+        out: list[Stmt] = []
+        for col_start, col_stop, col_flags in runs(len(flags), flags.__getitem__):
+            loops = [("tw", col_stop - col_start), channel]
+
+            def inner(env, col_start=col_start, col_flags=col_flags):
+                tile = env["tw"] + col_start
+                at = TileAt(Affine(), row, first_col + tile, tile, env[channel[0]])
+                return body(at, row_flags, col_flags)
+
+            out.extend(nest(loops, inner, parallel=True))
         return tuple(out)
 
     def transform(self, n, first_row, rows, side, channel, body) -> tuple[Stmt, ...]:
