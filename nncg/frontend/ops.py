@@ -39,6 +39,7 @@ from nncg.frontend.ops_nn import (
     convert_softmax,
 )
 from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
+from nncg.frontend.ops_qbinary import convert_qlinear_add, convert_qlinear_mul
 from nncg.frontend.ops_qconcat import convert_qlinear_concat
 from nncg.frontend.ops_qlookup import (
     convert_qlinear_hard_swish,
@@ -46,12 +47,10 @@ from nncg.frontend.ops_qlookup import (
     convert_qlinear_sigmoid,
     convert_qlinear_tanh,
 )
-from nncg.frontend.ops_qmul import convert_qlinear_mul
 from nncg.frontend.ops_qsoftmax import convert_qlinear_softmax
 from nncg.frontend.ops_quantized import (
     convert_dequantize_linear,
     convert_qgemm,
-    convert_qlinear_add,
     convert_qlinear_average_pool,
     convert_qlinear_conv,
     convert_qlinear_global_average_pool,

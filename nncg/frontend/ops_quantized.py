@@ -12,7 +12,6 @@ from nncg.frontend.ops_nn import conv_geometry
 from nncg.frontend.windows import checked_pool_output_shape, pool_attrs
 from nncg.ir.graph import (
     Node,
-    QAddAttrs,
     QAveragePoolAttrs,
     QConvAttrs,
     QDenseAttrs,
@@ -183,23 +182,6 @@ def convert_qgemm(op: OnnxOp, ctx: Context) -> Node:
             "has transA, alpha other than 1 or a float output; NNCG takes QGemm with transA=0, alpha=1, y_scale"
         )
     return _dense(op, ctx, 3, bool(op.attr("transB", 0)), 6, 7)
-
-
-def convert_qlinear_add(op: OnnxOp, ctx: Context) -> Node:
-    """onnxruntime's QLinearAdd: A, A_scale, A_zero_point, B, B_scale, B_zero_point, C_scale, C_zero_point."""
-    a, b = op.input(0), op.input(3)
-    if ctx.shape(a) != ctx.shape(b) or ctx.const(a) is not None or ctx.const(b) is not None:
-        raise op.error(
-            "adds tensors of different shapes or a constant; NNCG's integer Add takes two computed tensors of one shape"
-        )
-    a_scale, a_zero, a_dtype = quantization(op, ctx, 1, "first input")
-    b_scale, b_zero, b_dtype = quantization(op, ctx, 4, "second input")
-    y_scale, y_zero, y_dtype = quantization(op, ctx, 6, "output")
-    if len({a_dtype, b_dtype, y_dtype}) != 1:
-        raise op.error("mixes int8 and uint8; QLinearAdd's inputs and output have one type")
-    ctx.set_shape(op, op.node.output[0], ctx.shape(a))
-    attrs = QAddAttrs(a_scale, a_zero, b_scale, b_zero, y_scale, requantization(op, ctx, y_scale, y_zero, y_dtype))
-    return op.ir_node("QLinearAdd", [a, b], attrs)
 
 
 def convert_qlinear_average_pool(op: OnnxOp, ctx: Context) -> Node:

@@ -220,27 +220,24 @@ def _matmul(model: _Model, matmul: onnx.NodeProto):
     return _fused(model, _node("QLinearMatMul", inputs, q.output[0], matmul), q, clamps)
 
 
-def _add(model: _Model, add: onnx.NodeProto):
-    a, b = (model.live_dq(i) for i in add.input)
-    out = _q_output(model, add)
-    shapes = model.folded.shapes
-    if a is None or b is None or out is None or shapes.get(add.input[0]) != shapes.get(add.input[1]):
-        return None  # a broadcast Add stays a float Add between explicit (de)quantise layers
-    q, clamps = out
-    inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
-    return _fused(model, _node("QLinearAdd", inputs, q.output[0], add, CONTRIB), q, clamps)
-
-
-def _mul(model: _Model, mul: onnx.NodeProto):
-    """A Mul of two DequantizeLinear outputs (or one and a constant folded from one), broadcast."""
-    operands = [model.live_dq(i) or _dequantized_per_tensor(model, i) for i in mul.input]
-    out = _q_output(model, mul)
+def _binary(model: _Model, node: onnx.NodeProto, qlinear_op: str):
+    """An Add or Mul of two DequantizeLinear outputs (or one and a constant folded from one), broadcast."""
+    operands = [model.live_dq(i) or _dequantized_per_tensor(model, i) for i in node.input]
+    out = _q_output(model, node)
     if None in operands or out is None:
         return None
     q, clamps = out
     a, b = operands
     inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
-    return _fused(model, _node("QLinearMul", inputs, q.output[0], mul, CONTRIB), q, clamps)
+    return _fused(model, _node(qlinear_op, inputs, q.output[0], node, CONTRIB), q, clamps)
+
+
+def _add(model: _Model, add: onnx.NodeProto):
+    return _binary(model, add, "QLinearAdd")
+
+
+def _mul(model: _Model, mul: onnx.NodeProto):
+    return _binary(model, mul, "QLinearMul")
 
 
 def _concat(model: _Model, concat: onnx.NodeProto):

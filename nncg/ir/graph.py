@@ -353,22 +353,10 @@ class QDenseAttrs:
 
 
 @dataclass(frozen=True)
-class QAddAttrs:
-    """QLinearAdd of two tensors of one shape: (a_scale (a - a_zp) + b_scale (b - b_zp)) / y_scale
-    + y_zp, computed as onnxruntime's x86 kernel does (lowering/quantized_add.py)."""
-
-    a_scale: float
-    a_zero_point: int
-    b_scale: float
-    b_zero_point: int
-    y_scale: float
-    out: Requantization
-
-
-@dataclass(frozen=True)
-class QMulAttrs:
-    """QLinearMul of two tensors, NumPy-broadcast: (a - a_zp) (b - b_zp) a_scale b_scale / y_scale
-    + y_zp, computed as onnxruntime's x86 kernel does (lowering/quantized_mul.py)."""
+class QBinaryAttrs:
+    """QLinearAdd and QLinearMul of two tensors, NumPy-broadcast: a_scale (a - a_zp) + b_scale (b - b_zp),
+    or the product (a - a_zp) (b - b_zp) a_scale b_scale, over y_scale plus y_zp, computed as
+    onnxruntime's x86 kernels do (lowering/quantized_add.py, lowering/quantized_mul.py)."""
 
     a_scale: float
     a_zero_point: int
@@ -436,7 +424,7 @@ AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
     SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs, QuantAttrs, QConvAttrs,
-    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs, QMulAttrs,
+    QDenseAttrs, QBinaryAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs,
 ]  # fmt: skip
 
 

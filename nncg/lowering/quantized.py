@@ -23,10 +23,15 @@ INT32, FLOAT32 = DType.INT32, DType.FLOAT32
 FOLD_MIN_CHANNELS = 4
 
 
+def centred(value: Expr, zero_point: int = 0) -> Expr:
+    """An 8-bit value as int32, minus its zero point."""
+    widened_value: Expr = Cast(INT32, value)
+    return Binary("-", widened_value, Const.integer(zero_point)) if zero_point else widened_value
+
+
 def widened(ref: TensorRef, index, zero_point: int = 0) -> Expr:
     """ref[index] as int32, minus its zero point."""
-    value: Expr = Cast(INT32, Load(ref.buffer, ref.at(index)))
-    return Binary("-", value, Const.integer(zero_point)) if zero_point else value
+    return centred(Load(ref.buffer, ref.at(index)), zero_point)
 
 
 def accumulate(product: Expr) -> Assign:
