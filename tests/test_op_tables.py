@@ -32,9 +32,6 @@ README = Path(__file__).resolve().parent.parent / "README.md"
 
 # Parameter inputs the adapter binds that no converter reads: Dropout's ratio (inference ignores it).
 BOUND_BUT_UNREAD = {("Dropout", 1)}
-# A record lists fixed slots; QLinearConcat's inputs are y_scale, y_zero_point, then x, x_scale,
-# x_zero_point per input, so which slots are its scales and zero points is checked here.
-VARIADIC_PARAMETERS = {"QLinearConcat": lambda slot: slot < 2 or slot % 3 != 2}
 
 
 def test_every_ir_op_has_a_lowering_and_every_lowering_an_ir_op() -> None:
@@ -105,12 +102,11 @@ def test_converters_yield_their_ir_ops_and_read_only_their_parameter_inputs(monk
             pass
     assert dict(yielded) == {name: set(op.ir_ops) for name, op in ONNX_OPS.items()}
     for name, op in ONNX_OPS.items():
-        if name in VARIADIC_PARAMETERS:
-            assert all(map(VARIADIC_PARAMETERS[name], read[name])), f"{name} reads constants at data slots"
-            continue
-        assert read[name] <= set(op.parameter_inputs), f"{name} reads constants at slots missing from its record"
+        assert all(map(op.is_parameter, read[name])), f"{name} reads constants at slots missing from its record"
     unread = {(n, i) for n, op in ONNX_OPS.items() for i in op.parameter_inputs if i not in read[n]}
     assert unread == BOUND_BUT_UNREAD
+    repeated = {n: op.repeated_parameters for n, op in ONNX_OPS.items() if op.repeated_parameters}
+    assert all(any(i in slots for i in read[n] if i >= slots.start) for n, slots in repeated.items())
 
 
 def _conformance_models() -> Iterator[onnx.ModelProto]:

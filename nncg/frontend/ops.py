@@ -85,14 +85,34 @@ UNARY_ACTIVATIONS = (
 
 
 @dataclass(frozen=True)
+class RepeatedSlots:
+    """The parameter slots of a variadic op's repeated inputs: from slot `start` on, the inputs come
+    in groups of `period`, and the ones at `offsets` within each group are parameters."""
+
+    start: int
+    period: int
+    offsets: tuple[int, ...]
+
+    def __contains__(self, slot: int) -> bool:
+        return slot >= self.start and (slot - self.start) % self.period in self.offsets
+
+
+@dataclass(frozen=True)
 class ConvertedOp:
     """An ONNX op the front end converts: its converter, the graph IR ops (nncg/ir/ops.py) that
     converter can yield, and the input slots it reads as compile-time constants (operator
-    parameters such as shapes, axes and pads; not weights, which may be runtime values)."""
+    parameters such as shapes, axes and pads; not weights, which may be runtime values): the fixed
+    ones, and those among a variadic op's repeated inputs."""
 
     convert: Converter
     ir_ops: tuple[str, ...]
     parameter_inputs: tuple[int, ...] = ()
+    repeated_parameters: RepeatedSlots | None = None
+
+    def is_parameter(self, slot: int) -> bool:
+        return slot in self.parameter_inputs or (
+            self.repeated_parameters is not None and slot in self.repeated_parameters
+        )
 
 
 ONNX_OPS: dict[str, ConvertedOp] = {
@@ -178,7 +198,10 @@ ONNX_OPS: dict[str, ConvertedOp] = {
         convert_qlinear_global_average_pool, ("QLinearGlobalAveragePool",), (1, 2, 3, 4)
     ),
     "QLinearSoftmax": ConvertedOp(convert_qlinear_softmax, ("QLinearSoftmax",), (1, 2, 3, 4)),
-    "QLinearConcat": ConvertedOp(convert_qlinear_concat, ("QLinearLookup", "Concat")),
+    # y_scale, y_zero_point, then x, x_scale, x_zero_point per input
+    "QLinearConcat": ConvertedOp(
+        convert_qlinear_concat, ("QLinearLookup", "Concat"), (0, 1), RepeatedSlots(start=2, period=3, offsets=(1, 2))
+    ),
     "QLinearMul": ConvertedOp(convert_qlinear_mul, ("QLinearMul",), (1, 2, 4, 5, 6, 7)),
     "QLinearLeakyRelu": ConvertedOp(convert_qlinear_leaky_relu, ("QLinearLookup",), (1, 2, 3, 4)),
     "QLinearSigmoid": ConvertedOp(convert_qlinear_sigmoid, ("QLinearLookup",), (1, 2, 3, 4)),
