@@ -10,9 +10,11 @@ from __future__ import annotations
 import numpy as np
 import onnx
 import pytest
+from cross_helpers import TOOLCHAINS, missing_tools, runner
 from helpers import kernel_ops, onnx_model, skip_unless_host_runs
-from int8_models import onnxruntime_outputs
+from int8_models import broadcast_add_model, compare, onnxruntime_outputs, quantized, random_feeds
 from onnx import helper
+from test_cross_targets import require
 
 import nncg
 from nncg.verify import run_compiled
@@ -87,8 +89,9 @@ def contrib_model(activations: str, shapes: str, params: dict[str, np.ndarray] |
     return model
 
 
-def check(model: onnx.ModelProto, target: str = "ansi-c", feeds_list=None) -> None:
-    skip_unless_host_runs(target)
+def check(model: onnx.ModelProto, target: str = "ansi-c", feeds_list=None, **run) -> None:
+    if not run:
+        skip_unless_host_runs(target)
     compiled = nncg.compile(model, target=target, verify_ir=True)
     assert "QLinearAdd" in kernel_ops(compiled)
     rng = np.random.default_rng(9)
@@ -100,7 +103,7 @@ def check(model: onnx.ModelProto, target: str = "ansi-c", feeds_list=None) -> No
         ]
     for feeds in feeds_list:
         expected = onnxruntime_outputs(model, feeds)[0]
-        ours = run_compiled(compiled, list(feeds.values()))[0].reshape(expected.shape)
+        ours = run_compiled(compiled, list(feeds.values()), **run)[0].reshape(expected.shape)
         np.testing.assert_array_equal(ours, expected)
 
 
@@ -135,7 +138,27 @@ def test_every_pair_of_values_with_a_contracted_constant():
     check(contrib_model("uint8", ((1, 65536), (1, 65536)), params), feeds_list=[feeds])
 
 
-@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512"])
+@pytest.mark.parametrize("activations", ["uint8", "int8"])
+@pytest.mark.parametrize("average_first", [False, True])
+def test_conv_plus_its_global_average_either_way(activations, average_first):
+    """quantize_static's QDQ model of a Conv and its GlobalAveragePool added (the average broadcast,
+    as the second operand or the first): every element of onnxruntime's result."""
+    float_model = broadcast_add_model(average_first=average_first, channels=16, size=12)
+    model = quantized(float_model, activations)
+    compiled = nncg.compile(model, verify_ir=True)
+    assert "QLinearAdd" in kernel_ops(compiled)
+    result = compare(model, compiled, random_feeds(float_model, 4, 3))
+    assert result.max_steps == 0 and result.identical == 1.0, result
+
+
+@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512", "avx512vnni"])
 @pytest.mark.parametrize("shapes", ["same", "channels", "first_channels"])
 def test_simd_targets(target, shapes):
     check(qdq_model("int8", shapes), target)
+
+
+@pytest.mark.parametrize("toolchain", ["aarch64-neon", "armhf-neon"])
+def test_neon_under_qemu(toolchain):
+    tc = TOOLCHAINS[toolchain]
+    require(missing_tools(tc))
+    check(qdq_model("uint8", "first_channels"), "neon", cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
