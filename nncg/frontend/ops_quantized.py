@@ -88,22 +88,30 @@ def convert_dequantize_linear(op: OnnxOp, ctx: Context) -> Node:
 def integer_weights(op: OnnxOp, ctx: Context, slot: int, channels: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
     """The weights (constant, int8 or uint8; minus their zero points, as int16, unless those are
     all 0) and their scales, one per output channel along `axis`."""
+    w = centred_weights(op, ctx, slot, slot + 2, channels, axis)
+    scale = ctx.constant_input(op, slot + 1, "weight scale", QUANTIZATION_HINT)
+    if scale.size not in (1, channels):
+        raise op.error(f"has {scale.size} weight scales for {channels} output channels; give one or one per channel")
+    return w, np.broadcast_to(scale.astype(F32).reshape(-1), (channels,))
+
+
+def centred_weights(op: OnnxOp, ctx: Context, slot: int, zero_slot: int, channels: int, axis: int) -> np.ndarray:
+    """The constant int8 or uint8 weights at `slot` minus their zero points (at `zero_slot`, one or
+    one per output channel along `axis`), as int16; as they are where they are int8 and those all 0."""
     w = ctx.const(op.input(slot))
     if w is None:
         raise op.error("has its weights computed at run time; NNCG's integer kernels take constant weights")
-    scale = ctx.constant_input(op, slot + 1, "weight scale", QUANTIZATION_HINT)
-    zero = ctx.constant_input(op, slot + 2, "weight zero point", QUANTIZATION_HINT) if op.input(slot + 2) else None
+    zero = ctx.constant_input(op, zero_slot, "weight zero point", QUANTIZATION_HINT) if op.input(zero_slot) else None
     if w.dtype not in (np.int8, np.uint8):
         raise op.error(f"has weights of type {w.dtype.name}; NNCG takes int8 and uint8")
-    if scale.size not in (1, channels) or (zero is not None and zero.size not in (1, channels)):
-        raise op.error(f"has {scale.size} weight scales for {channels} output channels; give one or one per channel")
+    if zero is not None and zero.size not in (1, channels):
+        raise op.error(f"has {zero.size} weight zero points for {channels} output channels; give one or one each")
     shape = [1] * w.ndim
     shape[axis] = -1
     zero = np.zeros(1, np.int16) if zero is None else zero.astype(np.int16).reshape(-1)
     if w.dtype == np.int8 and not zero.any():
-        return w, np.broadcast_to(scale.astype(F32).reshape(-1), (channels,))
-    shifted = w.astype(np.int16) - np.broadcast_to(zero, (channels,)).reshape(shape)
-    return shifted.astype(np.int16), np.broadcast_to(scale.astype(F32).reshape(-1), (channels,))
+        return w
+    return (w.astype(np.int16) - np.broadcast_to(zero, (channels,)).reshape(shape)).astype(np.int16)
 
 
 def multipliers(x_scale: float, w_scales: np.ndarray, y_scale: float) -> np.ndarray:

@@ -7,7 +7,9 @@ computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, and in onn
 com.microsoft domain Gemm QGemm, Add QLinearAdd, Mul QLinearMul, Concat QLinearConcat,
 GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool, Softmax QLinearSoftmax,
 LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid; HardSwish and Tanh become NNCG's own
-QLinearHardSwish and QLinearTanh (these four are table lookups, see ops_qlookup.py).
+QLinearHardSwish and QLinearTanh (these four are table lookups, see ops_qlookup.py). A ConvInteger or MatMulInteger
+dequantised by a Cast to float32, a Mul by a constant and possibly an Add of one becomes one node
+(ops_integer.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
 is monotonic, so clamping before it is clamping its result; the real bounds travel beside the nodes
 (QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten,
@@ -252,6 +254,34 @@ def _concat(model: _Model, concat: onnx.NodeProto):
     return _node("QLinearConcat", inputs, q.output[0], concat, CONTRIB), [q]
 
 
+def _integer_product(model: _Model, node: onnx.NodeProto):
+    """A ConvInteger or MatMulInteger whose int32 result only a Cast to float32 reads, and that only
+    a Mul by a constant (and that, possibly, only an Add of a constant): the op in NNCG's domain with
+    two more inputs (the Mul's constant, the Add's or ""), which computes the float32 result in its
+    kernel's store, so that no int32 tensor is written."""
+    cast = model.sole_reader(node.output[0], "Cast")
+    to = next((a.i for a in cast.attribute if a.name == "to"), None) if cast is not None else None
+    mul = model.sole_reader(cast.output[0], "Mul") if to == onnx.TensorProto.FLOAT else None
+    scale = _other_constant(model, mul, cast.output[0]) if mul is not None else None
+    if scale is None:
+        return None
+    last, removed, bias = mul, [cast, mul], ""
+    add = model.sole_reader(mul.output[0], "Add")
+    if add is not None and _other_constant(model, add, mul.output[0]) is not None:
+        last, removed, bias = add, [cast, mul, add], _other_constant(model, add, mul.output[0])
+    inputs = [*node.input, *[""] * (4 - len(node.input)), scale, bias]
+    return _node(node.op_type, inputs, last.output[0], node, NNCG_DOMAIN), removed
+
+
+def _other_constant(model: _Model, node: onnx.NodeProto, value: str) -> str | None:
+    """The input of a two-input `node` other than `value`, if it is a float32 constant."""
+    others = [i for i in node.input if i != value]
+    if len(node.input) != 2 or len(others) != 1:
+        return None
+    constant = model.const(others[0])
+    return others[0] if constant is not None and constant.dtype == np.float32 else None
+
+
 def _zero_point_type(model: _Model, node: onnx.NodeProto):
     zero = model.const(_quantize_params(node)[1])
     return np.dtype(np.uint8) if zero is None else zero.dtype
@@ -382,4 +412,6 @@ REWRITES: dict[str, Callable] = {
     **dict.fromkeys(PASS_THROUGH, _pass_through),
     "Pad": _pad,
     "Resize": _resize,
+    "ConvInteger": _integer_product,
+    "MatMulInteger": _integer_product,
 }

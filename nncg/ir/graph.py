@@ -353,6 +353,33 @@ class QDenseAttrs:
 
 
 @dataclass(frozen=True)
+class IntegerConvAttrs:
+    """ConvInteger dequantised in its store (frontend/qdq.py's ConvIntegerScaled): inputs x
+    (int8/uint8), w (as QConvAttrs's), b [C_out] (int32 constant: 0, or the zero point folded in),
+    scale [C_out] and, when `biased`, bias [C_out] (float32 constants). The result is
+    float32(b + sum (x - x_zero_point) * w) * scale (+ bias), each step rounded to float32 as
+    onnxruntime's Cast, Mul and Add round it."""
+
+    kernel: Shape
+    strides: Shape
+    dilations: Shape
+    pads_begin: Shape
+    pads_end: Shape
+    group: int
+    x_zero_point: int
+    biased: bool
+
+
+@dataclass(frozen=True)
+class IntegerDenseAttrs:
+    """MatMulInteger dequantised in its store: x [M, K], w [K, N], b, scale and bias [N], as
+    IntegerConvAttrs's."""
+
+    x_zero_point: int
+    biased: bool
+
+
+@dataclass(frozen=True)
 class QBinaryAttrs:
     """QLinearAdd and QLinearMul of two tensors, NumPy-broadcast: a_scale (a - a_zp) + b_scale (b - b_zp),
     or the product (a - a_zp) (b - b_zp) a_scale b_scale, over y_scale plus y_zp, computed as
@@ -424,7 +451,8 @@ AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
     SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs, QuantAttrs, QConvAttrs,
-    QDenseAttrs, QBinaryAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs,
+    QDenseAttrs, QBinaryAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs, IntegerConvAttrs,
+    IntegerDenseAttrs,
 ]  # fmt: skip
 
 

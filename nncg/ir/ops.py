@@ -18,6 +18,8 @@ from .graph import (
     DenseAttrs,
     GatherAttrs,
     Graph,
+    IntegerConvAttrs,
+    IntegerDenseAttrs,
     LrnAttrs,
     Node,
     NormAttrs,
@@ -168,4 +170,6 @@ IR_OPS: dict[str, IrOp] = {
     "QLinearSoftmax": IrOp(QSoftmaxAttrs, no_macs),
     "QLinearLookup": IrOp(QLookupAttrs, no_macs),
     "QLinearMul": IrOp(QBinaryAttrs, no_macs),
+    "ConvInteger": IrOp(IntegerConvAttrs, conv_macs),
+    "MatMulInteger": IrOp(IntegerDenseAttrs, q_dense_macs),
 }
