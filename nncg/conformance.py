@@ -42,7 +42,7 @@ INTEGER_IO = (
 )
 EXCLUDED: dict[str, str] = {
     # --- dtypes and types: NNCG's inputs, outputs and arithmetic are float32 tensors ---------------
-    r"test_(de)?quantizelinear(_.*)?|test_qlinear(conv|matmul)(_.*)?": INTEGER_IO,
+    r"test_(de)?quantizelinear(_.*)?|test_qlinear(conv|matmul)(_.*)?|test_(conv|matmul)integer(_.*)?": INTEGER_IO,
     r"test_.*_(double|float64)(_.*)?": f"float64 tensors: {_F32}",
     r"test_.*_(float16|bfloat16)(_.*)?": f"float16 tensors: {_F32}",
     # (a float32 base to an integer exponent, a constant, computes in float32: those Pow cases run)

@@ -179,16 +179,18 @@ def add_model(seed: int = 4) -> onnx.ModelProto:
     return _model(nodes, [1, 4, 8, 8], init)
 
 
-def broadcast_add_model(seed: int = 7) -> onnx.ModelProto:
-    """A Conv plus its own global average (an Add that broadcasts, which stays float between explicit
-    DequantizeLinear and QuantizeLinear layers, as in onnxruntime)."""
+def broadcast_add_model(
+    seed: int = 7, average_first: bool = False, channels: int = 2, size: int = 4
+) -> onnx.ModelProto:
+    """A Conv plus its own global average (an Add that broadcasts: onnxruntime's QLinearAdd), the
+    average the second operand or the first."""
     rng = np.random.default_rng(seed)
     nodes = [
         helper.make_node("Conv", ["x", "w"], ["c"]),
         helper.make_node("GlobalAveragePool", ["c"], ["g"]),
-        helper.make_node("Add", ["c", "g"], ["y"]),
+        helper.make_node("Add", ["g", "c"] if average_first else ["c", "g"], ["y"]),
     ]
-    return _model(nodes, [1, 2, 4, 4], {"w": _weights(rng, 3, 2, 1, 1)})
+    return _model(nodes, [1, channels, size, size], {"w": _weights(rng, channels + 1, channels, 1, 1)})
 
 
 def average_pool_model(seed: int = 5, whole_image: bool = False) -> onnx.ModelProto:

@@ -10,7 +10,7 @@ from helpers import compile_and_check, onnx_model
 from onnx import TensorProto, helper
 
 import nncg
-from nncg.errors import UnsupportedOpsError
+from nncg.errors import NncgError, UnsupportedOpsError
 
 RNG = np.random.default_rng(7)
 C_OUT, C_IN = 8, 4
@@ -45,7 +45,8 @@ def test_uint8_weights_per_channel_on_vector_targets(target):
     compile_and_check(dequantized_conv(13, True, np.uint8), target)
 
 
-def test_integer_ops_without_a_kernel_are_refused_by_name():
+def test_integer_ops_writing_int32_tensors_are_refused_by_name():
+    """A MatMulInteger whose int32 result a Cast to float32 reads but no Mul by a scale follows."""
     nodes = [
         helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
         helper.make_node("MatMulInteger", ["q", "w"], ["i"]),
@@ -54,7 +55,7 @@ def test_integer_ops_without_a_kernel_are_refused_by_name():
     init = {"s": np.float32(0.1), "z": np.uint8(0), "w": np.ones((3, 2), np.uint8)}
     model = onnx_model(nodes, inputs={"x": (2, 3)}, initializers=init)
     with pytest.raises(
-        UnsupportedOpsError, match=r"int8 with MatMulInteger, whose int32 output tensors NNCG does not compile"
+        NncgError, match=r"MatMulInteger \(node .*\) writes an int32 tensor, which NNCG does not compile"
     ):
         nncg.compile(model)
 

@@ -83,7 +83,7 @@ def test_generator_covers_every_operator_and_attribute():
                 )
     # The fuzzer draws float models, checked to a float tolerance; the int8 operators are checked to the
     # bit by tests/test_int8*.py instead.
-    int8_modules = ("ops_quantized", "ops_qsoftmax", "ops_qlookup", "ops_qmul", "ops_qconcat")
+    int8_modules = ("ops_quantized", "ops_qsoftmax", "ops_qlookup", "ops_qbinary", "ops_qconcat", "ops_integer")
     int8 = {name for name, convert in CONVERTERS.items() if convert.__module__.split(".")[-1] in int8_modules}
     supported = set(CONVERTERS) - {"Constant"} - int8
     assert supported <= set(seen_ops), f"never generated: {sorted(supported - set(seen_ops))}"

@@ -15,6 +15,7 @@ import pytest
 from int8_models import average_pool_model, quantized, residual_model, softmax_head_model
 from onnx import TensorProto, helper, numpy_helper
 from test_int8_concat import contrib_model as concat_contrib_model
+from test_int8_integer_ops import integer_model
 from test_int8_lookup import contrib_model as lookup_contrib_model
 from test_int8_lookup import qdq_model as lookup_qdq_model
 from test_int8_mul import contrib_model as mul_contrib_model
@@ -32,9 +33,6 @@ README = Path(__file__).resolve().parent.parent / "README.md"
 
 # Parameter inputs the adapter binds that no converter reads: Dropout's ratio (inference ignores it).
 BOUND_BUT_UNREAD = {("Dropout", 1)}
-# A record lists fixed slots; QLinearConcat's inputs are y_scale, y_zero_point, then x, x_scale,
-# x_zero_point per input, so which slots are its scales and zero points is checked here.
-VARIADIC_PARAMETERS = {"QLinearConcat": lambda slot: slot < 2 or slot % 3 != 2}
 
 
 def test_every_ir_op_has_a_lowering_and_every_lowering_an_ir_op() -> None:
@@ -105,12 +103,11 @@ def test_converters_yield_their_ir_ops_and_read_only_their_parameter_inputs(monk
             pass
     assert dict(yielded) == {name: set(op.ir_ops) for name, op in ONNX_OPS.items()}
     for name, op in ONNX_OPS.items():
-        if name in VARIADIC_PARAMETERS:
-            assert all(map(VARIADIC_PARAMETERS[name], read[name])), f"{name} reads constants at data slots"
-            continue
-        assert read[name] <= set(op.parameter_inputs), f"{name} reads constants at slots missing from its record"
+        assert all(map(op.is_parameter, read[name])), f"{name} reads constants at slots missing from its record"
     unread = {(n, i) for n, op in ONNX_OPS.items() for i in op.parameter_inputs if i not in read[n]}
     assert unread == BOUND_BUT_UNREAD
+    repeated = {n: op.repeated_parameters for n, op in ONNX_OPS.items() if op.repeated_parameters}
+    assert all(any(i in slots for i in read[n] if i >= slots.start) for n, slots in repeated.items())
 
 
 def _conformance_models() -> Iterator[onnx.ModelProto]:
@@ -161,6 +158,9 @@ def _int8_models() -> Iterator[onnx.ModelProto]:
         yield lookup_contrib_model(op, "uint8")
     yield mul_contrib_model("uint8", "same")
     yield concat_contrib_model("uint8")
+    # ConvInteger and MatMulInteger with the Cast, Mul and Add that qdq.py fuses into them
+    for op in ("ConvInteger", "MatMulInteger"):
+        yield integer_model(op)
 
 
 def _model(nodes: list[onnx.NodeProto], initializers: list[onnx.TensorProto], opset: int) -> onnx.ModelProto:

@@ -17,7 +17,8 @@ from nncg.frontend.folding import Folded, NamedNode, fold_constants
 from nncg.frontend.load import ModelSource, load_with_shapes, opset_version, real_inputs
 from nncg.frontend.names import node_reads, value_names
 from nncg.frontend.ops import CONVERTERS, FOLDED_OPS, SUPPORTED_OPS
-from nncg.frontend.qdq import QdqNotes, fuse_qdq
+from nncg.frontend.ops_integer import INT32_RESULT
+from nncg.frontend.qdq import NNCG_DOMAIN, QdqNotes, fuse_qdq
 from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
 from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, TYPE_PRESERVING, float_ops_reading_integers, output_dtype
@@ -44,11 +45,9 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
     return graph
 
 
-# Integer operators with int32 output tensors, refused by name: an int32 tensor would have to live in
-# memory (the verifier keeps int16/int32 in locals), and these usually come with dynamic quantisation
-# (scales computed per inference), which never will be in generated C.
-QUANTIZED_OPS = {"ConvInteger", "MatMulInteger"}
 DYNAMIC_QUANTIZATION = "DynamicQuantizeLinear"
+# Taken only as qdq.py fuses them with the Cast, Mul and Add that dequantise their int32 result.
+INTEGER_PRODUCTS = ("ConvInteger", "MatMulInteger")
 
 
 def check_supported(nodes: list[NamedNode]) -> None:
@@ -60,14 +59,10 @@ def check_supported(nodes: list[NamedNode]) -> None:
             "the model is dynamically quantised (DynamicQuantizeLinear computes scales at run time), which "
             "NNCG does not compile: compile the float model instead"
         )
-    if types & QUANTIZED_OPS:
-        found = ", ".join(sorted(types & QUANTIZED_OPS))
-        raise UnsupportedOpsError(
-            f"the model computes in int8 with {found}, whose int32 output tensors NNCG does not compile (its "
-            "int32 values live in registers only): quantize the float model statically with "
-            "onnxruntime.quantization.quantize_static (QDQ, or QOperator: QLinearConv, QLinearMatMul), or "
-            "compile the float model"
-        )
+    unfused = [(node, name) for node, name in nodes if node.op_type in INTEGER_PRODUCTS and node.domain != NNCG_DOMAIN]
+    if unfused:
+        node, name = unfused[0]
+        raise UnsupportedOpsError(f"{node.op_type} (node {shown(name)}) {INT32_RESULT}")
     if bad:
         raise UnsupportedOpsError(
             f"unsupported operators: {', '.join(bad)}; NNCG supports {', '.join(SUPPORTED_OPS)} "

@@ -26,6 +26,7 @@ from nncg.frontend.ops_elementwise import (
     convert_variadic,
     convert_where,
 )
+from nncg.frontend.ops_integer import convert_conv_integer, convert_matmul_integer
 from nncg.frontend.ops_linear import convert_binary, convert_gemm, convert_matmul
 from nncg.frontend.ops_nn import (
     convert_averagepool,
@@ -39,6 +40,7 @@ from nncg.frontend.ops_nn import (
     convert_softmax,
 )
 from nncg.frontend.ops_norm import convert_group_norm, convert_instance_norm, convert_layer_norm
+from nncg.frontend.ops_qbinary import convert_qlinear_add, convert_qlinear_mul
 from nncg.frontend.ops_qconcat import convert_qlinear_concat
 from nncg.frontend.ops_qlookup import (
     convert_qlinear_hard_swish,
@@ -46,12 +48,10 @@ from nncg.frontend.ops_qlookup import (
     convert_qlinear_sigmoid,
     convert_qlinear_tanh,
 )
-from nncg.frontend.ops_qmul import convert_qlinear_mul
 from nncg.frontend.ops_qsoftmax import convert_qlinear_softmax
 from nncg.frontend.ops_quantized import (
     convert_dequantize_linear,
     convert_qgemm,
-    convert_qlinear_add,
     convert_qlinear_average_pool,
     convert_qlinear_conv,
     convert_qlinear_global_average_pool,
@@ -86,14 +86,34 @@ UNARY_ACTIVATIONS = (
 
 
 @dataclass(frozen=True)
+class RepeatedSlots:
+    """The parameter slots of a variadic op's repeated inputs: from slot `start` on, the inputs come
+    in groups of `period`, and the ones at `offsets` within each group are parameters."""
+
+    start: int
+    period: int
+    offsets: tuple[int, ...]
+
+    def __contains__(self, slot: int) -> bool:
+        return slot >= self.start and (slot - self.start) % self.period in self.offsets
+
+
+@dataclass(frozen=True)
 class ConvertedOp:
     """An ONNX op the front end converts: its converter, the graph IR ops (nncg/ir/ops.py) that
     converter can yield, and the input slots it reads as compile-time constants (operator
-    parameters such as shapes, axes and pads; not weights, which may be runtime values)."""
+    parameters such as shapes, axes and pads; not weights, which may be runtime values): the fixed
+    ones, and those among a variadic op's repeated inputs."""
 
     convert: Converter
     ir_ops: tuple[str, ...]
     parameter_inputs: tuple[int, ...] = ()
+    repeated_parameters: RepeatedSlots | None = None
+
+    def is_parameter(self, slot: int) -> bool:
+        return slot in self.parameter_inputs or (
+            self.repeated_parameters is not None and slot in self.repeated_parameters
+        )
 
 
 ONNX_OPS: dict[str, ConvertedOp] = {
@@ -168,6 +188,9 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     # QLinearLeakyRelu and QLinearSigmoid are onnxruntime's (com.microsoft), and what QDQ groups become (qdq.py).
     "QuantizeLinear": ConvertedOp(convert_quantize_linear, ("QuantizeLinear",), (1, 2)),
     "DequantizeLinear": ConvertedOp(convert_dequantize_linear, ("DequantizeLinear",), (1, 2)),
+    # dequantised by Cast, Mul (and Add) that qdq.py fuses: x_zero_point, w_zero_point
+    "ConvInteger": ConvertedOp(convert_conv_integer, ("ConvInteger",), (2, 3)),
+    "MatMulInteger": ConvertedOp(convert_matmul_integer, ("MatMulInteger",), (2, 3)),
     "QLinearConv": ConvertedOp(convert_qlinear_conv, ("QLinearConv",), (1, 2, 4, 5, 6, 7)),
     "QLinearMatMul": ConvertedOp(convert_qlinear_matmul, ("QLinearDense",), (1, 2, 4, 5, 6, 7)),
     "QGemm": ConvertedOp(convert_qgemm, ("QLinearDense",), (1, 2, 4, 5, 7, 8)),
@@ -179,7 +202,10 @@ ONNX_OPS: dict[str, ConvertedOp] = {
         convert_qlinear_global_average_pool, ("QLinearGlobalAveragePool",), (1, 2, 3, 4)
     ),
     "QLinearSoftmax": ConvertedOp(convert_qlinear_softmax, ("QLinearSoftmax",), (1, 2, 3, 4)),
-    "QLinearConcat": ConvertedOp(convert_qlinear_concat, ("QLinearLookup", "Concat")),
+    # y_scale, y_zero_point, then x, x_scale, x_zero_point per input
+    "QLinearConcat": ConvertedOp(
+        convert_qlinear_concat, ("QLinearLookup", "Concat"), (0, 1), RepeatedSlots(start=2, period=3, offsets=(1, 2))
+    ),
     "QLinearMul": ConvertedOp(convert_qlinear_mul, ("QLinearMul",), (1, 2, 4, 5, 6, 7)),
     "QLinearLeakyRelu": ConvertedOp(convert_qlinear_leaky_relu, ("QLinearLookup",), (1, 2, 3, 4)),
     "QLinearSigmoid": ConvertedOp(convert_qlinear_sigmoid, ("QLinearLookup",), (1, 2, 3, 4)),

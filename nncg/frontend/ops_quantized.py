@@ -12,7 +12,6 @@ from nncg.frontend.ops_nn import conv_geometry
 from nncg.frontend.windows import checked_pool_output_shape, pool_attrs
 from nncg.ir.graph import (
     Node,
-    QAddAttrs,
     QAveragePoolAttrs,
     QConvAttrs,
     QDenseAttrs,
@@ -89,22 +88,30 @@ def convert_dequantize_linear(op: OnnxOp, ctx: Context) -> Node:
 def integer_weights(op: OnnxOp, ctx: Context, slot: int, channels: int, axis: int) -> tuple[np.ndarray, np.ndarray]:
     """The weights (constant, int8 or uint8; minus their zero points, as int16, unless those are
     all 0) and their scales, one per output channel along `axis`."""
+    w = centred_weights(op, ctx, slot, slot + 2, channels, axis)
+    scale = ctx.constant_input(op, slot + 1, "weight scale", QUANTIZATION_HINT)
+    if scale.size not in (1, channels):
+        raise op.error(f"has {scale.size} weight scales for {channels} output channels; give one or one per channel")
+    return w, np.broadcast_to(scale.astype(F32).reshape(-1), (channels,))
+
+
+def centred_weights(op: OnnxOp, ctx: Context, slot: int, zero_slot: int, channels: int, axis: int) -> np.ndarray:
+    """The constant int8 or uint8 weights at `slot` minus their zero points (at `zero_slot`, one or
+    one per output channel along `axis`), as int16; as they are where they are int8 and those all 0."""
     w = ctx.const(op.input(slot))
     if w is None:
         raise op.error("has its weights computed at run time; NNCG's integer kernels take constant weights")
-    scale = ctx.constant_input(op, slot + 1, "weight scale", QUANTIZATION_HINT)
-    zero = ctx.constant_input(op, slot + 2, "weight zero point", QUANTIZATION_HINT) if op.input(slot + 2) else None
+    zero = ctx.constant_input(op, zero_slot, "weight zero point", QUANTIZATION_HINT) if op.input(zero_slot) else None
     if w.dtype not in (np.int8, np.uint8):
         raise op.error(f"has weights of type {w.dtype.name}; NNCG takes int8 and uint8")
-    if scale.size not in (1, channels) or (zero is not None and zero.size not in (1, channels)):
-        raise op.error(f"has {scale.size} weight scales for {channels} output channels; give one or one per channel")
+    if zero is not None and zero.size not in (1, channels):
+        raise op.error(f"has {zero.size} weight zero points for {channels} output channels; give one or one each")
     shape = [1] * w.ndim
     shape[axis] = -1
     zero = np.zeros(1, np.int16) if zero is None else zero.astype(np.int16).reshape(-1)
     if w.dtype == np.int8 and not zero.any():
-        return w, np.broadcast_to(scale.astype(F32).reshape(-1), (channels,))
-    shifted = w.astype(np.int16) - np.broadcast_to(zero, (channels,)).reshape(shape)
-    return shifted.astype(np.int16), np.broadcast_to(scale.astype(F32).reshape(-1), (channels,))
+        return w
+    return (w.astype(np.int16) - np.broadcast_to(zero, (channels,)).reshape(shape)).astype(np.int16)
 
 
 def multipliers(x_scale: float, w_scales: np.ndarray, y_scale: float) -> np.ndarray:
@@ -183,23 +190,6 @@ def convert_qgemm(op: OnnxOp, ctx: Context) -> Node:
             "has transA, alpha other than 1 or a float output; NNCG takes QGemm with transA=0, alpha=1, y_scale"
         )
     return _dense(op, ctx, 3, bool(op.attr("transB", 0)), 6, 7)
-
-
-def convert_qlinear_add(op: OnnxOp, ctx: Context) -> Node:
-    """onnxruntime's QLinearAdd: A, A_scale, A_zero_point, B, B_scale, B_zero_point, C_scale, C_zero_point."""
-    a, b = op.input(0), op.input(3)
-    if ctx.shape(a) != ctx.shape(b) or ctx.const(a) is not None or ctx.const(b) is not None:
-        raise op.error(
-            "adds tensors of different shapes or a constant; NNCG's integer Add takes two computed tensors of one shape"
-        )
-    a_scale, a_zero, a_dtype = quantization(op, ctx, 1, "first input")
-    b_scale, b_zero, b_dtype = quantization(op, ctx, 4, "second input")
-    y_scale, y_zero, y_dtype = quantization(op, ctx, 6, "output")
-    if len({a_dtype, b_dtype, y_dtype}) != 1:
-        raise op.error("mixes int8 and uint8; QLinearAdd's inputs and output have one type")
-    ctx.set_shape(op, op.node.output[0], ctx.shape(a))
-    attrs = QAddAttrs(a_scale, a_zero, b_scale, b_zero, y_scale, requantization(op, ctx, y_scale, y_zero, y_dtype))
-    return op.ir_node("QLinearAdd", [a, b], attrs)
 
 
 def convert_qlinear_average_pool(op: OnnxOp, ctx: Context) -> Node:

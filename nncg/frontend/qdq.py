@@ -7,7 +7,9 @@ computes in integers: Conv becomes QLinearConv, MatMul QLinearMatMul, and in onn
 com.microsoft domain Gemm QGemm, Add QLinearAdd, Mul QLinearMul, Concat QLinearConcat,
 GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool, Softmax QLinearSoftmax,
 LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid; HardSwish and Tanh become NNCG's own
-QLinearHardSwish and QLinearTanh (these four are table lookups, see ops_qlookup.py).
+QLinearHardSwish and QLinearTanh (these four are table lookups, see ops_qlookup.py). A ConvInteger or MatMulInteger
+dequantised by a Cast to float32, a Mul by a constant and possibly an Add of one becomes one node
+(ops_integer.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
 is monotonic, so clamping before it is clamping its result; the real bounds travel beside the nodes
 (QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten,
@@ -220,27 +222,24 @@ def _matmul(model: _Model, matmul: onnx.NodeProto):
     return _fused(model, _node("QLinearMatMul", inputs, q.output[0], matmul), q, clamps)
 
 
-def _add(model: _Model, add: onnx.NodeProto):
-    a, b = (model.live_dq(i) for i in add.input)
-    out = _q_output(model, add)
-    shapes = model.folded.shapes
-    if a is None or b is None or out is None or shapes.get(add.input[0]) != shapes.get(add.input[1]):
-        return None  # a broadcast Add stays a float Add between explicit (de)quantise layers
-    q, clamps = out
-    inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
-    return _fused(model, _node("QLinearAdd", inputs, q.output[0], add, CONTRIB), q, clamps)
-
-
-def _mul(model: _Model, mul: onnx.NodeProto):
-    """A Mul of two DequantizeLinear outputs (or one and a constant folded from one), broadcast."""
-    operands = [model.live_dq(i) or _dequantized_per_tensor(model, i) for i in mul.input]
-    out = _q_output(model, mul)
+def _binary(model: _Model, node: onnx.NodeProto, qlinear_op: str):
+    """An Add or Mul of two DequantizeLinear outputs (or one and a constant folded from one), broadcast."""
+    operands = [model.live_dq(i) or _dequantized_per_tensor(model, i) for i in node.input]
+    out = _q_output(model, node)
     if None in operands or out is None:
         return None
     q, clamps = out
     a, b = operands
     inputs = [a.input[0], *_quantize_params(a), b.input[0], *_quantize_params(b), *_quantize_params(q)]
-    return _fused(model, _node("QLinearMul", inputs, q.output[0], mul, CONTRIB), q, clamps)
+    return _fused(model, _node(qlinear_op, inputs, q.output[0], node, CONTRIB), q, clamps)
+
+
+def _add(model: _Model, add: onnx.NodeProto):
+    return _binary(model, add, "QLinearAdd")
+
+
+def _mul(model: _Model, mul: onnx.NodeProto):
+    return _binary(model, mul, "QLinearMul")
 
 
 def _concat(model: _Model, concat: onnx.NodeProto):
@@ -253,6 +252,34 @@ def _concat(model: _Model, concat: onnx.NodeProto):
         return None
     inputs = [*_quantize_params(q)] + [name for dq in parts for name in (dq.input[0], *_quantize_params(dq))]
     return _node("QLinearConcat", inputs, q.output[0], concat, CONTRIB), [q]
+
+
+def _integer_product(model: _Model, node: onnx.NodeProto):
+    """A ConvInteger or MatMulInteger whose int32 result only a Cast to float32 reads, and that only
+    a Mul by a constant (and that, possibly, only an Add of a constant): the op in NNCG's domain with
+    two more inputs (the Mul's constant, the Add's or ""), which computes the float32 result in its
+    kernel's store, so that no int32 tensor is written."""
+    cast = model.sole_reader(node.output[0], "Cast")
+    to = next((a.i for a in cast.attribute if a.name == "to"), None) if cast is not None else None
+    mul = model.sole_reader(cast.output[0], "Mul") if to == onnx.TensorProto.FLOAT else None
+    scale = _other_constant(model, mul, cast.output[0]) if mul is not None else None
+    if scale is None:
+        return None
+    last, removed, bias = mul, [cast, mul], ""
+    add = model.sole_reader(mul.output[0], "Add")
+    if add is not None and _other_constant(model, add, mul.output[0]) is not None:
+        last, removed, bias = add, [cast, mul, add], _other_constant(model, add, mul.output[0])
+    inputs = [*node.input, *[""] * (4 - len(node.input)), scale, bias]
+    return _node(node.op_type, inputs, last.output[0], node, NNCG_DOMAIN), removed
+
+
+def _other_constant(model: _Model, node: onnx.NodeProto, value: str) -> str | None:
+    """The input of a two-input `node` other than `value`, if it is a float32 constant."""
+    others = [i for i in node.input if i != value]
+    if len(node.input) != 2 or len(others) != 1:
+        return None
+    constant = model.const(others[0])
+    return others[0] if constant is not None and constant.dtype == np.float32 else None
 
 
 def _zero_point_type(model: _Model, node: onnx.NodeProto):
@@ -385,4 +412,6 @@ REWRITES: dict[str, Callable] = {
     **dict.fromkeys(PASS_THROUGH, _pass_through),
     "Pad": _pad,
     "Resize": _resize,
+    "ConvInteger": _integer_product,
+    "MatMulInteger": _integer_product,
 }

@@ -353,22 +353,37 @@ class QDenseAttrs:
 
 
 @dataclass(frozen=True)
-class QAddAttrs:
-    """QLinearAdd of two tensors of one shape: (a_scale (a - a_zp) + b_scale (b - b_zp)) / y_scale
-    + y_zp, computed as onnxruntime's x86 kernel does (lowering/quantized_add.py)."""
+class IntegerConvAttrs:
+    """ConvInteger dequantised in its store (frontend/qdq.py's ConvIntegerScaled): inputs x
+    (int8/uint8), w (as QConvAttrs's), b [C_out] (int32 constant: 0, or the zero point folded in),
+    scale [C_out] and, when `biased`, bias [C_out] (float32 constants). The result is
+    float32(b + sum (x - x_zero_point) * w) * scale (+ bias), each step rounded to float32 as
+    onnxruntime's Cast, Mul and Add round it."""
 
-    a_scale: float
-    a_zero_point: int
-    b_scale: float
-    b_zero_point: int
-    y_scale: float
-    out: Requantization
+    kernel: Shape
+    strides: Shape
+    dilations: Shape
+    pads_begin: Shape
+    pads_end: Shape
+    group: int
+    x_zero_point: int
+    biased: bool
 
 
 @dataclass(frozen=True)
-class QMulAttrs:
-    """QLinearMul of two tensors, NumPy-broadcast: (a - a_zp) (b - b_zp) a_scale b_scale / y_scale
-    + y_zp, computed as onnxruntime's x86 kernel does (lowering/quantized_mul.py)."""
+class IntegerDenseAttrs:
+    """MatMulInteger dequantised in its store: x [M, K], w [K, N], b, scale and bias [N], as
+    IntegerConvAttrs's."""
+
+    x_zero_point: int
+    biased: bool
+
+
+@dataclass(frozen=True)
+class QBinaryAttrs:
+    """QLinearAdd and QLinearMul of two tensors, NumPy-broadcast: a_scale (a - a_zp) + b_scale (b - b_zp),
+    or the product (a - a_zp) (b - b_zp) a_scale b_scale, over y_scale plus y_zp, computed as
+    onnxruntime's x86 kernels do (lowering/quantized_add.py, lowering/quantized_mul.py)."""
 
     a_scale: float
     a_zero_point: int
@@ -436,7 +451,8 @@ AttrRecord = Union[
     Activation, ConvAttrs, ConvTransposeAttrs, PoolAttrs, BatchNormAttrs, ScaleShiftAttrs, DenseAttrs,
     SoftmaxAttrs, LrnAttrs, ReduceAttrs, ArgMaxAttrs, NormAttrs, ReshapeAttrs, ConcatAttrs, SliceAttrs,
     SplitAttrs, TransposeAttrs, TileAttrs, GatherAttrs, PadAttrs, ResizeAttrs, QuantAttrs, QConvAttrs,
-    QDenseAttrs, QAddAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs, QMulAttrs,
+    QDenseAttrs, QBinaryAttrs, QPoolAttrs, QAveragePoolAttrs, QSoftmaxAttrs, QLookupAttrs, IntegerConvAttrs,
+    IntegerDenseAttrs,
 ]  # fmt: skip
 
 

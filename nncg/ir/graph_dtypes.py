@@ -26,7 +26,11 @@ QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
     "QLinearSoftmax": (ACTIVATIONS, (FLOAT32,)),
     "QLinearLookup": (ACTIVATIONS, ACTIVATIONS),
     "QLinearMul": (ACTIVATIONS, ACTIVATIONS),
+    "ConvInteger": (ACTIVATIONS, (INT8, INT16), (INT32,), (FLOAT32,), (FLOAT32,)),
+    "MatMulInteger": (ACTIVATIONS, (INT8, INT16), (INT32,), (FLOAT32,), (FLOAT32,)),
 }
+# Quantized ops that write float32 (their int32 result dequantised in the store).
+DEQUANTIZING_OPS = ("DequantizeLinear", "ConvInteger", "MatMulInteger")
 
 
 def moves_integers(node: Node) -> bool:
@@ -46,7 +50,7 @@ def output_dtype(node: Node, dtype_of: Callable[[str], DType]) -> DType:
         return INT32
     if node.op in ("QuantizeLinear", "QLinearLookup"):
         return node.attrs.dtype
-    if node.op in QUANTIZED_INPUTS and node.op != "DequantizeLinear":
+    if node.op in QUANTIZED_INPUTS and node.op not in DEQUANTIZING_OPS:
         return node.attrs.out.dtype
     return FLOAT32
 

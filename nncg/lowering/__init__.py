@@ -31,6 +31,7 @@ from .elementwise import (
 )
 from .gather import lower_gather
 from .in_place import lower_in_place_depthwise
+from .integer_products import lower_conv_integer, lower_matmul_integer
 from .lrn import lower_lrn
 from .normalization import lower_normalization
 from .pad import lower_pad
@@ -149,6 +150,8 @@ LOWERINGS = {
     "QLinearSoftmax": lower_qlinear_softmax,
     "QLinearLookup": lower_qlinear_lookup,
     "QLinearMul": lower_qlinear_mul,
+    "ConvInteger": lower_conv_integer,
+    "MatMulInteger": lower_matmul_integer,
 }
 
 

@@ -7,10 +7,20 @@ values only, see backends/c_file.py)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
-from ..ir.graph import Node, QAveragePoolAttrs, QConvAttrs, QDenseAttrs, QPoolAttrs, QuantAttrs
+from ..ir.graph import (
+    IntegerConvAttrs,
+    IntegerDenseAttrs,
+    Node,
+    QAveragePoolAttrs,
+    QConvAttrs,
+    QDenseAttrs,
+    QPoolAttrs,
+    QuantAttrs,
+)
 from ..ir.kinds import DType
 from ..ir.loops import Affine, Assign, Binary, Cast, Const, Expr, Let, Load, LocalRef, Loop, Requantize, Stmt, Store
 from .context import LoweringContext, TensorRef, channels_last, nest, row_major
@@ -23,10 +33,15 @@ INT32, FLOAT32 = DType.INT32, DType.FLOAT32
 FOLD_MIN_CHANNELS = 4
 
 
+def centred(value: Expr, zero_point: int = 0) -> Expr:
+    """An 8-bit value as int32, minus its zero point."""
+    widened_value: Expr = Cast(INT32, value)
+    return Binary("-", widened_value, Const.integer(zero_point)) if zero_point else widened_value
+
+
 def widened(ref: TensorRef, index, zero_point: int = 0) -> Expr:
     """ref[index] as int32, minus its zero point."""
-    value: Expr = Cast(INT32, Load(ref.buffer, ref.at(index)))
-    return Binary("-", value, Const.integer(zero_point)) if zero_point else value
+    return centred(Load(ref.buffer, ref.at(index)), zero_point)
 
 
 def accumulate(product: Expr) -> Assign:
@@ -41,12 +56,21 @@ def folded_bias(bias: np.ndarray, x_zero_point: int, weight_sums: np.ndarray) ->
     return folded.astype(np.int32) if folded.min() >= info.min and folded.max() <= info.max else None
 
 
+# What an integer kernel stores: the int32 sum of an output channel, as the output's type.
+Finish = Callable[[Expr, Affine], Expr]
+
+
 def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
-    """As lower_conv (conv.py), in integers. A tap outside the image reads the zero point (x -
-    x_zero_point = 0). The zero point is folded into the bias (folded_bias) for every tap; the taps
-    outside the image then add back x_zero_point * sum_ci w[tap, ci, co], a constant per tap (with
-    at least FOLD_MIN_CHANNELS input channels per group)."""
-    attrs: QConvAttrs = node.attrs
+    scales = Scales(ctx, node.name, ctx.graph.constants[node.inputs[3]])
+    integer_conv(ctx, node, lambda acc, co: scales.requantized(acc, co, node.attrs.out))
+
+
+def integer_conv(ctx: LoweringContext, node: Node, finish: Finish) -> None:
+    """As lower_conv (conv.py), in integers, each sum stored as `finish` makes it. A tap outside the
+    image reads the zero point (x - x_zero_point = 0). The zero point is folded into the bias
+    (folded_bias) for every tap; the taps outside the image then add back x_zero_point *
+    sum_ci w[tap, ci, co], a constant per tap (with at least FOLD_MIN_CHANNELS input channels per group)."""
+    attrs: QConvAttrs | IntegerConvAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     rank = len(attrs.kernel)
     weights = ctx.graph.constants[node.inputs[1]]  # [c_out, c_in/group, k...] -> [k..., c_in/group, c_out]
@@ -64,7 +88,6 @@ def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
     bias = ctx.add_constant(f"b_{node.name}", b if folded is None else folded)
     border = ctx.add_constant(f"zw_{node.name}", (zx * tap_sums).astype(np.int32)) if folded is not None else None
     x_zero_point = 0 if folded is not None else zx
-    scales = Scales(ctx, node.name, ctx.graph.constants[node.inputs[3]])
     out = ctx.output(node.outputs[0], channels_last(rank + 2))
     names = spatial_names(rank)
     out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]
@@ -85,17 +108,22 @@ def lower_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
         if border is not None:
             window += outside_window_nest(attrs, env, dict(out_loops), x.spatial_ranges, outside_tap)
         index = [n, co, *(env["o" + s] for s in names)]
-        store = Store(out.buffer, out.at(index), scales.requantized(LocalRef("acc"), co, attrs.out))
+        store = Store(out.buffer, out.at(index), finish(LocalRef("acc"), co))
         return (Let("acc", Load(bias.buffer, bias.at([co])), (*window, store)),)
 
     loops = [("n", out.shape[0]), *out_loops, ("g", attrs.group), ("co", c_out_g)]
-    ctx.emit(node.name, "QLinearConv", nest(loops, body, parallel=True))
+    ctx.emit(node.name, node.op, nest(loops, body, parallel=True))
 
 
 def lower_qlinear_dense(ctx: LoweringContext, node: Node) -> None:
-    """y[m, n] = requantized(b[n] + sum_k (x[m, k] - x_zero_point) * w[k, n]), the zero point folded
+    scales = Scales(ctx, node.name, ctx.graph.constants[node.inputs[3]])
+    integer_dense(ctx, node, lambda acc, n: scales.requantized(acc, n, node.attrs.out))
+
+
+def integer_dense(ctx: LoweringContext, node: Node, finish: Finish) -> None:
+    """y[m, n] = finish(b[n] + sum_k (x[m, k] - x_zero_point) * w[k, n]), the zero point folded
     into the bias (folded_bias)."""
-    attrs: QDenseAttrs = node.attrs
+    attrs: QDenseAttrs | IntegerDenseAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     weights = ctx.graph.constants[node.inputs[1]]
     w = ctx.add_constant(f"w_{node.name}", weights)
@@ -103,7 +131,6 @@ def lower_qlinear_dense(ctx: LoweringContext, node: Node) -> None:
     folded = folded_bias(b, attrs.x_zero_point, weights.astype(np.int64).sum(axis=0)) if attrs.x_zero_point else None
     bias = ctx.add_constant(f"b_{node.name}", b if folded is None else folded)
     x_zero_point = attrs.x_zero_point if folded is None else 0
-    scales = Scales(ctx, node.name, ctx.graph.constants[node.inputs[3]])
     out = ctx.output(node.outputs[0], row_major(2))
     k = w.shape[0]
 
@@ -112,10 +139,10 @@ def lower_qlinear_dense(ctx: LoweringContext, node: Node) -> None:
         kk = Affine.of("k") if k > 1 else Affine()
         update = (accumulate(Binary("*", widened(x, [m, kk], x_zero_point), widened(w, [kk, n]))),)
         reduce = (Loop("k", k, update),) if k > 1 else update
-        store = Store(out.buffer, out.at([m, n]), scales.requantized(LocalRef("acc"), n, attrs.out))
+        store = Store(out.buffer, out.at([m, n]), finish(LocalRef("acc"), n))
         return (Let("acc", Load(bias.buffer, bias.at([n])), (*reduce, store)),)
 
-    ctx.emit(node.name, "QLinearDense", nest([("m", out.shape[0]), ("n", out.shape[1])], body, parallel=True))
+    ctx.emit(node.name, node.op, nest([("m", out.shape[0]), ("n", out.shape[1])], body, parallel=True))
 
 
 def lower_qlinear_global_average_pool(ctx: LoweringContext, node: Node) -> None:

@@ -9,14 +9,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..ir.graph import Node, QMulAttrs
+from ..ir.graph import Node, QBinaryAttrs
 from ..ir.kinds import DType
 from ..ir.loops import Binary, Cast, Const, Expr, Load, Requantize
 from .context import LoweringContext
 from .elementwise import broadcast
+from .quantized import centred
 
 F32 = np.float32
-FLOAT64, FLOAT32, INT32 = DType.FLOAT64, DType.FLOAT32, DType.INT32
+FLOAT64, FLOAT32 = DType.FLOAT64, DType.FLOAT32
 
 
 def _in_float32(a: Expr, op: str, b: float) -> Expr:
@@ -25,13 +26,9 @@ def _in_float32(a: Expr, op: str, b: float) -> Expr:
 
 
 def lower_qlinear_mul(ctx: LoweringContext, node: Node) -> None:
-    attrs: QMulAttrs = node.attrs
+    attrs: QBinaryAttrs = node.attrs
     ratio = float((F32(attrs.a_scale) * F32(attrs.b_scale)) / F32(attrs.y_scale))
     out = attrs.out
-
-    def centred(load: Load, zero_point: int) -> Expr:
-        value = Cast(INT32, load)
-        return Binary("-", value, Const.integer(zero_point)) if zero_point else value
 
     def product(loads: list[Load]) -> Expr:
         p = Binary("*", centred(loads[0], attrs.a_zero_point), centred(loads[1], attrs.b_zero_point))

@@ -1,0 +1,133 @@
+"""ConvInteger and MatMulInteger (issue 16) whose int32 result a Cast to float32, a Mul by a scale
+and possibly an Add of a bias dequantise (the three fused into the integer kernel's store): inputs
+quantised by a QuantizeLinear (uint8 and int8, zero points other than 0), uint8 and int8 weights with
+zero points per tensor, or per column for MatMulInteger (onnxruntime's ConvInteger takes one),
+scales per tensor and per channel; compared with onnxruntime on every element, to the bit, on
+ansi-c, the x86 targets and NEON under qemu. Any other reader of the int32 result, and a scale that
+varies along another axis, are refused in one line."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+from cross_helpers import TOOLCHAINS, missing_tools, runner
+from helpers import kernel_ops, onnx_model, skip_unless_host_runs
+from int8_models import onnxruntime_outputs
+from onnx import TensorProto, helper
+from test_cross_targets import require
+
+import nncg
+from nncg.errors import NncgError
+from nncg.verify import run_compiled
+
+CHANNELS = 6
+X_SHAPE = {"ConvInteger": (1, 4, 7, 7), "MatMulInteger": (3, 8)}
+W_SHAPE = {"ConvInteger": (CHANNELS, 4, 3, 3), "MatMulInteger": (8, CHANNELS)}
+# the shape of a per-channel scale or bias: NumPy-broadcast over the result's channels
+PER_CHANNEL = {"ConvInteger": (1, CHANNELS, 1, 1), "MatMulInteger": (CHANNELS,)}
+
+
+def _range(dtype) -> tuple[int, int]:
+    info = np.iinfo(dtype)
+    return int(info.min), int(info.max) + 1
+
+
+def integer_model(
+    op: str, x_type=np.uint8, w_type=np.int8, per_channel: bool = False, bias: bool = True, seed: int = 0
+) -> onnx.ModelProto:
+    """x -> QuantizeLinear -> op (constant weights, zero points) -> Cast -> Mul by scale [-> Add bias]."""
+    rng = np.random.default_rng(seed)
+    w_zero_shape = (CHANNELS,) if per_channel and op == "MatMulInteger" else ()
+    w_zero = rng.integers(-5, 6, w_zero_shape) + (128 if w_type == np.uint8 else 0)
+    scale_shape = PER_CHANNEL[op] if per_channel else ()
+    init = {
+        "s": np.float32(0.05),
+        "z": np.asarray(17 if x_type == np.uint8 else -9, x_type),
+        "w": rng.integers(*_range(w_type), W_SHAPE[op]).astype(w_type),
+        "wz": np.asarray(w_zero, w_type),
+        "scale": rng.uniform(0.001, 0.01, scale_shape).astype(np.float32),
+        "bias": rng.standard_normal(PER_CHANNEL[op]).astype(np.float32),
+    }
+    geometry = {"pads": [1, 1, 1, 1], "strides": [2, 1]} if op == "ConvInteger" else {}
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
+        helper.make_node(op, ["q", "w", "z", "wz"], ["i"], **geometry),
+        helper.make_node("Cast", ["i"], ["f"], to=TensorProto.FLOAT),
+        helper.make_node("Mul", ["f", "scale"], ["y" if not bias else "m"]),
+        *([helper.make_node("Add", ["bias", "m"], ["y"])] if bias else []),
+    ]
+    if not bias:
+        del init["bias"]
+    return onnx_model(nodes, inputs={"x": X_SHAPE[op]}, initializers=init)
+
+
+def check(model: onnx.ModelProto, target: str = "ansi-c", **run) -> None:
+    if not run:
+        skip_unless_host_runs(target)
+    compiled = nncg.compile(model, target=target, verify_ir=True)
+    ops = kernel_ops(compiled)
+    assert ("ConvInteger" in ops or "MatMulInteger" in ops) and "Cast" not in ops and "Mul" not in ops, ops
+    shape = tuple(d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim)
+    rng = np.random.default_rng(3)
+    for spread in (0.5, 4.0, 20.0):  # 20: the QuantizeLinear saturates at both ends
+        x = (rng.standard_normal(shape) * spread).astype(np.float32)
+        expected = onnxruntime_outputs(model, {"x": x})[0]
+        ours = run_compiled(compiled, [x], **run)[0].reshape(expected.shape)
+        np.testing.assert_array_equal(ours, expected)
+
+
+@pytest.mark.parametrize("op", sorted(X_SHAPE))
+@pytest.mark.parametrize("x_type", [np.uint8, np.int8])
+@pytest.mark.parametrize("w_type", [np.int8, np.uint8])
+@pytest.mark.parametrize("per_channel", [False, True])
+def test_matches_onnxruntime_to_the_bit(op, x_type, w_type, per_channel):
+    check(integer_model(op, x_type, w_type, per_channel))
+
+
+@pytest.mark.parametrize("op", sorted(X_SHAPE))
+def test_without_a_bias(op):
+    check(integer_model(op, per_channel=True, bias=False))
+
+
+@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512", "avx512vnni"])
+@pytest.mark.parametrize("op", sorted(X_SHAPE))
+def test_x86_targets(op, target):
+    check(integer_model(op, np.int8, np.int8, per_channel=True), target)
+
+
+@pytest.mark.parametrize("op", sorted(X_SHAPE))
+def test_neon_under_qemu(op):
+    tc = TOOLCHAINS["aarch64-neon"]
+    require(missing_tools(tc))
+    check(integer_model(op, per_channel=True), "neon", cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
+
+
+def test_a_scale_along_another_axis_is_refused():
+    model = integer_model("ConvInteger")
+    scale = next(t for t in model.graph.initializer if t.name == "scale")
+    scale.CopyFrom(onnx.numpy_helper.from_array(np.full((1, 1, 4, 1), 0.01, np.float32), "scale"))
+    with pytest.raises(NncgError, match=r"ConvInteger .* dequantised by a scale of shape \[1, 1, 4, 1\]"):
+        nncg.compile(model)
+
+
+def test_an_int32_result_read_elsewhere_is_refused():
+    """The Cast's result also a graph output: the fusion would lose it, so nothing is fused."""
+    model = integer_model("MatMulInteger")
+    model.graph.output.append(helper.make_tensor_value_info("f", TensorProto.FLOAT, None))
+    with pytest.raises(NncgError, match=r"MatMulInteger .* writes an int32 tensor"):
+        nncg.compile(model)
+
+
+def test_weights_computed_at_run_time_are_refused():
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
+        helper.make_node("QuantizeLinear", ["v", "s", "z"], ["wq"]),
+        helper.make_node("MatMulInteger", ["q", "wq"], ["i"]),
+        helper.make_node("Cast", ["i"], ["f"], to=TensorProto.FLOAT),
+        helper.make_node("Mul", ["f", "scale"], ["y"]),
+    ]
+    init = {"s": np.float32(0.1), "z": np.uint8(3), "scale": np.float32(0.01)}
+    model = onnx_model(nodes, inputs={"x": (2, 3), "v": (3, 2)}, initializers=init)
+    with pytest.raises(NncgError, match="weights computed at run time"):
+        nncg.compile(model)
