@@ -70,7 +70,9 @@ TOOLCHAINS = {
         # or plain NEON (VFPv3), where the generated file falls back to vmlaq_f32.
         _linux("armhf-neon", "arm-linux-gnueabihf-gcc", "qemu-arm", "neon", ARMHF_NEON_FLAGS),
         _linux("armhf-neon-vfpv3", "arm-linux-gnueabihf-gcc", "qemu-arm", "neon", ("-mfpu=neon", "-mfloat-abi=hard")),
-        _linux("aarch64-neon", "aarch64-linux-gnu-gcc", "qemu-aarch64", "neon"),
+        # plain neon on a CPU without the dot-product extension; neon-dotprod on qemu's CPU with every extension
+        Toolchain("aarch64-neon", "neon", "aarch64-linux-gnu-gcc", ("-static",), ("qemu-aarch64", "-cpu", "cortex-a53")),
+        Toolchain("aarch64-neon-dotprod", "neon-dotprod", "aarch64-linux-gnu-gcc", ("-static",), ("qemu-aarch64", "-cpu", "max")),
         _linux("riscv64", "riscv64-linux-gnu-gcc", "qemu-riscv64"),
         Toolchain("clang", "ansi-c", "clang"),
         Toolchain("tcc", "ansi-c", "tcc"),

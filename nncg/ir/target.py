@@ -22,7 +22,10 @@ class Target:
     fused multiply-add needs no register for the weight vector it reads.
     dot_uint8, dot_int8: the input channels one integer dot product (loops.Dot) multiplies per lane,
     for uint8 and for int8 activations: 2 (pmaddwd on int16 pairs), 4 (vpdpbusd on u8 x s8 quads);
-    0: none, the int8 kernels multiply channel by channel."""
+    0: none, the int8 kernels multiply channel by channel.
+    dot_int8_activations: the K = 4 dot multiplies int8 activations (AArch64 sdot: s8 x s8 quads), so
+    uint8 activations and zero points the lowering did not fold are offset into int8 and the constant
+    difference is added back per output channel (passes/dot_product.py)."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -34,6 +37,7 @@ class Target:
     memory_operands: bool = False
     dot_uint8: int = 0
     dot_int8: int = 0
+    dot_int8_activations: bool = False
 
     @property
     def lanes(self) -> int:
