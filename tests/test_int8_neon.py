@@ -86,6 +86,15 @@ def test_repository_model(name, toolchain):
     assert vectorised(check_on(toolchain, repository_model(f"benchmarks/models/{name}.onnx")).source)
 
 
+@pytest.mark.parametrize("toolchain", ARM[:2])
+def test_unrolled_resnet8(toolchain):
+    """At --unroll 2 the Convs' taps are straight-line dot products (two or four channels per call),
+    not one inlined 4-byte widening load per channel and tap: gcc -O2 builds it (within the harness's
+    tool timeout) and it is bit-identical."""
+    compiled = check_on(toolchain, repository_model("benchmarks/models/resnet8.onnx"), unroll=2)
+    assert compiled.source.count("nncg_vwidenq_") < 100  # the first Conv's planar input only
+
+
 @pytest.mark.parametrize("kind", sorted(MODELS))
 def test_source_uses_integer_vectors(kind):
     """The printed C, on any host: the multiply-accumulates are on int32x4_t, and where the channels
