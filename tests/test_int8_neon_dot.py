@@ -125,4 +125,4 @@ def test_dotprod_file_needs_the_extension(tmp_path):
 def test_plain_neon_prints_no_sdot():
     """One file for ARMv7 and AArch64: the pairs' vmlal_s16, never sdot or its #error."""
     source = nncg.compile(quantized(padded_conv_model(8)), target="neon").source
-    assert "vmlal_lane_s16(" in source and "vdotq_s32" not in source and "#error \"this file" not in source
+    assert "vmlal_lane_s16(" in source and "vdotq_s32" not in source and '#error "this file' not in source

@@ -31,8 +31,6 @@ DOTPROD_Q_REGISTER = replace(
 
 
 class NeonDotprod(Neon):
-    target = replace(
-        Neon.target, name="neon-dotprod", registers=32, dot_uint8=4, dot_int8=4, dot_int8_activations=True
-    )
+    target = replace(Neon.target, name="neon-dotprod", registers=32, dot_uint8=4, dot_int8=4, dot_int8_activations=True)
     widths = {4: DOTPROD_Q_REGISTER}
     cflags = ("-march=armv8.2-a+dotprod",)

@@ -2,7 +2,8 @@
 matrix products, printed from each width's `ints` table (vector_width.INTEGER_OPERATIONS): int32
 loads and arithmetic, 8-bit loads widened to int32, dot products (`dot2`: int16 pairs; accumulated,
 `dot2_add`: NEON's vmlal_s16, `dot4_add`: vpdpbusd's u8 x s8 or sdot's s8 x s8 quads; a width
-without its template computes each lane in scalar C), the conversion to float, the float form of requantisation and the narrowing 8-bit stores."""
+without its template computes each lane in scalar C), the conversion to float, the float form of
+requantisation and the narrowing 8-bit stores."""
 
 from __future__ import annotations
 

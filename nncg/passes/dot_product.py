@@ -197,7 +197,9 @@ def _widened_load(e: Expr) -> Load | None:
     return e.value if scalar else None
 
 
-def _split_index(index: Affine, var: str, shape: tuple[int, ...], extents: dict[str, int]) -> tuple[Affine, Affine] | None:
+def _split_index(
+    index: Affine, var: str, shape: tuple[int, ...], extents: dict[str, int]
+) -> tuple[Affine, Affine] | None:
     """w's index [lead..., C, Cs] at channel `var` 0 as (lead, co): lead counts [C, Cs] blocks, co
     the output channel in [0, Cs); None when it is not lead * C * Cs + Cs * var + co."""
     c, cs = shape[-2], shape[-1]
