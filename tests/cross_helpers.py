@@ -51,9 +51,12 @@ class Toolchain:
     native_if_possible: bool = False  # i686: an x86-64 kernel with 32-bit support runs it itself
 
 
-def _linux(name: str, cc: str, emulator: str, target: str = "ansi-c", flags: tuple[str, ...] = ()) -> Toolchain:
+def _linux(
+    name: str, cc: str, emulator: str | tuple[str, ...], target: str = "ansi-c", flags: tuple[str, ...] = ()
+) -> Toolchain:
     # Static: qemu-user then needs no target libraries (no -L sysroot).
-    return Toolchain(name, target, cc, ("-static", *flags), (emulator,), native_if_possible=emulator == "qemu-i386")
+    prefix = (emulator,) if isinstance(emulator, str) else emulator
+    return Toolchain(name, target, cc, ("-static", *flags), prefix, native_if_possible=emulator == "qemu-i386")
 
 
 ARMHF_NEON_FLAGS = ("-mfpu=neon-vfpv4", "-mfloat-abi=hard")  # the neon target on ARMv7 with VFPv4 (FMA)
@@ -70,7 +73,9 @@ TOOLCHAINS = {
         # or plain NEON (VFPv3), where the generated file falls back to vmlaq_f32.
         _linux("armhf-neon", "arm-linux-gnueabihf-gcc", "qemu-arm", "neon", ARMHF_NEON_FLAGS),
         _linux("armhf-neon-vfpv3", "arm-linux-gnueabihf-gcc", "qemu-arm", "neon", ("-mfpu=neon", "-mfloat-abi=hard")),
-        _linux("aarch64-neon", "aarch64-linux-gnu-gcc", "qemu-aarch64", "neon"),
+        # plain neon on a CPU without the dot-product extension; neon-dotprod on qemu's CPU with every extension
+        _linux("aarch64-neon", "aarch64-linux-gnu-gcc", ("qemu-aarch64", "-cpu", "cortex-a53"), "neon"),
+        _linux("aarch64-neon-dotprod", "aarch64-linux-gnu-gcc", ("qemu-aarch64", "-cpu", "max"), "neon-dotprod"),
         _linux("riscv64", "riscv64-linux-gnu-gcc", "qemu-riscv64"),
         Toolchain("clang", "ansi-c", "clang"),
         Toolchain("tcc", "ansi-c", "tcc"),

@@ -178,7 +178,7 @@ def test_a_table_missing_an_operation_is_refused_where_it_is_declared():
 
 
 def test_the_registered_backends_are_the_printer_classes_of_the_package():
-    assert sorted(BACKENDS) == ["ansi-c", "avx2", "avx512", "avx512vnni", "neon", "ssse3"]
+    assert sorted(BACKENDS) == ["ansi-c", "avx2", "avx512", "avx512vnni", "neon", "neon-dotprod", "ssse3"]
     for name, printer in BACKENDS.items():
         backend = get_backend(name)
         assert backend.target is printer.target and backend.name == name

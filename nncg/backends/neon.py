@@ -113,6 +113,8 @@ class Neon(SimdPrinter):
         l1_bytes=32 * 1024,
         l2_bytes=256 * 1024,
         integer_vectors=True,
+        dot_uint8=2,
+        dot_int8=2,
     )
     widths = {4: Q_REGISTER}
     # No flags on AArch64 (NEON is baseline). ARMv7 needs NEON switched on, e.g. -mfpu=neon-vfpv4

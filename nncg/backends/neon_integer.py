@@ -1,6 +1,8 @@
 """Backend: the int8 kernels' int32 vectors on NEON (int32x4_t), one spelling for ARMv7 and AArch64:
-8-bit loads widened with vmovl, 32-bit multiply and add (vmulq_s32 feeding vaddq_s32, which gcc and
-clang fuse into one vmla/mla), requantisation as onnxruntime computes it (clamp in float, round half
+the reduction over input channels two at a time as widening multiply-accumulates (vmlal_s16 on the
+int16 pairs of loops.Dot; neon_dotprod.py: four at a time, sdot), elsewhere 8-bit loads widened with
+vmovl and 32-bit multiply and add (vmulq_s32 feeding vaddq_s32, which gcc and clang fuse into one
+vmla/mla), requantisation as onnxruntime computes it (clamp in float, round half
 to even, add the zero point) and saturating narrowing stores (vqmovn, vqmovun).
 
 Four bytes are loaded and stored lane by lane (vld1_lane, vst1_lane): NEON's smallest whole load,
@@ -79,6 +81,24 @@ def _store(dtype: str) -> tuple[str, ...]:
     )
 
 
+# Two input channels per step, for ARMv7 and AArch64 without the dot-product extension: the packed
+# pairs (lane l's two weights side by side, loops.Dot) widened to int16 and split by channel (vuzp),
+# each multiplied by its int16 activation and accumulated into int32 by vmlal: exact (x - x_zero_point
+# in [-255, 255] and an int8 weight are int16 values, their products and sums int32).
+DOT2 = (
+    "/* acc + the dot products of int16 pairs: lane l adds x0 * w[2l] + x1 * w[2l + 1], x0 and x1 the",
+    "   low and high int16 halves of xs' lanes (split in a register: the same whatever the byte order) */",
+    "static int32x4_t nncg_vdot2q_s32(int32x4_t acc, int32x4_t xs, const nncg_int8 *w)",
+    "{",
+    "    int16x8_t pairs = vmovl_s8(vld1_s8(w));",
+    "    int16x4x2_t channels = vuzp_s16(vget_low_s16(pairs), vget_high_s16(pairs));",
+    "    int16x4_t x = vreinterpret_s16_s32(vget_low_s32(xs));",
+    "    acc = vmlal_lane_s16(acc, channels.val[0], x, 0);",
+    "    return vmlal_lane_s16(acc, channels.val[1], x, 1);",
+    "}",
+)
+
+
 def neon_integer() -> dict:
     """VectorWidth fields `ints` and `int_helpers` of NEON's q registers."""
     ints = {
@@ -95,11 +115,13 @@ def neon_integer() -> dict:
         "requantize": "nncg_vrequantizeq_s32({value}, {low}, {high}, {zero_point})",
         "store_uint8": "nncg_vstoreq_uint8({address}, {value})",
         "store_int8": "nncg_vstoreq_int8({address}, {value})",
+        "dot2_add": "nncg_vdot2q_s32({acc}, {xs}, {address})",
     }
     helpers = {
         "requantize": REQUANTIZE,
         "vector": VECTOR,
         **{f"widen_{t}": _widen(t) for t in ("uint8", "int8")},
         **{t: _store(t) for t in ("uint8", "int8")},
+        "dot2": DOT2,
     }
     return {"ints": ints, "int_helpers": helpers}

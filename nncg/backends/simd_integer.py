@@ -1,8 +1,9 @@
 """Backend: the SIMD printer's int8 part — int32 vectors of the vectorised int8 convolutions and
 matrix products, printed from each width's `ints` table (vector_width.INTEGER_OPERATIONS): int32
-loads and arithmetic, 8-bit loads widened to int32, dot products (`dot2`: int16 pairs, `dot4_add`:
-u8 x s8 quads accumulated; a width without its template computes each lane in scalar C), the
-conversion to float, the float form of requantisation and the narrowing 8-bit stores."""
+loads and arithmetic, 8-bit loads widened to int32, dot products (`dot2`: int16 pairs; accumulated,
+`dot2_add`: NEON's vmlal_s16, `dot4_add`: vpdpbusd's u8 x s8 or sdot's s8 x s8 quads; a width
+without its template computes each lane in scalar C), the conversion to float, the float form of
+requantisation and the narrowing 8-bit stores."""
 
 from __future__ import annotations
 
@@ -146,7 +147,7 @@ class IntegerVectors:
 
 def _helper_keys(stmt: Stmt, buffer_dtypes: dict[str, DType]) -> Iterator[tuple[int, str]]:
     """(lanes, key) of the int_helpers a statement's integer vectors may call: the stored dtype of an
-    8-bit vector store, and the operations `requantize`, `widen_<dtype>` and `vector`."""
+    8-bit vector store, and the operations `requantize`, `widen_<dtype>`, `vector` and `dot<K>`."""
     if isinstance(stmt, Store) and stmt.value.lanes > 1 and buffer_dtypes[stmt.buffer].is_integer:
         yield stmt.value.lanes, buffer_dtypes[stmt.buffer].value
     for e in (e for top in stmt_exprs(stmt) for e in walk_exprs(top) if e.lanes > 1):
@@ -156,6 +157,8 @@ def _helper_keys(stmt: Stmt, buffer_dtypes: dict[str, DType]) -> Iterator[tuple[
             yield e.lanes, f"widen_{buffer_dtypes[e.value.buffer].value}"
         elif isinstance(e, Const) and e.dtype.is_integer and not e.is_splat:
             yield e.lanes, "vector"
+        elif isinstance(e, Dot):
+            yield e.lanes, f"dot{len(e.x)}"
 
 
 def _integer_const(values: tuple[int, ...], ints: dict[str, str]) -> str:

@@ -55,7 +55,9 @@ INTEGER_OPERATIONS = {
 INTEGER_DOTS = {
     "dot2": ("xs", "address"),  # pmaddwd: xs two int16 in each lane, address 2 int8 weights per lane
     "dot4": ("xs", "address"),  # pmaddubsw + pmaddwd by ones: xs four uint8 in each lane, address 4 int8 per lane
+    "dot2_add": ("acc", "xs", "address"),  # acc + dot2 (NEON's vmlal_s16)
     "dot4_add": ("acc", "xs", "address"),  # acc + vpdpbusd: xs four uint8 in each lane, address 4 int8 per lane
+    # (sdot, Target.dot_int8_activations: four int8)
     # xs from 2 (4) adjacent 8-bit activations in memory, in every lane; else from a scalar int (splat)
     "pair_uint8": ("address",),
     "pair_int8": ("address",),

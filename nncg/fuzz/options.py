@@ -22,7 +22,11 @@ from ..passes.unroll import CODE_BUDGET
 from ..tune import ir_before, tuning_candidates, with_layer_choices
 from .draw import Draw
 
-CROSS = {"neon": ("aarch64-linux-gnu-gcc", ("-static",), ("qemu-aarch64",))}  # cc, flags, runner
+# cc, flags, runner: plain neon on a CPU without the dot-product extension, neon-dotprod on one with it
+CROSS = {
+    "neon": ("aarch64-linux-gnu-gcc", ("-static",), ("qemu-aarch64", "-cpu", "cortex-a53")),
+    "neon-dotprod": ("aarch64-linux-gnu-gcc", ("-static",), ("qemu-aarch64", "-cpu", "max")),
+}
 UNROLLS = ("auto", "auto", "0", "1", "2", "none")
 BUDGETS = (CODE_BUDGET, 256, 1024, 4096, 64, None)  # None: no cap (--code-budget 0)
 LAYER_BUDGETS = (64, 0, 16, 256, 1024)

@@ -27,7 +27,10 @@ class Target:
     int16 with saturation (pmaddubsw, then pmaddwd by ones); the dot product pass takes it instead of
     dot_uint8 only for a layer whose weights it proves keep every pair sum within int16, 0: none.
     tap_dots: the dot products also take a depthwise convolution's taps, each lane its own channel's
-    activations (loops.Dot with vector x; passes/dot_taps.py)."""
+    activations (loops.Dot with vector x; passes/dot_taps.py).
+    dot_int8_activations: the K = 4 dot multiplies int8 activations (AArch64 sdot: s8 x s8 quads), so
+    uint8 activations and zero points the lowering did not fold are offset into int8 and the constant
+    difference is added back per output channel (passes/dot_product.py)."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -41,6 +44,7 @@ class Target:
     dot_int8: int = 0
     dot_uint8_int16: int = 0
     tap_dots: bool = False
+    dot_int8_activations: bool = False
 
     @property
     def lanes(self) -> int:

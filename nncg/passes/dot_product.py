@@ -18,7 +18,12 @@ vectors, each lane its own channel's K taps). passes/dot_taps.py splits off the 
 The weights [lead..., C, Cs] are repacked at generation time as wK [lead..., C / K (rounded up), Cs, K]
 (the missing channels' weights 0): the K weights of one output channel side by side, the output
 channels one after another, exactly the order one vector instruction reads them. Exact: the products
-and sums are those of the loop, in int32."""
+and sums are those of the loop, in int32.
+
+Where the dot takes int8 activations only (Target.dot_int8_activations: AArch64 sdot), an activation
+x - zero_point is read as x - offset, offset 128 for uint8 (x ^ 0x80 as a byte) and 0 for int8, and
+acc += (offset - zero_point) * sum_ci w[lead..., ci, co] follows the dots: a constant array [lead...,
+Cs] of generation time, exact in int32, added where the dots run (inside the border checks)."""
 
 from __future__ import annotations
 
@@ -75,7 +80,8 @@ class _Packer:
         self.program = program
         self.buffers = {b.name: b for b in program.buffers}
         self.names = set(self.buffers)
-        self.packed: dict[tuple[str, int], str] = {}
+        self.packed: dict[tuple[str, int], str] = {}  # (weights, K) -> packed weights
+        self.corrections: dict[tuple[str, int], str] = {}  # (weights, offset difference) -> offset_correction
         self.added: list[Buffer] = []
         self.arrays: dict[str, np.ndarray] = {}
         self.replaced: set[str] = set()
@@ -113,16 +119,20 @@ class _Packer:
             return None
         if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16 and pair_sums_fit_int16(array):
             k = target.dot_uint8_int16
-        index = _packed_index(w.index, loop.var, array.shape, k, extents)
-        if index is None or (_per_lane(x, w, loop.var) and not target.tap_dots):
+        split = _split_index(w.index, loop.var, array.shape, extents)
+        if split is None or (_per_lane(x, w, loop.var) and not target.tap_dots):
             return None
+        lead, co = split
+        c, cs = array.shape[-2:]
+        index = lead * (-(-c // k) * k * cs) + co * k + Affine.of(loop.var) * (k * cs)
         packed = self.packed_buffer(w.buffer, array, k)
         channels, groups = loop.extent, loop.extent // k
+        offset = 128 * (xbuf.dtype == DType.UINT8) if target.dot_int8_activations and k == 4 else zero_point
 
         def dot(group: Affine, count: int) -> Stmt:
             """acc += the dot of channels K group .. K group + count - 1 (the rest read as 0)."""
             xs = tuple(
-                _at_channel(x, zero_point, loop.var, group * k + j) if j < count else Const.integer(0) for j in range(k)
+                _at_channel(x, offset, loop.var, group * k + j) if j < count else Const.integer(0) for j in range(k)
             )
             weights = Load(packed, index.substitute({loop.var: group}), k)
             return Assign(acc, Binary("+", LocalRef(acc), Dot(xs, weights)))
@@ -131,7 +141,25 @@ class _Packer:
         stmts: list[Stmt] = [Loop(loop.var, groups, (dot(Affine.of(loop.var), k),))] if groups else []
         if channels % k:
             stmts.append(dot(Affine.of(groups), channels % k))
-        return tuple(stmts) if groups else (Loop(loop.var, 1, tuple(stmts)),)
+        stmts = stmts if groups else [Loop(loop.var, 1, tuple(stmts))]
+        if offset != zero_point:
+            correction = self.offset_correction(w.buffer, array, offset - zero_point)
+            stmts.append(Assign(acc, Binary("+", LocalRef(acc), Load(correction, lead * cs + co))))
+        return tuple(stmts)
+
+    def offset_correction(self, name: str, array: np.ndarray, difference: int) -> str:
+        """difference * the sum over input channels of the weights `name` (`array`, [lead..., C, Cs]),
+        as int32 [lead..., Cs]: what reading the activations `difference` too low takes from the dots."""
+        if (name, difference) in self.corrections:
+            return self.corrections[(name, difference)]
+        sums = (array.astype(np.int64).sum(axis=-2) * difference).astype(np.int32)
+        new = _fresh(f"{name}_offset", self.names)
+        self.names.add(new)
+        base = self.buffers[name]
+        self.added.append(replace(base, name=new, size=sums.size, shape=sums.shape, offset=None, dtype=INT32))
+        self.arrays[new] = sums
+        self.corrections[(name, difference)] = new
+        return new
 
     def packed_buffer(self, name: str, array: np.ndarray, k: int) -> str:
         """The weights of `name` (`array`) as [lead..., C / K, Cs, K], once per (array, K)."""
@@ -199,11 +227,13 @@ def _widened_load(e: Expr) -> Load | None:
     return e.value if scalar else None
 
 
-def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, extents: dict[str, int]) -> Affine | None:
-    """w's index [lead..., C, Cs] mapped to the packed [lead..., C / K, Cs, K] at group `var` (lane
-    0 of the group), or None when it is not lead + Cs * var + co with co in [0, Cs)."""
+def _split_index(
+    index: Affine, var: str, shape: tuple[int, ...], extents: dict[str, int]
+) -> tuple[Affine, Affine] | None:
+    """w's index [lead..., C, Cs] at channel `var` 0 as (lead, co): lead counts [C, Cs] blocks, co
+    the output channel in [0, Cs); None when it is not lead * C * Cs + Cs * var + co."""
     c, cs = shape[-2], shape[-1]
-    block, packed_block = c * cs, -(-c // k) * k * cs
+    block = c * cs
     if index.coeff(var) != cs:
         return None
     lead_terms, co_terms = {}, {}
@@ -211,7 +241,7 @@ def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, exten
         if name == var:
             continue
         if coeff % block == 0:
-            lead_terms[name] = coeff // block * packed_block
+            lead_terms[name] = coeff // block
         else:
             co_terms[name] = coeff
     lead_const, co_const = divmod(index.const, block)
@@ -221,7 +251,7 @@ def _packed_index(index: Affine, var: str, shape: tuple[int, ...], k: int, exten
     low, high = co.bounds(extents)
     if low < 0 or high >= cs:
         return None
-    return Affine._make(lead_terms, lead_const * packed_block) + co * k + Affine.of(var) * (k * cs)
+    return Affine._make(lead_terms, lead_const), co
 
 
 def _per_lane(x: Load, w: Load, var: str) -> bool:
