@@ -7,7 +7,7 @@ from helpers import check_against_onnxruntime, onnx_model, weights
 from onnx import helper
 
 import nncg
-from nncg.passes.register_block import chosen_blocks, choose_blocks
+from nncg.passes.register_block import choose_blocks, chosen_blocks
 
 
 def pointwise_then_depthwise(channels: int, size: int, stride: int, residual: bool = False):
@@ -16,8 +16,9 @@ def pointwise_then_depthwise(channels: int, size: int, stride: int, residual: bo
     group = 1 if residual else channels
     nodes = [
         helper.make_node("Conv", ["x", "w0"], ["p"], name="pointwise"),
-        helper.make_node("Conv", ["p", "w1", "b1"], ["c"], name="conv", group=group, pads=[1, 1, 1, 1],
-                         strides=[stride, stride]),  # fmt: skip
+        helper.make_node(
+            "Conv", ["p", "w1", "b1"], ["c"], name="conv", group=group, pads=[1, 1, 1, 1], strides=[stride, stride]
+        ),  # fmt: skip
     ]
     if residual:
         nodes.append(helper.make_node("Add", ["c", "p"], ["s"], name="add"))
