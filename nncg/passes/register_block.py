@@ -52,7 +52,8 @@ MAX_CHANNEL_BLOCK = 5
 RESERVED = 6
 # Pixels per block at most where a fused multiply-add reads a vector of inputs per channel (depthwise) and
 # a pixel holds MAX_CHANNEL_BLOCK - 1 channel vectors: avx512's register fit, 6x4, measured 1.2x-1.9x
-# slower than 3x4 on mobilenet_v2's and efficientnet_b0's depthwise layers (fewer vectors: no difference).
+# slower than 3x4 on single 3x3 depthwise layers shaped like mobilenet_v2's (96-192 channels, stride 1
+# and 2; a 5x5 one of 240 channels: no difference, nor with fewer channel vectors).
 VECTOR_INPUT_PIXELS = 3
 
 
