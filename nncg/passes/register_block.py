@@ -51,6 +51,11 @@ PIXEL_BLOCKS = (1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24)  # pixels per block --t
 # (the broadcast input, a product, weights the compiler keeps).
 MAX_CHANNEL_BLOCK = 5
 RESERVED = 6
+# Pixels per block at most where a fused multiply-add reads a vector of inputs per channel (depthwise) and
+# a pixel holds MAX_CHANNEL_BLOCK - 1 channel vectors: avx512's register fit, 6x4, measured 1.2x-1.9x
+# slower than 3x4 on single 3x3 depthwise layers shaped like mobilenet_v2's (96-192 channels, stride 1
+# and 2; a 5x5 one of 240 channels: no difference, nor with fewer channel vectors).
+VECTOR_INPUT_PIXELS = 3
 
 
 def parse_block(text: str) -> tuple[int, int]:
@@ -75,11 +80,18 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
     check_layer_names(program, layers, "register-block")
     blocks = chosen_blocks(program, target, layers)
     planar = planar_tensors(program)
+    constants = constant_buffers(program)
     kernels = tuple(
         replace(
             k,
             body=_block_kernel(
-                k, blocks[k.name], k.name not in layers, target.registers, fused_kernel(k, program, target), planar
+                k,
+                blocks[k.name],
+                k.name not in layers,
+                target.registers,
+                fused_kernel(k, program, target),
+                planar,
+                constants,
             ),
         )
         if k.name in blocks
@@ -90,7 +102,7 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
 
 
 def _block_kernel(
-    kernel: Kernel, block: tuple[int, int], own: bool, registers: int, fma: bool, planar
+    kernel: Kernel, block: tuple[int, int], own: bool, registers: int, fma: bool, planar, constants
 ) -> tuple[Stmt, ...]:
     """A kernel's body blocked by `block`; a band kernel runs several layers' nests, each of which the
     cost model sizes for itself (unless `layers` chose the kernel's block: `own` is False)."""
@@ -99,7 +111,7 @@ def _block_kernel(
 
     def per_nest(pixel: Loop) -> tuple[int, int]:
         shape = (pixel.extent, sum(_vectors(s) for s in pixel.body))
-        pixels, channels = choose_blocks(shape, registers, fma)
+        pixels, channels = choose_blocks(shape, registers, fma, multiplies_vector_inputs(pixel, constants))
         return (1 if reads_across_planes((pixel,), planar) else pixels), channels
 
     return block_body(kernel.body, *block, per_nest)
@@ -112,6 +124,7 @@ def chosen_blocks(
     (one pixel where the layer reads across planes). Also what --report shows."""
     layers = layers or {}
     blocks = {}
+    constants = constant_buffers(program)
     for kernel in program.kernels:
         # an int8 kernel is blocked once vectorised (int32 vector accumulators), a scalar one is not
         scalar_integer = is_integer_kernel(kernel, program) and not any(
@@ -121,7 +134,8 @@ def chosen_blocks(
         if shape is None:
             continue
         fma = fused_kernel(kernel, program, target)
-        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers, fma)
+        vector_inputs = multiplies_vector_inputs(first_pixel_loop(kernel.body), constants)
+        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers, fma, vector_inputs)
         if kernel.name not in layers and reads_across_planes(kernel.body, planar_tensors(program)):
             pixels = 1
         blocks[kernel.name] = (pixels, channels)
@@ -214,8 +228,16 @@ def _reads_own_element(load: Load, own: dict, var: str) -> bool:
 def tuning_candidates(program: Program, target: Target) -> dict[str, tuple[tuple[int, int], ...]]:
     """For --tune: each blockable layer's block shapes worth timing."""
     kernels = {k.name: k for k in program.kernels}
+    constants = constant_buffers(program)
     return {
-        name: tuple(block_candidates(shape, target.registers, fused_kernel(kernels[name], program, target)))
+        name: tuple(
+            block_candidates(
+                shape,
+                target.registers,
+                fused_kernel(kernels[name], program, target),
+                multiplies_vector_inputs(first_pixel_loop(kernels[name].body), constants),
+            )
+        )
         for name, shape in blockable(program).items()
     }
 
@@ -226,11 +248,13 @@ def blockable(program: Program) -> dict[str, tuple[int, int]]:
     return {name: shape for name, shape in shapes.items() if shape is not None}
 
 
-def block_candidates(shape: tuple[int, int], registers: int, fused: bool = False) -> list[tuple[int, int]]:
+def block_candidates(
+    shape: tuple[int, int], registers: int, fused: bool = False, vector_inputs: bool = False
+) -> list[tuple[int, int]]:
     """Block shapes worth timing: the cost model's first, then pixel counts up to a register file
     of accumulators, with all channel vectors of a pixel (or 2, 3, 4 of them when there are many)."""
     extent, vectors = shape
-    first = choose_blocks(shape, registers, fused)
+    first = choose_blocks(shape, registers, fused, vector_inputs)
     channel_options = [vectors] if vectors <= 5 else [2, 3, 4]
     out = [first]
     for channels in channel_options:
@@ -257,7 +281,9 @@ def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
     return bool(dots) and all(len(d.x) == 4 and all(x.lanes == 1 for x in d.x) for d in dots)
 
 
-def choose_blocks(shape: tuple[int, int], registers: int, fused: bool = False) -> tuple[int, int]:
+def choose_blocks(
+    shape: tuple[int, int], registers: int, fused: bool = False, vector_inputs: bool = False
+) -> tuple[int, int]:
     """Pixels x channel vectors. All of a pixel's channel vectors when they are few (each saves a
     broadcast per tap), else MAX_CHANNEL_BLOCK; then as many pixels as keep the accumulators to
     `registers - RESERVED` (measured on SSE: more spills, fewer leave the adds waiting). Where a
@@ -265,12 +291,41 @@ def choose_blocks(shape: tuple[int, int], registers: int, fused: bool = False) -
     needed, but the C compiler loads every pixel's broadcast input before the multiply-adds: a pixel
     takes its accumulators and a broadcast, and one weight vector is left (avx2: 3x4 instead of 2x4,
     squeezenet1_1 and regnet_x_400mf 1.07x-1.13x faster; 6x2, 12 accumulators and 6 broadcasts,
-    spilled three accumulators every reduction step)."""
+    spilled three accumulators every reduction step). Where each channel vector multiplies its own
+    input vector (`vector_inputs`, a depthwise Conv) nothing is shared across a pixel's channels and
+    the compiler loads those inputs ahead as it does broadcasts: fused, with 4 channel vectors, at most
+    VECTOR_INPUT_PIXELS pixels (what avx2's 16 registers give anyway; avx512's 32 would give 6)."""
     extent, vectors = shape
     channels = vectors if vectors <= MAX_CHANNEL_BLOCK else MAX_CHANNEL_BLOCK - 1
     fit = (registers - 1) // (channels + 1) if fused else (registers - RESERVED) // channels
+    if fused and vector_inputs and channels == MAX_CHANNEL_BLOCK - 1:
+        fit = min(fit, VECTOR_INPUT_PIXELS)
     pixels = max(1, min(extent, fit))
     return pixels, channels
+
+
+def constant_buffers(program: Program) -> set[str]:
+    return {b.name for b in program.buffers if b.role == BufferRole.CONSTANT}
+
+
+def multiplies_vector_inputs(pixel: Loop | None, constants: set[str]) -> bool:
+    """Whether an accumulator under the pixel loop adds products of a vector of weights and a vector
+    of activations (a depthwise Conv: one input per channel, not one broadcast for all of them)."""
+    if pixel is None:
+        return False
+    for stmt in walk_stmts(pixel.body):
+        if not is_accumulator(stmt):
+            continue
+        loads = {
+            e.buffer in constants
+            for update in walk_stmts(stmt.body)
+            if isinstance(update, Assign) and update.name == stmt.name
+            for e in walk_exprs(update.value)
+            if isinstance(e, Load) and e.lanes > 1
+        }
+        if loads == {True, False}:
+            return True
+    return False
 
 
 def planar_tensors(program: Program) -> dict[str, int]:

@@ -1,0 +1,62 @@
+"""Register blocks of depthwise Convs on x86 FMA targets: at most 3 pixels of 4 channel vectors (avx512's
+32 registers would give 6), chosen from the loop nest; blocked code against onnxruntime on every x86 target."""
+
+import numpy as np
+import pytest
+from helpers import check_against_onnxruntime, onnx_model, weights
+from onnx import helper
+
+import nncg
+from nncg.passes.register_block import choose_blocks, chosen_blocks
+
+
+def pointwise_then_depthwise(channels: int, size: int, stride: int, residual: bool = False):
+    """A 1x1 Conv (so the depthwise Conv reads a channels-last tensor, as in mobilenet_v2), then a 3x3
+    depthwise Conv with Relu6; with `residual`, a dense 3x3 Conv adding the 1x1 Conv's output instead."""
+    group = 1 if residual else channels
+    nodes = [
+        helper.make_node("Conv", ["x", "w0"], ["p"], name="pointwise"),
+        helper.make_node(
+            "Conv", ["p", "w1", "b1"], ["c"], name="conv", group=group, pads=[1, 1, 1, 1], strides=[stride, stride]
+        ),  # fmt: skip
+    ]
+    if residual:
+        nodes.append(helper.make_node("Add", ["c", "p"], ["s"], name="add"))
+    nodes.append(helper.make_node("Clip", ["s" if residual else "c", "lo", "hi"], ["y"], name="relu6"))
+    inits = {
+        "w0": weights(channels, 8, 1, 1),
+        "w1": weights(channels, channels // group, 3, 3),
+        "b1": weights(channels),
+        "lo": np.array(0.0, np.float32),
+        "hi": np.array(6.0, np.float32),
+    }
+    return onnx_model(nodes, inputs={"x": (1, 8, size, size)}, initializers=inits)
+
+
+def test_cost_model_caps_vector_input_pixels_where_fused():
+    assert choose_blocks((40, 9), 32, fused=True, vector_inputs=True) == (3, 4)
+    assert choose_blocks((40, 9), 32, fused=True) == (6, 4)  # dense: one broadcast serves 4 vectors
+    assert choose_blocks((40, 9), 16, fused=True, vector_inputs=True) == (3, 4)  # avx2 as before
+    assert choose_blocks((40, 9), 16, vector_inputs=True) == (2, 4)  # no FMA from memory: as before
+    assert choose_blocks((40, 2), 32, fused=True, vector_inputs=True) == (10, 2)  # few vectors: as before
+
+
+def _blocks(model, target: str) -> dict[str, tuple[int, int]]:
+    compiled = nncg.compile(model, target=target)
+    return chosen_blocks(compiled.record.before_register_block, nncg.get_target(target))
+
+
+def test_depthwise_conv_is_recognised_from_its_loop_nest():
+    blocks = _blocks(pointwise_then_depthwise(144, 12, 1), "avx512")
+    assert blocks["conv"] == (3, 4)
+    assert blocks["pointwise"][0] > 3  # a 1x1 Conv broadcasts its input: the full register fit
+    # a dense Conv whose epilogue loads a residual vector is not depthwise
+    assert _blocks(pointwise_then_depthwise(144, 12, 1, residual=True), "avx512")["conv"] == (6, 4)
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2", "avx512"])
+@pytest.mark.parametrize("channels, size, stride", [(144, 11, 1), (72, 12, 2), (80, 9, 1)])
+def test_depthwise_blocks_match_onnxruntime(target, channels, size, stride):
+    # 144 = 9 vectors of 16 (two 3x4 blocks and one more vector), 72 = 4 of 16 and one of 8, 80 = 5 of 16
+    m = pointwise_then_depthwise(channels, size, stride)
+    check_against_onnxruntime(m, nncg.compile(m, target=target), opt="-O1")
