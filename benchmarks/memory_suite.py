@@ -127,15 +127,18 @@ def target_lines(rows: list[MemoryRow]) -> list[str]:
     return lines
 
 
-def section_markdown(rows: list[MemoryRow], peaks: dict, cpu: int | None, date: str, batches: int, command: str):
+def section_markdown(
+    rows: list[MemoryRow], peaks: dict, cpu: int | None, date: str, batches: int, command: str, note: str = ""
+):
     lines = [
         "## Memory settings (issue 18)",
         "",
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'}); date: {date}",
         f"- Measured peak: {peaks_text(peaks)}",
         f"- Command: `{command}`",
-        "- The machine was shared with one other job while this ran: absolute µs are noisy, the ratios less so",
-        "  (the settings and onnxruntime are timed in turn within each batch); the speed again rows show how much.",
+        *([f"- {note}"] if note else []),
+        "- The settings and onnxruntime are timed in turn within each batch, so the ratios are steadier than",
+        "  the absolute µs; the speed again rows show how much two builds of the same C differ.",
         "- NNCG untuned defaults (unroll auto) at `--memory speed|balanced|min`; NNCG µs: the median of",
         f"  {batches} batches of >= 20 ms each; x speed: that median over speed's, same run; ORT µs: onnxruntime",
         "  (one thread, IOBinding), timed in the same run: one figure for all the settings.",
@@ -162,13 +165,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--targets", nargs="+", default=["ssse3", "avx2"], help="x86 targets (default: ssse3 avx2)")
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
+    parser.add_argument("--note", default="", help="a line for the section, e.g. the machine's load")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)
     peaks = measure_peaks()
     rows = run_memory_suite(args.models, args.targets, cpu=args.cpu, batches=args.batches, peaks=peaks)
     command = shlex.join(["python3", "-m", "benchmarks.memory_suite", *argv])
     date = datetime.date.today().isoformat()
-    section = section_markdown(rows, peaks, args.cpu, date, args.batches, command)
+    section = section_markdown(rows, peaks, args.cpu, date, args.batches, command, args.note)
     write_section(args.out_dir, SECTION, section)
     print(section)
     return 0
