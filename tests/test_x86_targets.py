@@ -108,6 +108,7 @@ def test_backends_declare_the_widths_they_print():
         "avx512": (16, 8, 4),
         "avx512vnni": (16, 8, 4),
         "neon": (4,),
+        "neon-dotprod": (4,),
     }
     for name in BACKENDS:
         backend = get_backend(name)

@@ -43,6 +43,7 @@ COSTS = {
     "ansi-c": SCALAR,
     "ssse3": VECTOR4,
     "neon": VECTOR4,
+    "neon-dotprod": VECTOR4,  # its float kernels are neon's
     "avx2": VECTOR8,
     "avx512": VECTOR8,
     "avx512vnni": VECTOR8,  # its float kernels are avx512's
