@@ -326,12 +326,9 @@ class Requantization:
 
 
 @dataclass(frozen=True)
-class QConvAttrs:
-    """QLinearConv: inputs x (int8/uint8), w [C_out, C_in/group, k...] (constant, int8, or int16
-    when its zero point is not 0 and was subtracted), b [C_out] (int32 constant) and the
-    multipliers [C_out] (float32 constant: x_scale * w_scale / y_scale). The accumulator is
-    b + sum (x - x_zero_point) * w over the taps inside the image (a padded tap reads the zero
-    point: it adds 0)."""
+class IntegerWindow:
+    """The window of an integer convolution and its input's zero point: what QLinearConv
+    (QConvAttrs) and a dequantised ConvInteger (IntegerConvAttrs) share."""
 
     kernel: Shape
     strides: Shape
@@ -340,6 +337,16 @@ class QConvAttrs:
     pads_end: Shape
     group: int
     x_zero_point: int
+
+
+@dataclass(frozen=True)
+class QConvAttrs(IntegerWindow):
+    """QLinearConv: inputs x (int8/uint8), w [C_out, C_in/group, k...] (constant, int8, or int16
+    when its zero point is not 0 and was subtracted), b [C_out] (int32 constant) and the
+    multipliers [C_out] (float32 constant: x_scale * w_scale / y_scale). The accumulator is
+    b + sum (x - x_zero_point) * w over the taps inside the image (a padded tap reads the zero
+    point: it adds 0)."""
+
     out: Requantization
 
 
@@ -353,20 +360,13 @@ class QDenseAttrs:
 
 
 @dataclass(frozen=True)
-class IntegerConvAttrs:
+class IntegerConvAttrs(IntegerWindow):
     """ConvInteger dequantised in its store (frontend/qdq.py's ConvIntegerScaled): inputs x
     (int8/uint8), w (as QConvAttrs's), b [C_out] (int32 constant: 0, or the zero point folded in),
     scale [C_out] and, when `biased`, bias [C_out] (float32 constants). The result is
     float32(b + sum (x - x_zero_point) * w) * scale (+ bias), each step rounded to float32 as
     onnxruntime's Cast, Mul and Add round it."""
 
-    kernel: Shape
-    strides: Shape
-    dilations: Shape
-    pads_begin: Shape
-    pads_end: Shape
-    group: int
-    x_zero_point: int
     biased: bool
 
 
