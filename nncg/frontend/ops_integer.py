@@ -66,10 +66,7 @@ def convert_conv_integer(op: OnnxOp, ctx: Context) -> Node:
     geometry = conv_geometry(op, ctx.shape(x), w_shape)
     x_zero = _x_zero_point(op, ctx)
     w = centred_weights(op, ctx, 1, 3, w_shape[0], 0)
-    attrs = IntegerConvAttrs(
-        geometry.kernel, geometry.strides, geometry.dilations, geometry.pads_begin, geometry.pads_end,
-        geometry.group, x_zero, bool(op.input(5)),
-    )  # fmt: skip
+    attrs = IntegerConvAttrs.of(geometry, x_zero, bool(op.input(5)))
     return op.ir_node("ConvInteger", [x, *_constants(op, ctx, w, w_shape[0], len(ctx.shape(x)))], attrs)
 
 

@@ -11,7 +11,7 @@ at raw ONNX attributes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Union
+from typing import TypeVar, Union
 
 import numpy as np
 
@@ -325,6 +325,9 @@ class Requantization:
         return f"{self.dtype}(zero_point={self.zero_point}, {self.low}..{self.high})"
 
 
+_Window = TypeVar("_Window", bound="IntegerWindow")
+
+
 @dataclass(frozen=True)
 class IntegerWindow:
     """The window of an integer convolution and its input's zero point: what QLinearConv
@@ -337,6 +340,13 @@ class IntegerWindow:
     pads_end: Shape
     group: int
     x_zero_point: int
+
+    @classmethod
+    def of(cls: type[_Window], geometry: ConvAttrs, x_zero_point: int, *rest: object) -> _Window:
+        """The record of `geometry`'s window (a Conv's, from the front end) and the input zero
+        point, then the subclass's own fields `rest` in order."""
+        g = geometry
+        return cls(g.kernel, g.strides, g.dilations, g.pads_begin, g.pads_end, g.group, x_zero_point, *rest)
 
 
 @dataclass(frozen=True)
