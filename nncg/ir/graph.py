@@ -371,22 +371,26 @@ class QDenseAttrs:
 
 @dataclass(frozen=True)
 class IntegerConvAttrs(IntegerWindow):
-    """ConvInteger dequantised in its store (frontend/qdq.py's ConvIntegerScaled): inputs x
-    (int8/uint8), w (as QConvAttrs's), b [C_out] (int32 constant: 0, or the zero point folded in),
-    scale [C_out] and, when `biased`, bias [C_out] (float32 constants). The result is
-    float32(b + sum (x - x_zero_point) * w) * scale (+ bias), each step rounded to float32 as
-    onnxruntime's Cast, Mul and Add round it."""
+    """ConvInteger: inputs x (int8/uint8), w (as QConvAttrs's), b [C_out] (int32 constant: 0, or
+    the zero point folded in). Its int32 result b + sum (x - x_zero_point) * w is the output as it
+    is, or, when `dequantized` (frontend/qdq.py fused the Cast, Mul and Add that read it), two more
+    float32 constants follow: scale [C_out] and, when `biased`, bias [C_out]; the output is then
+    float32(sum) * scale (+ bias), each step rounded to float32 as onnxruntime's Cast, Mul and Add
+    round it."""
 
     biased: bool
+    dequantized: bool = True
 
 
 @dataclass(frozen=True)
 class IntegerDenseAttrs:
-    """MatMulInteger dequantised in its store: x [M, K], w [K, N], b, scale and bias [N], as
-    IntegerConvAttrs's."""
+    """MatMulInteger of x [M, K] and w [K, N], with b [N] (then scale and bias [N] when
+    `dequantized`), as IntegerConvAttrs's. The output has M * N elements: [M, N], or the shape of
+    a batched MatMulInteger's result (its rows the batches' rows in order, x made [M, K] by a Reshape)."""
 
     x_zero_point: int
     biased: bool
+    dequantized: bool = True
 
 
 @dataclass(frozen=True)
