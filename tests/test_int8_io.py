@@ -18,6 +18,7 @@ from cross_helpers import CORTEX_M4_TOOLS, TOOLCHAINS, missing_tools, run_cortex
 from helpers import kernel_ops, nncg_onnx, skip_unless_host_runs
 from int8_models import onnxruntime_outputs
 from onnx import TensorProto, helper, numpy_helper
+from test_cli_errors import assert_one_error_line
 from test_cross_targets import require
 
 import nncg
@@ -98,7 +99,7 @@ def test_qdq_conv_between_integer_input_and_output(x_type):
     check(qdq_conv_model(x_type))
 
 
-@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512"])
+@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512", "avx512vnni"])
 @pytest.mark.parametrize("form", ["qlinear", "qdq"])
 def test_x86_targets(form, target):
     check(qlinear_conv_model(np.int8, np.int8) if form == "qlinear" else qdq_conv_model(np.uint8), target)
@@ -157,13 +158,15 @@ def test_a_float_array_for_an_integer_input_is_refused():
         run_compiled(compiled, [x.astype(np.int16) - 1])
 
 
-def test_an_int16_input_is_refused():
+def test_an_int16_input_is_refused(tmp_path):
     model = qlinear_conv_model()
     model.graph.input[0].type.tensor_type.elem_type = TensorProto.INT16
     with pytest.raises(
         NncgError, match=r"input 'x' is int16; NNCG compiles models whose inputs are float32, int8, uint8"
     ):
         nncg.compile(model)
+    onnx.save(model, tmp_path / "int16.onnx")
+    assert_one_error_line(nncg_onnx(tmp_path / "int16.onnx", "-o", tmp_path), "input 'x' is int16")
 
 
 def test_a_float_op_reading_an_integer_input_is_refused():
