@@ -39,9 +39,9 @@ def harness_source(
 ) -> str:
     """A C89 program calling `compiled` (a CompiledModel, or anything with its name, inputs, outputs).
 
-    Inputs are read from the files named first on the command line (raw little-endian float32),
-    or, given as arrays, compiled in. Outputs are written to the files named next (same format; an
-    int32 output, ArgMax's indices, as little-endian int32), or printed as `outputs` says. Outputs
+    Inputs are read from the files named first on the command line (raw little-endian elements of
+    each input's dtype: float32, int8 or uint8), or, given as arrays, compiled in. Outputs are
+    written to the files named next (the same format, int32 too), or printed as `outputs` says. Outputs
     start as all-ones bytes (a NaN; index -1), so an element the model never writes shows up. The
     model runs once, or with `commands` (POSIX) as lines on stdin say: "run N" times N calls and
     answers nanoseconds, "profile" answers seconds per layer (a profile build, with `profile`),
@@ -66,6 +66,7 @@ class _Parts:
         self.name = compiled.name
         self.in_sizes = [_element_count(spec.shape) for spec in compiled.inputs]
         self.out_sizes = [_element_count(spec.shape) for spec in compiled.outputs]
+        self.in_types = [C_TYPES[getattr(spec, "dtype", "float32")] for spec in compiled.inputs]
         self.out_types = [C_TYPES[getattr(spec, "dtype", "float32")] for spec in compiled.outputs]
         self.baked = None if inputs is None else list(inputs)
         self.printed = outputs
@@ -101,10 +102,11 @@ class _Parts:
 
     def declarations(self) -> list[str]:
         if self.baked is None:
-            lines = [f"static float nncg_in{i}[{max(n, 1)}];" for i, n in enumerate(self.in_sizes)]
+            sized = zip(self.in_types, self.in_sizes)
+            lines = [f"static {t} nncg_in{i}[{max(n, 1)}];" for i, (t, n) in enumerate(sized)]
         else:
-            lines = [f"static const float nncg_in{i}[{max(a.size, 1)}] = {{\n{_c_floats(a)}\n}};"
-                     for i, a in enumerate(self.baked)]  # fmt: skip
+            lines = [f"static const {t} nncg_in{i}[{max(a.size, 1)}] = {{\n{_c_values(a, t)}\n}};"
+                     for i, (t, a) in enumerate(zip(self.in_types, self.baked))]  # fmt: skip
         lines += [
             f"static {t} nncg_out{i}[{max(n, 1)}];" for i, (t, n) in enumerate(zip(self.out_types, self.out_sizes))
         ]
@@ -123,9 +125,9 @@ class _Parts:
         if self.files:
             pieces.append(SWAP_IF_BIG_ENDIAN)
         if self.baked is None and self.in_sizes:
-            pieces.append(READ_FLOATS)
+            pieces.append(READ_VALUES)
         if self.printed is None and self.out_sizes:
-            pieces.append(WRITE_FLOATS)
+            pieces.append(WRITE_VALUES)
         if self.printed is not None:
             pieces.append(PRINT_HEX.format(put=self.printed.put))
             pieces += [PRINT_WORDS[t] for t in C_TYPES.values() if t in self.out_types]
@@ -156,7 +158,10 @@ class _Parts:
     def read_inputs(self) -> list[str]:
         if self.baked is not None:
             return []
-        return [f"if (!nncg_read(argv[{1 + i}], nncg_in{i}, {n}UL)) return 1;" for i, n in enumerate(self.in_sizes)]
+        return [
+            f"if (!nncg_read(argv[{1 + i}], nncg_in{i}, sizeof nncg_in{i}[0], {n}UL)) return 1;"
+            for i, n in enumerate(self.in_sizes)
+        ]
 
     def deliver_outputs(self) -> list[str]:
         if self.printed is not None:
@@ -217,12 +222,16 @@ def _element_count(shape: Sequence[int]) -> int:
     return math.prod(int(d) for d in shape)
 
 
-def _c_floats(values: np.ndarray) -> str:
-    """Float constants, 8 a line; 9 significant digits give back the same float32 exactly."""
-    floats = np.asarray(values, dtype=np.float32).ravel()
-    if not np.isfinite(floats).all():
-        raise NncgError("compiled-in inputs must be finite")
-    items = [f"{float(v):.8e}f" for v in floats]
+def _c_values(values: np.ndarray, c_type: str) -> str:
+    """Constants of the input's C type, 8 a line: floats with 9 significant digits (which give back
+    the same float32 exactly), integers as they are."""
+    if c_type != "float":
+        items = [str(int(v)) for v in np.asarray(values).ravel()]
+    else:
+        floats = np.asarray(values, dtype=np.float32).ravel()
+        if not np.isfinite(floats).all():
+            raise NncgError("compiled-in inputs must be finite")
+        items = [f"{float(v):.8e}f" for v in floats]
     return ",\n".join(", ".join(items[i : i + 8]) for i in range(0, len(items), 8))
 
 
@@ -248,27 +257,30 @@ static const void *nncg_load_weights(void)
 }}
 """
 
-# The C type of an output array, by the output's dtype; nncg_int32 comes from the model's header.
-C_TYPES = {"float32": "float", "int32": "nncg_int32"}
+# The C type of an input or output array, by its dtype; the integer types come from the model's header.
+C_TYPES = {"float32": "float", "int8": "nncg_int8", "uint8": "nncg_uint8", "int32": "nncg_int32"}
 
 SWAP_IF_BIG_ENDIAN = """\
-/* Converts between little-endian file data and native 4-byte words (a no-op on little-endian hosts). */
-static void nncg_swap_if_big_endian(void *data, unsigned long count)
+/* Converts between little-endian file data and native `size`-byte elements (a no-op on
+   little-endian hosts). */
+static void nncg_swap_if_big_endian(void *data, size_t size, unsigned long count)
 {
     unsigned int one = 1;
     unsigned char *p = (unsigned char *)data;
     unsigned char t;
     unsigned long i;
+    size_t j;
     if (*(unsigned char *)&one == 1) return;
-    for (i = 0; i < count; ++i, p += 4) {
-        t = p[0]; p[0] = p[3]; p[3] = t;
-        t = p[1]; p[1] = p[2]; p[2] = t;
+    for (i = 0; i < count; ++i, p += size) {
+        for (j = 0; j < size / 2; ++j) {
+            t = p[j]; p[j] = p[size - 1 - j]; p[size - 1 - j] = t;
+        }
     }
 }
 """
 
-READ_FLOATS = """\
-static int nncg_read(const char *path, float *data, unsigned long count)
+READ_VALUES = """\
+static int nncg_read(const char *path, void *data, size_t size, unsigned long count)
 {
     FILE *f = fopen(path, "rb");
     int ok;
@@ -276,17 +288,16 @@ static int nncg_read(const char *path, float *data, unsigned long count)
         fprintf(stderr, "harness: cannot open %s\\n", path);
         return 0;
     }
-    ok = fread(data, sizeof(float), count, f) == count && fgetc(f) == EOF;
+    ok = fread(data, size, count, f) == count && fgetc(f) == EOF;
     fclose(f);
-    if (!ok) fprintf(stderr, "harness: %s does not hold exactly %lu floats\\n", path, count);
-    nncg_swap_if_big_endian(data, count);
+    if (!ok) fprintf(stderr, "harness: %s does not hold exactly %lu values\\n", path, count);
+    nncg_swap_if_big_endian(data, size, count);
     return ok;
 }
 """
 
-# Swaps the outputs (4-byte floats or int32s) in place on a big-endian machine, so it swaps them back
-# after writing.
-WRITE_FLOATS = """\
+# Swaps the outputs in place on a big-endian machine, so it swaps them back after writing.
+WRITE_VALUES = """\
 static int nncg_write(const char *path, void *data, size_t size, unsigned long count)
 {
     FILE *f = fopen(path, "wb");
@@ -295,9 +306,9 @@ static int nncg_write(const char *path, void *data, size_t size, unsigned long c
         fprintf(stderr, "harness: cannot create %s\\n", path);
         return 0;
     }
-    nncg_swap_if_big_endian(data, count);
+    nncg_swap_if_big_endian(data, size, count);
     ok = fwrite(data, size, count, f) == count;
-    nncg_swap_if_big_endian(data, count);
+    nncg_swap_if_big_endian(data, size, count);
     ok = fclose(f) == 0 && ok;
     if (!ok) fprintf(stderr, "harness: cannot write %s\\n", path);
     return ok;
@@ -317,8 +328,16 @@ static void nncg_print_hex(uint32_t value)
 }}
 """
 
-# The print function of each output C type (its name's suffix, then its definition).
-PRINTED = {"float": "floats", "nncg_int32": "int32s"}
+# The print function of each output C type (its name's suffix, then its definition); an integer
+# prints as its int32 two's complement.
+PRINTED = {"float": "floats", "nncg_int8": "int8s", "nncg_uint8": "uint8s", "nncg_int32": "int32s"}
+PRINT_INTEGERS = """\
+static void nncg_print_{suffix}(const {c_type} *data, unsigned long count)
+{{
+    unsigned long i;
+    for (i = 0; i < count; ++i) nncg_print_hex((uint32_t)(nncg_int32)data[i]);
+}}
+"""
 PRINT_WORDS = {
     "float": """\
 static void nncg_print_floats(const float *data, unsigned long count)
@@ -331,11 +350,5 @@ static void nncg_print_floats(const float *data, unsigned long count)
     }
 }
 """,
-    "nncg_int32": """\
-static void nncg_print_int32s(const nncg_int32 *data, unsigned long count)
-{
-    unsigned long i;
-    for (i = 0; i < count; ++i) nncg_print_hex((uint32_t)data[i]);
-}
-""",
+    **{t: PRINT_INTEGERS.format(suffix=PRINTED[t], c_type=t) for t in ("nncg_int8", "nncg_uint8", "nncg_int32")},
 }

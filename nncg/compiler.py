@@ -48,7 +48,8 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class Param:
     """A parameter of the generated function: the ONNX tensor name, its C name, shape and element
-    type (numpy's name: float32, or int32 for ArgMax/ArgMin indices)."""
+    type (numpy's name: float32; int8 or uint8 for quantized values; int32 for ArgMax/ArgMin
+    indices and the sums of a ConvInteger or MatMulInteger)."""
 
     name: str
     c_name: str

@@ -42,7 +42,7 @@ class VerificationError(NncgError):
 @dataclass(frozen=True)
 class ErrorStat:
     """How far one output is from the reference; `problem` is set when the numbers are not comparable
-    (and when indices differ: they are compared exactly).
+    (and when integers differ: they are compared exactly).
 
     max_rel is max|out - ref| / max(max|ref|, 1e-12): the error relative to the output's scale.
     Element-wise relative error is meaningless where the reference crosses zero (any rounding
@@ -54,7 +54,8 @@ class ErrorStat:
     max_abs: float
     max_rel: float
     problem: str | None = None
-    indices: bool = False  # integer indices (ArgMax/ArgMin), compared exactly: any difference fails
+    # an integer output (ArgMax's indices, quantized values, int32 sums), compared exactly: any difference fails
+    indices: bool = False
 
 
 @dataclass(frozen=True)
@@ -103,9 +104,28 @@ def find_c_compiler(cc: str | None = None) -> str:
 
 
 def random_inputs(inputs: Sequence[Any], seed: int = 0) -> list[np.ndarray]:
-    """Fixed-seed float32 standard-normal arrays, one per input (objects with `.shape`), in order."""
+    """Fixed-seed arrays, one per input (objects with `.shape` and maybe `.dtype`), in order:
+    float32 standard-normal, or an integer type's values drawn uniformly over its whole range."""
     rng = np.random.default_rng(seed)
-    return [rng.standard_normal(tuple(spec.shape), dtype=np.float32) for spec in inputs]
+    return [_random_array(rng, tuple(spec.shape), np.dtype(getattr(spec, "dtype", "float32"))) for spec in inputs]
+
+
+def _random_array(rng: np.random.Generator, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    if dtype.kind == "f":
+        return rng.standard_normal(shape, dtype=np.float32)
+    info = np.iinfo(dtype)
+    return rng.integers(info.min, info.max, shape, dtype=dtype, endpoint=True)
+
+
+def input_array(spec: Any, array: np.ndarray) -> np.ndarray:
+    """`array` as the input's dtype (float32 unless the spec says otherwise), C-contiguous."""
+    return np.ascontiguousarray(array, dtype=np.dtype(getattr(spec, "dtype", "float32")))
+
+
+def write_input(path: Path, spec: Any, array: np.ndarray) -> None:
+    """An input file for the test programs: raw little-endian elements of the input's dtype."""
+    data = input_array(spec, array)
+    data.astype(data.dtype.newbyteorder("<")).tofile(path)
 
 
 def _element_count(shape: Sequence[int]) -> int:
@@ -125,6 +145,19 @@ def _check_inputs(compiled: Any, inputs: Sequence[np.ndarray]) -> None:
             raise VerificationError(
                 f"input {spec.name!r} must have shape {tuple(spec.shape)}, got {tuple(np.shape(array))}"
             )
+        _check_integers(spec, np.asarray(array))
+
+
+def _check_integers(spec: Any, array: np.ndarray) -> None:
+    """An integer input takes integers of its type's range, so that nothing is rounded or wrapped."""
+    dtype = np.dtype(getattr(spec, "dtype", "float32"))
+    if dtype.kind == "f":
+        return
+    info = np.iinfo(dtype)
+    if array.dtype.kind not in "iu":
+        raise VerificationError(f"input {spec.name!r} is {dtype}: pass integers, not {array.dtype}")
+    if array.size and (array.min() < info.min or array.max() > info.max):
+        raise VerificationError(f"input {spec.name!r} is {dtype}: its values must lie in {info.min}..{info.max}")
 
 
 def _build(
@@ -230,8 +263,8 @@ class BuiltModel:
         _check_inputs(self.compiled, inputs)
         in_files = [f"input{i}.bin" for i in range(len(inputs))]
         out_files = [f"output{i}.bin" for i in range(len(self.compiled.outputs))]
-        for name, array in zip(in_files, inputs):
-            np.ascontiguousarray(array, dtype="<f4").tofile(self.workdir / name)
+        for name, spec, array in zip(in_files, self.compiled.inputs, inputs):
+            write_input(self.workdir / name, spec, array)
         _execute(self.program, in_files + out_files, self.workdir, self.sanitize, self.runner)
         return [_read_output(self.workdir / name, spec) for name, spec in zip(out_files, self.compiled.outputs)]
 
@@ -274,7 +307,7 @@ def _build_and_run(
 
 
 def _read_output(path: Path, spec: Any) -> np.ndarray:
-    """An output file: little-endian float32, or int32 for an output of indices (spec.dtype)."""
+    """An output file: little-endian elements of the output's dtype (spec.dtype)."""
     dtype = np.dtype(getattr(spec, "dtype", "float32"))
     data = np.fromfile(path, dtype=dtype.newbyteorder("<"))
     shape = tuple(spec.shape)
@@ -297,7 +330,7 @@ def reference_outputs(
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
     options.intra_op_num_threads = 1
     options.log_severity_level = 3
-    feed = {spec.name: np.asarray(array, dtype=np.float32) for spec, array in zip(compiled_inputs, inputs)}
+    feed = {spec.name: input_array(spec, array) for spec, array in zip(compiled_inputs, inputs)}
     try:
         session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
         return [np.asarray(out) for out in session.run(None if output_names is None else list(output_names), feed)]
@@ -312,7 +345,7 @@ def _error_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
     if out.shape != ref.shape:
         return ErrorStat(name, shape, math.inf, math.inf, f"shape {shape} != reference shape {tuple(ref.shape)}")
     if out.dtype.kind in "iu" or ref.dtype.kind in "iu":
-        return _index_stat(name, out, ref)
+        return _integer_stat(name, out, ref)
     out64, ref64 = out.astype(np.float64), ref.astype(np.float64)
     ref_nan = np.isnan(ref64)
     bad_nan = int(np.count_nonzero(np.isnan(out64) & ~ref_nan))
@@ -327,8 +360,9 @@ def _error_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
     return ErrorStat(name, shape, max_abs, max_abs / scale)
 
 
-def _index_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
-    """Indices (ArgMax's int32 against onnxruntime's int64) must be equal: any difference is a problem."""
+def _integer_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
+    """Integers (ArgMax's int32 indices against onnxruntime's int64, quantized values, int32 sums)
+    must be equal: any difference is a problem."""
     shape = tuple(out.shape)
     if out.dtype.kind not in "iu" or ref.dtype.kind not in "iu":
         return ErrorStat(name, shape, math.inf, math.inf, f"{out.dtype} output where the reference is {ref.dtype}")

@@ -272,8 +272,11 @@ def _parse_output(text: str, compiled: CompiledModel) -> tuple[list[np.ndarray],
     sizes = [int(np.prod(spec.shape)) for spec in compiled.outputs]
     if bits.size != sum(sizes):
         raise VerificationError(f"the Cortex-M4 program printed {bits.size} floats, expected {sum(sizes)}")
-    chunks = np.split(bits, np.cumsum(sizes)[:-1])  # each output's 32-bit words: float32 or int32 (indices)
-    outputs = [c.view(np.dtype(spec.dtype)).reshape(spec.shape) for c, spec in zip(chunks, compiled.outputs)]
+    chunks = np.split(bits, np.cumsum(sizes)[:-1])  # each output's 32-bit words: float32, or integers as int32
+    outputs = [
+        (c.view(np.float32) if spec.dtype == "float32" else c.view(np.int32).astype(spec.dtype)).reshape(spec.shape)
+        for c, spec in zip(chunks, compiled.outputs)
+    ]
     return outputs, int(words[marker + 1], 16)
 
 

@@ -11,10 +11,12 @@ from pathlib import Path
 import numpy as np
 import onnx
 import onnxruntime as ort
+from helpers import onnx_model
 from onnx import TensorProto, helper, numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
 from nncg.bench.steps import Comparison, compare_steps, output_scales  # noqa: F401 - output_scales for the tests
+from nncg.verify import run_compiled
 
 ROOT = Path(__file__).resolve().parent.parent
 OPSET = 17
@@ -260,6 +262,86 @@ def repository_model(path: str, softmax: bool = True) -> onnx.ModelProto:
         return onnx.load(dst)
 
 
+# --- hand-written QDQ and QOperator models of one op, and their bit-exact check ----------------
+
+CONTRIB = "com.microsoft"  # onnxruntime's contrib ops (QLinearAdd, QLinearMul, ...)
+
+
+def typed(activations: str, value) -> np.ndarray:
+    """`value` as the activation type ("int8" or "uint8")."""
+    return np.asarray(value, np.int8 if activations == "int8" else np.uint8)
+
+
+def qdq_around(op: str, operands: list[str], x: tuple[str, str], y: tuple[str, str], **attrs) -> list:
+    """x quantised and dequantised by the scale and zero point named `x`, `op` of it (then
+    `operands`), its result quantised and dequantised to y by those named `y`."""
+    return [
+        helper.make_node("QuantizeLinear", ["x", *x], ["q"]),
+        helper.make_node("DequantizeLinear", ["q", *x], ["d"]),
+        helper.make_node(op, ["d", *operands], ["f"], **attrs),
+        helper.make_node("QuantizeLinear", ["f", *y], ["fq"]),
+        helper.make_node("DequantizeLinear", ["fq", *y], ["y"]),
+    ]
+
+
+def qdq_binary_model(op: str, x_shape, z_shape, params: dict, constant: bool = False) -> onnx.ModelProto:
+    """x `op` z between QuantizeLinear/DequantizeLinear pairs (scales and zero points as/az, bs/bz,
+    ys/yz in `params`); z a graph input or a quantized constant of bs/bz's type."""
+    params = dict(params)
+    inputs = {"x": x_shape}
+    if constant:
+        info = np.iinfo(params["bz"].dtype)
+        values = np.random.default_rng(2).integers(info.min, info.max + 1, z_shape)
+        params["zq"] = values.astype(params["bz"].dtype)
+        b = [helper.make_node("DequantizeLinear", ["zq", "bs", "bz"], ["db"])]
+    else:
+        inputs["z"] = z_shape
+        b = [
+            helper.make_node("QuantizeLinear", ["z", "bs", "bz"], ["zq"]),
+            helper.make_node("DequantizeLinear", ["zq", "bs", "bz"], ["db"]),
+        ]
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "as", "az"], ["xq"]),
+        helper.make_node("DequantizeLinear", ["xq", "as", "az"], ["da"]),
+        *b,
+        helper.make_node(op, ["da", "db"], ["r"]),
+        helper.make_node("QuantizeLinear", ["r", "ys", "yz"], ["rq"]),
+        helper.make_node("DequantizeLinear", ["rq", "ys", "yz"], ["y"]),
+    ]
+    return onnx_model(nodes, inputs=inputs, initializers=params)
+
+
+def contrib_binary_model(op: str, x_shape, z_shape, params: dict) -> onnx.ModelProto:
+    """onnxruntime's contrib `op` (QLinearAdd, QLinearMul) of x and z, quantised as qdq_binary_model's."""
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "as", "az"], ["xq"]),
+        helper.make_node("QuantizeLinear", ["z", "bs", "bz"], ["zq"]),
+        helper.make_node(op, ["xq", "as", "az", "zq", "bs", "bz", "ys", "yz"], ["rq"], domain=CONTRIB),
+        helper.make_node("DequantizeLinear", ["rq", "ys", "yz"], ["y"]),
+    ]
+    model = onnx_model(nodes, inputs={"x": x_shape, "z": z_shape}, initializers=params)
+    model.opset_import.append(helper.make_opsetid(CONTRIB, 1))
+    return model
+
+
+def spread_feeds(model: onnx.ModelProto, spreads, seed: int) -> list[dict[str, np.ndarray]]:
+    """One feed per spread: standard-normal float32 inputs times it (wide spreads saturate)."""
+    rng = np.random.default_rng(seed)
+    shapes = input_shapes(model)
+    return [
+        {name: (rng.standard_normal(shape) * spread).astype(np.float32) for name, shape in shapes.items()}
+        for spread in spreads
+    ]
+
+
+def assert_identical(model: onnx.ModelProto, compiled, feeds_list: list[dict[str, np.ndarray]], **run) -> None:
+    """NNCG's C (run_compiled's options) equals onnxruntime on every element of every feed."""
+    for feeds in feeds_list:
+        expected = onnxruntime_outputs(model, feeds)[0]
+        ours = run_compiled(compiled, list(feeds.values()), **run)[0].reshape(expected.shape)
+        np.testing.assert_array_equal(ours, expected)
+
+
 def onnxruntime_outputs(model: onnx.ModelProto, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
     session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     return session.run(None, feeds)
@@ -267,8 +349,6 @@ def onnxruntime_outputs(model: onnx.ModelProto, feeds: dict[str, np.ndarray]) ->
 
 def compare(model: onnx.ModelProto, compiled, feeds: list[dict[str, np.ndarray]], **run) -> Comparison:
     """Runs NNCG's C on every feed (run_compiled's options) and onnxruntime on the same model."""
-    from nncg.verify import run_compiled
-
     names = list(input_shapes(model))
     return compare_steps(
         model,

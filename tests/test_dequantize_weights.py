@@ -45,17 +45,18 @@ def test_uint8_weights_per_channel_on_vector_targets(target):
     compile_and_check(dequantized_conv(13, True, np.uint8), target)
 
 
-def test_integer_ops_writing_int32_tensors_are_refused_by_name():
-    """A MatMulInteger whose int32 result a Cast to float32 reads but no Mul by a scale follows."""
+def test_integer_ops_whose_int32_tensors_a_node_reads_are_refused_by_name():
+    """A MatMulInteger whose int32 result is a graph output that a Cast to float32 also reads."""
     nodes = [
         helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
         helper.make_node("MatMulInteger", ["q", "w"], ["i"]),
         helper.make_node("Cast", ["i"], ["y"], to=TensorProto.FLOAT),
     ]
     init = {"s": np.float32(0.1), "z": np.uint8(0), "w": np.ones((3, 2), np.uint8)}
-    model = onnx_model(nodes, inputs={"x": (2, 3)}, initializers=init)
+    outputs = {"y": (2, 2), "i": helper.make_tensor_value_info("i", TensorProto.INT32, None)}
+    model = onnx_model(nodes, inputs={"x": (2, 3)}, outputs=outputs, initializers=init)
     with pytest.raises(
-        NncgError, match=r"MatMulInteger \(node .*\) writes an int32 tensor, which NNCG does not compile"
+        NncgError, match=r"MatMulInteger \(node .*\) writes an int32 tensor that a node reads, which NNCG does not"
     ):
         nncg.compile(model)
 

@@ -11,15 +11,22 @@ import numpy as np
 import onnx
 import pytest
 from cross_helpers import TOOLCHAINS, missing_tools, runner
-from helpers import kernel_ops, onnx_model, skip_unless_host_runs
-from int8_models import broadcast_add_model, compare, onnxruntime_outputs, quantized, random_feeds
-from onnx import helper
+from helpers import kernel_ops, skip_unless_host_runs
+from int8_models import (
+    assert_identical,
+    broadcast_add_model,
+    compare,
+    contrib_binary_model,
+    qdq_binary_model,
+    quantized,
+    random_feeds,
+    spread_feeds,
+    typed,
+)
 from test_cross_targets import require
 
 import nncg
-from nncg.verify import run_compiled
 
-CONTRIB = "com.microsoft"
 SHAPE = (1, 4, 5, 6)
 # the operands' shapes: one shape; the second broadcast over the channels, the rows, trailing
 # dims of 1, or a single value; the first broadcast (onnxruntime passes the second first then)
@@ -37,56 +44,21 @@ SHAPES = {
 ZEROS = {"uint8": (131, 118, 100), "int8": (7, -12, -30)}
 
 
-def _typed(activations: str, value) -> np.ndarray:
-    return np.asarray(value, np.int8 if activations == "int8" else np.uint8)
-
-
 def _params(activations: str, scales=(0.04, 0.03, 0.05), zeros=None) -> dict[str, np.ndarray]:
     za, zb, zy = zeros or ZEROS[activations]
     sa, sb, sy = (np.float32(s) for s in scales)
-    typed = {name: _typed(activations, z) for name, z in (("az", za), ("bz", zb), ("yz", zy))}
-    return {"as": sa, "az": typed["az"], "bs": sb, "bz": typed["bz"], "ys": sy, "yz": typed["yz"]}
+    zero = {name: typed(activations, z) for name, z in (("az", za), ("bz", zb), ("yz", zy))}
+    return {"as": sa, "az": zero["az"], "bs": sb, "bz": zero["bz"], "ys": sy, "yz": zero["yz"]}
 
 
 def qdq_model(activations: str, shapes: str, constant: bool = False) -> onnx.ModelProto:
     """x + z between QuantizeLinear/DequantizeLinear pairs; z a graph input or a quantized constant."""
-    x_shape, z_shape = SHAPES[shapes]
-    params = _params(activations)
-    inputs = {"x": x_shape}
-    if constant:
-        rng = np.random.default_rng(2)
-        low, high = np.iinfo(params["bz"].dtype).min, np.iinfo(params["bz"].dtype).max
-        params["zq"] = rng.integers(low, high + 1, z_shape).astype(params["bz"].dtype)
-        b = [helper.make_node("DequantizeLinear", ["zq", "bs", "bz"], ["db"])]
-    else:
-        inputs["z"] = z_shape
-        b = [
-            helper.make_node("QuantizeLinear", ["z", "bs", "bz"], ["zq"]),
-            helper.make_node("DequantizeLinear", ["zq", "bs", "bz"], ["db"]),
-        ]
-    nodes = [
-        helper.make_node("QuantizeLinear", ["x", "as", "az"], ["xq"]),
-        helper.make_node("DequantizeLinear", ["xq", "as", "az"], ["da"]),
-        *b,
-        helper.make_node("Add", ["da", "db"], ["s"]),
-        helper.make_node("QuantizeLinear", ["s", "ys", "yz"], ["sq"]),
-        helper.make_node("DequantizeLinear", ["sq", "ys", "yz"], ["y"]),
-    ]
-    return onnx_model(nodes, inputs=inputs, initializers=params)
+    return qdq_binary_model("Add", *SHAPES[shapes], _params(activations), constant)
 
 
 def contrib_model(activations: str, shapes: str, params: dict[str, np.ndarray] | None = None) -> onnx.ModelProto:
     x_shape, z_shape = SHAPES[shapes] if isinstance(shapes, str) else shapes
-    nodes = [
-        helper.make_node("QuantizeLinear", ["x", "as", "az"], ["xq"]),
-        helper.make_node("QuantizeLinear", ["z", "bs", "bz"], ["zq"]),
-        helper.make_node("QLinearAdd", ["xq", "as", "az", "zq", "bs", "bz", "ys", "yz"], ["sq"], domain=CONTRIB),
-        helper.make_node("DequantizeLinear", ["sq", "ys", "yz"], ["y"]),
-    ]
-    initializers = params or _params(activations)
-    model = onnx_model(nodes, inputs={"x": x_shape, "z": z_shape}, initializers=initializers)
-    model.opset_import.append(helper.make_opsetid(CONTRIB, 1))
-    return model
+    return contrib_binary_model("QLinearAdd", x_shape, z_shape, params or _params(activations))
 
 
 def check(model: onnx.ModelProto, target: str = "ansi-c", feeds_list=None, **run) -> None:
@@ -94,17 +66,7 @@ def check(model: onnx.ModelProto, target: str = "ansi-c", feeds_list=None, **run
         skip_unless_host_runs(target)
     compiled = nncg.compile(model, target=target, verify_ir=True)
     assert "QLinearAdd" in kernel_ops(compiled)
-    rng = np.random.default_rng(9)
-    shapes = {i.name: tuple(d.dim_value for d in i.type.tensor_type.shape.dim) for i in model.graph.input}
-    if feeds_list is None:
-        feeds_list = [
-            {name: (rng.standard_normal(shape) * spread).astype(np.float32) for name, shape in shapes.items()}
-            for spread in (0.5, 2.0, 9.0)  # 9.0 saturates at both ends
-        ]
-    for feeds in feeds_list:
-        expected = onnxruntime_outputs(model, feeds)[0]
-        ours = run_compiled(compiled, list(feeds.values()), **run)[0].reshape(expected.shape)
-        np.testing.assert_array_equal(ours, expected)
+    assert_identical(model, compiled, feeds_list or spread_feeds(model, (0.5, 2.0, 9.0), 9), **run)  # 9 saturates
 
 
 @pytest.mark.parametrize("activations", ["uint8", "int8"])

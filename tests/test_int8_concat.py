@@ -10,13 +10,12 @@ import numpy as np
 import onnx
 import pytest
 from helpers import kernel_ops, onnx_model, skip_unless_host_runs
-from int8_models import onnxruntime_outputs
+from int8_models import CONTRIB, assert_identical, onnxruntime_outputs, spread_feeds
 from onnx import helper
 
 import nncg
 from nncg.verify import run_compiled
 
-CONTRIB = "com.microsoft"
 SHAPES = {"a": (1, 3, 4, 5), "b": (1, 2, 4, 5)}
 CONSTANT_SHAPE = (1, 1, 4, 5)
 # activation type: zero points of a (the output's too), b and the constant
@@ -67,12 +66,7 @@ def check(model: onnx.ModelProto, target: str = "ansi-c") -> None:
     skip_unless_host_runs(target)
     compiled = nncg.compile(model, target=target, verify_ir=True)
     assert "QLinearLookup" in kernel_ops(compiled)
-    rng = np.random.default_rng(8)
-    for spread in (0.5, 3.0, 15.0):
-        feeds = {name: (rng.standard_normal(shape) * spread).astype(np.float32) for name, shape in SHAPES.items()}
-        expected = onnxruntime_outputs(model, feeds)[0]
-        ours = run_compiled(compiled, list(feeds.values()))[0].reshape(expected.shape)
-        np.testing.assert_array_equal(ours, expected)
+    assert_identical(model, compiled, spread_feeds(model, (0.5, 3.0, 15.0), 8))
 
 
 @pytest.mark.parametrize("activations", ["uint8", "int8"])

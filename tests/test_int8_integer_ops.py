@@ -3,8 +3,10 @@ and possibly an Add of a bias dequantise (the three fused into the integer kerne
 quantised by a QuantizeLinear (uint8 and int8, zero points other than 0), uint8 and int8 weights with
 zero points per tensor, or per column for MatMulInteger (onnxruntime's ConvInteger takes one),
 scales per tensor and per channel; compared with onnxruntime on every element, to the bit, on
-ansi-c, the x86 targets and NEON under qemu. Any other reader of the int32 result, and a scale that
-varies along another axis, are refused in one line."""
+ansi-c, the x86 targets and NEON under qemu. The int32 result also as the graph output itself, or
+read by a lone Cast to float32 (then any float op), and MatMulInteger beyond 2-D (batched, a 1-D
+operand, weights with batch dims of 1), as NumPy's matmul. A node reading the int32 result, weights
+with a batch and a scale that varies along another axis are refused in one line."""
 
 from __future__ import annotations
 
@@ -111,11 +113,22 @@ def test_a_scale_along_another_axis_is_refused():
         nncg.compile(model)
 
 
-def test_an_int32_result_read_elsewhere_is_refused():
-    """The Cast's result also a graph output: the fusion would lose it, so nothing is fused."""
-    model = integer_model("MatMulInteger")
+def test_a_cast_result_that_is_also_an_output_is_written_by_the_kernel():
+    """The Cast's result also a graph output: only the Cast is fused (a scale of 1), the Mul reads it."""
+    model = integer_model("MatMulInteger", bias=False)
     model.graph.output.append(helper.make_tensor_value_info("f", TensorProto.FLOAT, None))
-    with pytest.raises(NncgError, match=r"MatMulInteger .* writes an int32 tensor"):
+    compiled = nncg.compile(model, verify_ir=True)
+    assert kernel_ops(compiled) == ["QuantizeLinear", "MatMulInteger", "Mul"]
+    x = (np.random.default_rng(5).standard_normal(X_SHAPE["MatMulInteger"]) * 4).astype(np.float32)
+    for ours, expected in zip(run_compiled(compiled, [x]), onnxruntime_outputs(model, {"x": x})):
+        np.testing.assert_array_equal(ours.reshape(expected.shape), expected)
+
+
+def test_an_int32_result_a_node_reads_is_refused():
+    """A graph output that a Cast also reads: no int32 tensor lives in NNCG's memory."""
+    model = integer_model("ConvInteger")
+    model.graph.output.append(helper.make_tensor_value_info("i", TensorProto.INT32, None))
+    with pytest.raises(NncgError, match=r"ConvInteger \(node .*\) writes an int32 tensor that a node reads"):
         nncg.compile(model)
 
 
@@ -130,4 +143,98 @@ def test_weights_computed_at_run_time_are_refused():
     init = {"s": np.float32(0.1), "z": np.uint8(3), "scale": np.float32(0.01)}
     model = onnx_model(nodes, inputs={"x": (2, 3), "v": (3, 2)}, initializers=init)
     with pytest.raises(NncgError, match="weights computed at run time"):
+        nncg.compile(model)
+
+
+# --- int32 results as graph outputs, a lone Cast, MatMulInteger beyond 2-D -------------------------
+
+# name: (op, x shape, w shape); MatMulInteger's as NumPy's matmul broadcasts them
+RAW_SHAPES = {
+    "conv": ("ConvInteger", X_SHAPE["ConvInteger"], W_SHAPE["ConvInteger"]),
+    "matrix": ("MatMulInteger", (3, 8), (8, CHANNELS)),
+    "batched": ("MatMulInteger", (2, 3, 8), (8, CHANNELS)),
+    "row": ("MatMulInteger", (8,), (8, CHANNELS)),
+    "column": ("MatMulInteger", (2, 3, 8), (8,)),
+    "weights_batch_of_1": ("MatMulInteger", (3, 8), (1, 1, 8, CHANNELS)),
+}
+
+
+def raw_model(case: str, tail: str = "", x_type=np.uint8, seed: int = 1) -> onnx.ModelProto:
+    """x -> QuantizeLinear -> op (zero points other than 0) -> the int32 result as the graph output, or
+    read by a Cast to float32 then (`tail`) a Relu, or a Mul by a per-column scale."""
+    op, x_shape, w_shape = RAW_SHAPES[case]
+    rng = np.random.default_rng(seed)
+    init = {
+        "s": np.float32(0.05),
+        "z": np.asarray(17 if x_type == np.uint8 else -9, x_type),
+        "w": rng.integers(-128, 128, w_shape).astype(np.int8),
+        "wz": np.int8(3),
+        "scale": rng.uniform(0.001, 0.01, w_shape[-1:]).astype(np.float32),
+    }
+    geometry = {"pads": [1, 1, 1, 1], "strides": [2, 1]} if op == "ConvInteger" else {}
+    nodes = [
+        helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
+        helper.make_node(op, ["q", "w", "z", "wz"], ["i" if tail else "y"], **geometry),
+    ]
+    if tail:
+        nodes.append(helper.make_node("Cast", ["i"], ["f"], to=TensorProto.FLOAT))
+        nodes.append(helper.make_node(tail, ["f"] if tail == "Relu" else ["f", "scale"], ["y"]))
+    else:
+        del init["scale"]
+    y_type = TensorProto.FLOAT if tail else TensorProto.INT32
+    return onnx_model(nodes, inputs={"x": x_shape}, outputs={"y": helper.make_tensor_value_info("y", y_type, None)},
+                      initializers=init)  # fmt: skip
+
+
+def check_raw(model: onnx.ModelProto, target: str = "ansi-c", **run) -> None:
+    """Equal to onnxruntime in every element and in type, on inputs quantised past both ends."""
+    if not run:
+        skip_unless_host_runs(target)
+    compiled = nncg.compile(model, target=target, verify_ir=True)
+    assert "Cast" not in kernel_ops(compiled)
+    shape = tuple(d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim)
+    rng = np.random.default_rng(4)
+    for spread in (0.5, 20.0):
+        x = (rng.standard_normal(shape) * spread).astype(np.float32)
+        expected = onnxruntime_outputs(model, {"x": x})[0]
+        ours = run_compiled(compiled, [x], **run)[0]
+        assert ours.dtype == expected.dtype and ours.shape == expected.shape
+        np.testing.assert_array_equal(ours, expected)
+
+
+@pytest.mark.parametrize("case", sorted(RAW_SHAPES))
+@pytest.mark.parametrize("x_type", [np.uint8, np.int8])
+def test_int32_result_as_the_graph_output(case, x_type):
+    check_raw(raw_model(case, x_type=x_type))
+
+
+@pytest.mark.parametrize("case", ["conv", "matrix", "batched"])
+def test_int32_result_cast_to_float_then_read_by_a_float_op(case):
+    check_raw(raw_model(case, "Relu"))
+
+
+@pytest.mark.parametrize("case", ["batched", "row", "column"])
+def test_batched_matmul_integer_dequantised_per_column(case):
+    check_raw(raw_model(case, "Mul" if case != "column" else "Relu"))
+
+
+@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512", "avx512vnni"])
+@pytest.mark.parametrize("case", ["conv", "batched"])
+def test_int32_results_on_x86_targets(case, target):
+    check_raw(raw_model(case, x_type=np.int8), target)
+    check_raw(raw_model(case, "Relu"), target)
+
+
+@pytest.mark.parametrize("case", ["conv", "batched"])
+def test_int32_results_under_qemu(case):
+    tc = TOOLCHAINS["aarch64-neon"]
+    require(missing_tools(tc))
+    check_raw(raw_model(case), "neon", cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
+
+
+def test_weights_with_a_batch_are_refused():
+    model = raw_model("matrix")
+    w = next(t for t in model.graph.initializer if t.name == "w")
+    w.CopyFrom(onnx.numpy_helper.from_array(np.ones((2, 8, CHANNELS), np.int8), "w"))
+    with pytest.raises(NncgError, match=r"MatMulInteger .* weights of shape \[2, 8, 6\]; NNCG"):
         nncg.compile(model)

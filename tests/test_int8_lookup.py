@@ -11,16 +11,23 @@ import onnx
 import pytest
 from cross_helpers import TOOLCHAINS, missing_tools, runner
 from helpers import kernel_ops, onnx_model, skip_unless_host_runs
-from int8_models import compare, onnxruntime_outputs, random_feeds
+from int8_models import (
+    CONTRIB,
+    assert_identical,
+    compare,
+    onnxruntime_outputs,
+    qdq_around,
+    random_feeds,
+    spread_feeds,
+    typed,
+)
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg
 from nncg.errors import UnsupportedOpsError
 from nncg.frontend.ops_qlookup import hard_swish, leaky_relu, logistic, lookup_table, tanh
 from nncg.ir.kinds import DType
-from nncg.verify import run_compiled
 
-CONTRIB = "com.microsoft"
 SHAPE = (2, 3, 5, 7)
 FUNCTIONS = {"LeakyRelu": leaky_relu(0.13), "Sigmoid": logistic, "HardSwish": hard_swish, "Tanh": tanh}
 ATTRS = {"LeakyRelu": {"alpha": 0.13}, "Sigmoid": {}, "HardSwish": {}, "Tanh": {}}
@@ -43,27 +50,17 @@ PARAMS = {
 }
 
 
-def _typed(activations: str, value: int) -> np.ndarray:
-    return np.asarray(value, np.int8 if activations == "int8" else np.uint8)
-
-
 def _initializers(op: str, activations: str, x_scale: float = 0.06) -> dict[str, np.ndarray]:
     y_scale, y_zero = PARAMS[activations][op]
     x_zero = PARAMS[activations]["x_zero"]
     return {
-        "xs": np.float32(x_scale), "xz": _typed(activations, x_zero),
-        "ys": np.float32(y_scale), "yz": _typed(activations, y_zero),
+        "xs": np.float32(x_scale), "xz": typed(activations, x_zero),
+        "ys": np.float32(y_scale), "yz": typed(activations, y_zero),
     }  # fmt: skip
 
 
 def qdq_model(op: str, activations: str) -> onnx.ModelProto:
-    nodes = [
-        helper.make_node("QuantizeLinear", ["x", "xs", "xz"], ["q"]),
-        helper.make_node("DequantizeLinear", ["q", "xs", "xz"], ["d"]),
-        helper.make_node(op, ["d"], ["f"], **ATTRS[op]),
-        helper.make_node("QuantizeLinear", ["f", "ys", "yz"], ["fq"]),
-        helper.make_node("DequantizeLinear", ["fq", "ys", "yz"], ["y"]),
-    ]
+    nodes = qdq_around(op, [], ("xs", "xz"), ("ys", "yz"), **ATTRS[op])
     return onnx_model(nodes, inputs={"x": SHAPE}, initializers=_initializers(op, activations), opset=17)
 
 
@@ -83,11 +80,7 @@ def check(model: onnx.ModelProto, target: str = "ansi-c") -> None:
     skip_unless_host_runs(target)
     compiled = nncg.compile(model, target=target, verify_ir=True)
     assert kernel_ops(compiled) == ["QuantizeLinear", "QLinearLookup", "DequantizeLinear"]
-    rng = np.random.default_rng(5)
-    for spread in (0.7, 3.0, 20.0):
-        x = (rng.standard_normal(SHAPE) * spread).astype(np.float32)
-        expected = onnxruntime_outputs(model, {"x": x})[0]
-        np.testing.assert_array_equal(run_compiled(compiled, [x])[0].reshape(expected.shape), expected)
+    assert_identical(model, compiled, spread_feeds(model, (0.7, 3.0, 20.0), 5))
 
 
 @pytest.mark.parametrize("activations", ["uint8", "int8"])
@@ -124,8 +117,8 @@ def test_cross_toolchains(toolchain):
 def _onnxruntime_table(op: str, activations: str, x: tuple, y: tuple) -> np.ndarray:
     """onnxruntime's output for every input value, from (scale, zero point) of input and output."""
     element = TensorProto.INT8 if activations == "int8" else TensorProto.UINT8
-    params = [("xs", np.float32(x[0])), ("xz", _typed(activations, x[1])), ("ys", np.float32(y[0]))]
-    params.append(("yz", _typed(activations, y[1])))
+    params = [("xs", np.float32(x[0])), ("xz", typed(activations, x[1])), ("ys", np.float32(y[0]))]
+    params.append(("yz", typed(activations, y[1])))
     nodes = [
         helper.make_node("DequantizeLinear", ["x", "xs", "xz"], ["d"]),
         helper.make_node(op, ["d"], ["f"], **ATTRS[op]),

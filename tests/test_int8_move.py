@@ -10,11 +10,10 @@ import numpy as np
 import onnx
 import pytest
 from helpers import kernel_ops, onnx_model, skip_unless_host_runs
-from int8_models import onnxruntime_outputs
+from int8_models import assert_identical, qdq_around, spread_feeds
 from onnx import helper
 
 import nncg
-from nncg.verify import run_compiled
 
 SHAPE = (1, 3, 5, 6)
 ZEROS = {"uint8": 140, "int8": -17}
@@ -40,13 +39,7 @@ def qdq_model(case: str, activations: str) -> onnx.ModelProto:
     op, attrs, extra, inputs = CASES[case]
     dtype = np.int8 if activations == "int8" else np.uint8
     params = {"s": np.float32(0.045), "z": dtype(ZEROS[activations]), **extra}
-    nodes = [
-        helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
-        helper.make_node("DequantizeLinear", ["q", "s", "z"], ["d"]),
-        helper.make_node(op, ["d", *inputs], ["m"], **attrs),
-        helper.make_node("QuantizeLinear", ["m", "s", "z"], ["mq"]),
-        helper.make_node("DequantizeLinear", ["mq", "s", "z"], ["y"]),
-    ]
+    nodes = qdq_around(op, inputs, ("s", "z"), ("s", "z"), **attrs)
     return onnx_model(nodes, inputs={"x": SHAPE}, initializers=params, opset=18)
 
 
@@ -54,11 +47,7 @@ def check(model: onnx.ModelProto, op: str, target: str = "ansi-c") -> None:
     skip_unless_host_runs(target)
     compiled = nncg.compile(model, target=target, verify_ir=True)
     assert op in kernel_ops(compiled) and kernel_ops(compiled).count("QuantizeLinear") == 1
-    rng = np.random.default_rng(6)
-    for spread in (0.5, 3.0, 12.0):
-        x = (rng.standard_normal(SHAPE) * spread).astype(np.float32)
-        expected = onnxruntime_outputs(model, {"x": x})[0]
-        np.testing.assert_array_equal(run_compiled(compiled, [x])[0].reshape(expected.shape), expected)
+    assert_identical(model, compiled, spread_feeds(model, (0.5, 3.0, 12.0), 6))
 
 
 @pytest.mark.parametrize("activations", ["uint8", "int8"])

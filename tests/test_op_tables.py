@@ -15,7 +15,7 @@ import pytest
 from int8_models import average_pool_model, quantized, residual_model, softmax_head_model
 from onnx import TensorProto, helper, numpy_helper
 from test_int8_concat import contrib_model as concat_contrib_model
-from test_int8_integer_ops import integer_model
+from test_int8_integer_ops import integer_model, raw_model
 from test_int8_lookup import contrib_model as lookup_contrib_model
 from test_int8_lookup import qdq_model as lookup_qdq_model
 from test_int8_mul import contrib_model as mul_contrib_model
@@ -161,6 +161,7 @@ def _int8_models() -> Iterator[onnx.ModelProto]:
     # ConvInteger and MatMulInteger with the Cast, Mul and Add that qdq.py fuses into them
     for op in ("ConvInteger", "MatMulInteger"):
         yield integer_model(op)
+    yield raw_model("batched")  # a batched MatMulInteger: its A a Reshape of the rows
 
 
 def _model(nodes: list[onnx.NodeProto], initializers: list[onnx.TensorProto], opset: int) -> onnx.ModelProto:

@@ -4,9 +4,9 @@ points' signatures (which the .c repeats)."""
 from __future__ import annotations
 
 from ..ir.kinds import BufferRole, DType
-from ..ir.loops import Program
+from ..ir.loops import Buffer, Program, Store, walk_stmts
 from ..safe_text import comment_name
-from .c_integer import HEADER_TYPEDEFS, c_type, has_integer_io
+from .c_integer import SMALL_C_TYPES, c_type, header_typedefs
 from .weights import external_weights, weights_header
 
 LAYOUT_NOTES = {
@@ -30,15 +30,14 @@ def header(program: Program, first_line: str, input_layout: str | None = None) -
         "#endif",
         "",
     ]
-    if has_integer_io(program):
-        lines += [*HEADER_TYPEDEFS, ""]
+    lines += header_typedefs(program)
     for buf in (*program.role(BufferRole.INPUT), *program.role(BufferRole.OUTPUT)):
         shape = ",".join(map(str, buf.shape))
         layout = "row-major as in ONNX"
         if input_layout and buf.role == BufferRole.INPUT and len(buf.shape) == 4:
             layout = LAYOUT_NOTES[input_layout]
         lines.append(
-            f"/* {buf.role} {comment_name(buf.onnx_name)}: {buf.dtype}[{shape}], {layout}{_index_note(buf)} */"
+            f"/* {buf.role} {comment_name(buf.onnx_name)}: {buf.dtype}[{shape}], {layout}{_dtype_note(program, buf)} */"
         )
         lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
     lines += [
@@ -76,11 +75,23 @@ def run_signature(program: Program) -> str:
     return f"void {program.name}_run({', '.join([*_io_params(program), 'void *arena'])})"
 
 
-def _index_note(buf) -> str:
-    """What an int32 output holds: ArgMax/ArgMin indices (the only integer output NNCG produces)."""
+def _dtype_note(program: Program, buf: Buffer) -> str:
+    """What an integer input or output holds, in which C type."""
+    if buf.dtype in (DType.INT8, DType.UINT8):
+        return f"; quantized values in {c_type(buf.dtype)} ({SMALL_C_TYPES[buf.dtype]})"
     if buf.dtype != DType.INT32:
         return ""
-    return "; indices (ArgMax/ArgMin), int32 where ONNX says int64: C89 has no guaranteed 64-bit type"
+    if _writer(program, buf) in ("ArgMax", "ArgMin"):
+        return "; indices (ArgMax/ArgMin), int32 where ONNX says int64: C89 has no guaranteed 64-bit type"
+    return "; int32 sums (ConvInteger/MatMulInteger), in nncg_int32 (int, or long where int is narrower)"
+
+
+def _writer(program: Program, buf: Buffer) -> str:
+    """The op of the kernel that stores to `buf` ("" if none does)."""
+    kernels = (
+        k for k in program.kernels if any(isinstance(s, Store) and s.buffer == buf.name for s in walk_stmts(k.body))
+    )
+    return next((k.op for k in kernels), "")
 
 
 def _io_params(program: Program) -> list[str]:

@@ -19,6 +19,9 @@ C_TYPES = {
     DType.INT32: "nncg_int32",
 }
 
+# What the small types are, for the header's notes.
+SMALL_C_TYPES = {DType.INT8: "signed char", DType.UINT8: "unsigned char"}
+
 # signed char and short hold int8 and int16 on every two's complement machine; int holds int32
 # where INT_MAX says so, else long (at least 32 bits in C89).
 INT32_TYPEDEF = (
@@ -37,16 +40,11 @@ SMALL_TYPEDEFS = (
     "typedef short nncg_int16;",
 )
 TYPEDEFS = ("#include <limits.h>", *SMALL_TYPEDEFS, *INT32_TYPEDEF)
-# The header's nncg_int32, for a function with int32 outputs (ArgMax's indices): guarded, so that
-# headers of several models can be included together, and then not repeated by the .c file.
-HEADER_INT32_GUARD = "NNCG_INT32_DEFINED"
-HEADER_TYPEDEFS = (
-    "#include <limits.h>",
-    f"#ifndef {HEADER_INT32_GUARD}",
-    f"#define {HEADER_INT32_GUARD}",
-    *INT32_TYPEDEF,
-    "#endif",
-)
+# The header's types, for a function with integer inputs or outputs: nncg_int32 always, the small
+# types where an input or output is int8 or uint8. Guarded, so that headers of several models can
+# be included together, and then not repeated by the .c file.
+HEADER_INT32_TYPEDEFS = ("#ifndef NNCG_INT32_DEFINED", "#define NNCG_INT32_DEFINED", *INT32_TYPEDEF, "#endif")
+HEADER_SMALL_TYPEDEFS = ("#ifndef NNCG_INT8_DEFINED", "#define NNCG_INT8_DEFINED", *SMALL_TYPEDEFS, "#endif")
 
 REQUANTIZE = (
     "/* x clamped to [low - zero_point, high - zero_point] (NaN: low), rounded half to even, plus",
@@ -95,9 +93,26 @@ def c_type(dtype: DType) -> str:
     return C_TYPES[DType(dtype)]
 
 
+def _io_dtypes(program: Program) -> set[DType]:
+    return {b.dtype for b in program.buffers if b.role in (BufferRole.INPUT, BufferRole.OUTPUT)}
+
+
 def has_integer_io(program: Program) -> bool:
     """Whether an input or output of the function is not float32: its header defines nncg_int32."""
-    return any(b.dtype != DType.FLOAT32 for b in program.buffers if b.role in (BufferRole.INPUT, BufferRole.OUTPUT))
+    return bool(_io_dtypes(program) - {DType.FLOAT32})
+
+
+def has_small_io(program: Program) -> bool:
+    """Whether an input or output is int8 or uint8: its header defines the small types too."""
+    return bool(_io_dtypes(program) & {DType.INT8, DType.UINT8})
+
+
+def header_typedefs(program: Program) -> list[str]:
+    """The integer types the header's prototypes name; nothing for a float32 interface."""
+    if not has_integer_io(program):
+        return []
+    small = HEADER_SMALL_TYPEDEFS if has_small_io(program) else ()
+    return ["#include <limits.h>", *small, *HEADER_INT32_TYPEDEFS, ""]
 
 
 def integer_preamble(program: Program) -> list[str]:
@@ -113,9 +128,9 @@ def integer_preamble(program: Program) -> list[str]:
         if isinstance(e, Requantize | RequantizeFixed) and e.lanes == 1  # vectors requantise inline
     }
     typedefs = TYPEDEFS
-    if has_integer_io(program):  # the header has <limits.h> and nncg_int32
+    if has_integer_io(program):  # the header has <limits.h>, nncg_int32 and maybe the small types
         small = any(b.dtype in (DType.INT8, DType.UINT8, DType.INT16) for b in program.buffers)
-        typedefs = SMALL_TYPEDEFS if small else ()
+        typedefs = SMALL_TYPEDEFS if small and not has_small_io(program) else ()
     lines = ["", *typedefs] if typedefs else []
     for kind, helper in ((Requantize, REQUANTIZE), (RequantizeFixed, REQUANTIZE_FIXED)):
         lines += ["", *helper] if kind in kinds else []

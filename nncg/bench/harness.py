@@ -15,6 +15,7 @@ from ..backends.c_file import PROFILE_CPU_TIME_FLAG
 from ..c_harness import harness_source
 from ..errors import NncgError
 from ..tools import run_tool
+from ..verify import write_input
 
 
 @dataclass(frozen=True)
@@ -60,8 +61,8 @@ class CompiledHarness:
         run_tool(link, "linking the benchmark harness", cwd=workdir)
         self.sizes = object_sizes(workdir / f"{compiled.name}.o")
         in_files = [f"in{i}.bin" for i in range(len(inputs))]
-        for path, array in zip(in_files, inputs):
-            np.ascontiguousarray(array, dtype="<f4").tofile(workdir / path)
+        for path, spec, array in zip(in_files, compiled.inputs, inputs):
+            write_input(workdir / path, spec, array)
         self.out_files = [f"out{i}.bin" for i in range(len(compiled.outputs))]
         try:
             self.process = subprocess.Popen(

@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import onnx
+from onnx.helper import tensor_dtype_to_np_dtype
 
 from nncg.errors import NncgError, UnsupportedOpsError
 from nncg.frontend.checks import check_attributes, check_computed_shapes, check_constants, constant_origins
@@ -21,7 +22,13 @@ from nncg.frontend.ops_integer import INT32_RESULT
 from nncg.frontend.qdq import NNCG_DOMAIN, QdqNotes, fuse_qdq
 from nncg.ir.c_names import Namespace, layer_name
 from nncg.ir.graph import Graph, Node, Value
-from nncg.ir.graph_dtypes import QUANTIZED_INPUTS, TYPE_PRESERVING, float_ops_reading_integers, output_dtype
+from nncg.ir.graph_dtypes import (
+    INTEGER_PRODUCTS,
+    QUANTIZED_INPUTS,
+    TYPE_PRESERVING,
+    float_ops_reading_integers,
+    output_dtype,
+)
 from nncg.ir.kinds import DType
 from nncg.safe_text import shown
 
@@ -46,8 +53,6 @@ def import_onnx(model: ModelSource, input_shapes: Mapping[str, tuple[int, ...]] 
 
 
 DYNAMIC_QUANTIZATION = "DynamicQuantizeLinear"
-# Taken only as qdq.py fuses them with the Cast, Mul and Add that dequantise their int32 result.
-INTEGER_PRODUCTS = ("ConvInteger", "MatMulInteger")
 
 
 def check_supported(nodes: list[NamedNode]) -> None:
@@ -59,9 +64,15 @@ def check_supported(nodes: list[NamedNode]) -> None:
             "the model is dynamically quantised (DynamicQuantizeLinear computes scales at run time), which "
             "NNCG does not compile: compile the float model instead"
         )
-    unfused = [(node, name) for node, name in nodes if node.op_type in INTEGER_PRODUCTS and node.domain != NNCG_DOMAIN]
-    if unfused:
-        node, name = unfused[0]
+    # an int32 result that qdq.py left unfused may be a graph output, but not in memory for a reader
+    read = {i for node, _ in nodes for i in node.input}
+    int32_read = [
+        (node, name)
+        for node, name in nodes
+        if node.op_type in INTEGER_PRODUCTS and node.domain != NNCG_DOMAIN and node.output[0] in read
+    ]
+    if int32_read:
+        node, name = int32_read[0]
         raise UnsupportedOpsError(f"{node.op_type} (node {shown(name)}) {INT32_RESULT}")
     if bad:
         raise UnsupportedOpsError(
@@ -122,14 +133,15 @@ def _assemble(graph: onnx.GraphProto, nodes: tuple[Node, ...], ctx: Context) -> 
                 constants[name] = (
                     np.ascontiguousarray(array) if node.op in QUANTIZED_INPUTS or moved else _float32(node, name, array)
                 )
-    return Graph(
-        graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes, _dtypes(nodes, constants)
-    )
+    dtypes = _dtypes(graph, nodes, constants)
+    return Graph(graph.name or "model", inputs, outputs, _layer_named(nodes), constants, shapes, dtypes)
 
 
-def _dtypes(nodes: tuple[Node, ...], constants: dict[str, np.ndarray]) -> dict:
-    """The dtype of every computed value that is not float32, from its producer."""
-    dtypes: dict[str, DType] = {}
+def _dtypes(graph: onnx.GraphProto, nodes: tuple[Node, ...], constants: dict[str, np.ndarray]) -> dict:
+    """The dtype of every graph input and computed value that is not float32: an input's as
+    declared, a computed value's from its producer."""
+    declared = {v.name: tensor_dtype_to_np_dtype(v.type.tensor_type.elem_type).name for v in real_inputs(graph)}
+    dtypes = {name: DType(dtype) for name, dtype in declared.items() if dtype != "float32"}
 
     def dtype_of(name: str) -> DType:
         return DType(constants[name].dtype.name) if name in constants else dtypes.get(name, DType.FLOAT32)

@@ -64,7 +64,7 @@ def load_with_shapes(
     indices = index_outputs(proto.graph)
     for value in proto.graph.output:
         if value.name not in indices:
-            _check_float32(value, "output")
+            _check_tensor_type(value, "output")
     check_wiring(proto.graph)
     check_operators(proto.graph, opset, proto.ir_version)
     _run_checker(proto)
@@ -280,12 +280,13 @@ def _with_output_shapes(model: onnx.ModelProto) -> onnx.ModelProto:
 
 
 def fix_input_shapes(graph: onnx.GraphProto, input_shapes: dict[str, tuple[int, ...]]) -> None:
-    """Check every real input is float32 and make its shape static, from input_shapes if given."""
+    """Check every real input is a float32, int8 or uint8 tensor and make its shape static, from
+    input_shapes if given."""
     inputs = real_inputs(graph)
     _check_shape_keys(graph, inputs, input_shapes)
     reduced_away = reduced_empty_inputs(graph)
     for value in inputs:
-        _check_float32(value, "input")
+        _check_tensor_type(value, "input")
         if value.name in input_shapes:
             _set_shape(value, input_shapes[value.name])
         elif _only_batch_is_dynamic(value):
@@ -316,7 +317,15 @@ def index_outputs(graph: onnx.GraphProto) -> set[str]:
     return declared & produced
 
 
-def _check_float32(value: onnx.ValueInfoProto, kind: str) -> None:
+# The element types of the graph inputs and outputs NNCG's C takes and writes: float32, quantized
+# values (int8, uint8) and, as outputs, the int32 of a ConvInteger or MatMulInteger.
+IO_TYPES = {
+    "input": (onnx.TensorProto.FLOAT, onnx.TensorProto.INT8, onnx.TensorProto.UINT8),
+    "output": (onnx.TensorProto.FLOAT, onnx.TensorProto.INT8, onnx.TensorProto.UINT8, onnx.TensorProto.INT32),
+}
+
+
+def _check_tensor_type(value: onnx.ValueInfoProto, kind: str) -> None:
     kind_of = value.type.WhichOneof("value")
     if kind_of is None:
         raise NncgError(
@@ -329,9 +338,10 @@ def _check_float32(value: onnx.ValueInfoProto, kind: str) -> None:
             "NNCG compiles models whose inputs and outputs are float32 tensors"
         )
     elem = value.type.tensor_type.elem_type
-    if elem != onnx.TensorProto.FLOAT:
+    if elem not in IO_TYPES[kind]:
+        types = ", ".join(dtype_name(t) for t in IO_TYPES[kind])
         raise NncgError(
-            f"NNCG compiles float32 models; {kind} {shown(value.name)} is {dtype_name(elem)}: "
+            f"{kind} {shown(value.name)} is {dtype_name(elem)}; NNCG compiles models whose {kind}s are {types}: "
             f"re-export the model with a float32 {kind}"
         )
 

@@ -188,9 +188,9 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     # QLinearLeakyRelu and QLinearSigmoid are onnxruntime's (com.microsoft), and what QDQ groups become (qdq.py).
     "QuantizeLinear": ConvertedOp(convert_quantize_linear, ("QuantizeLinear",), (1, 2)),
     "DequantizeLinear": ConvertedOp(convert_dequantize_linear, ("DequantizeLinear",), (1, 2)),
-    # dequantised by Cast, Mul (and Add) that qdq.py fuses: x_zero_point, w_zero_point
+    # int32 graph outputs, or dequantised by the Cast (Mul, Add) that qdq.py fuses: x_zero_point, w_zero_point
     "ConvInteger": ConvertedOp(convert_conv_integer, ("ConvInteger",), (2, 3)),
-    "MatMulInteger": ConvertedOp(convert_matmul_integer, ("MatMulInteger",), (2, 3)),
+    "MatMulInteger": ConvertedOp(convert_matmul_integer, ("MatMulInteger", "Reshape"), (2, 3)),
     "QLinearConv": ConvertedOp(convert_qlinear_conv, ("QLinearConv",), (1, 2, 4, 5, 6, 7)),
     "QLinearMatMul": ConvertedOp(convert_qlinear_matmul, ("QLinearDense",), (1, 2, 4, 5, 6, 7)),
     "QGemm": ConvertedOp(convert_qgemm, ("QLinearDense",), (1, 2, 4, 5, 7, 8)),

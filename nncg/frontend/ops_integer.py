@@ -1,22 +1,27 @@
-"""ONNX front end: ConvInteger and MatMulInteger whose int32 result a Cast to float32 and a Mul by a
-constant (and possibly an Add of one) dequantise: qdq.py rewrites the four into one node (domain
-nncg, inputs x, w, x_zero_point, w_zero_point, the Mul's constant, the Add's or ""), computed with
-the integer kernels and dequantised in their store (lowering/integer_products.py). The importer
-refuses any other ConvInteger or MatMulInteger (INT32_RESULT): NNCG writes no int32 tensors."""
+"""ONNX front end: ConvInteger and MatMulInteger. Where a Cast to float32 reads the int32 result,
+maybe then a Mul by a constant and an Add of one, qdq.py rewrites them into one node (domain nncg,
+inputs x, w, x_zero_point, w_zero_point, the Mul's constant or "", the Add's or ""), computed with
+the integer kernels and dequantised in their store (lowering/integer_products.py); otherwise the
+int32 result is written as it is, which NNCG does only for a graph output (the importer refuses a
+node reading it: INT32_RESULT, since no int32 tensor lives in the arena)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_nn import conv_geometry
 from nncg.frontend.ops_quantized import QUANTIZATION_HINT, centred_weights
-from nncg.ir.graph import IntegerConvAttrs, IntegerDenseAttrs, Node
+from nncg.frontend.qdq import NNCG_DOMAIN
+from nncg.ir.graph import IntegerConvAttrs, IntegerDenseAttrs, Node, ReshapeAttrs
 
-# Why the importer refuses any other ConvInteger or MatMulInteger.
+# Why the importer refuses a ConvInteger or MatMulInteger whose int32 result a node reads.
 INT32_RESULT = (
-    "writes an int32 tensor, which NNCG does not compile: its result must be read only by a Cast to float32, "
-    "that only by a Mul by a constant (and that by an Add of a constant, or by nothing else)"
+    "writes an int32 tensor that a node reads, which NNCG does not compile: its int32 result must be a graph "
+    "output, or read only by a Cast to float32, that only by a Mul by a constant (and that by an Add of a "
+    "constant, or by nothing else)"
 )
 
 
@@ -31,31 +36,37 @@ def _x_zero_point(op: OnnxOp, ctx: Context) -> int:
     return int(zero.reshape(()))
 
 
-def _per_channel(op: OnnxOp, ctx: Context, slot: int, channels: int, rank: int, role: str) -> np.ndarray:
+def _dequantized(op: OnnxOp) -> bool:
+    """Whether qdq.py fused the Cast to float32 (and Mul, Add) that read the int32 result."""
+    return op.node.domain == NNCG_DOMAIN
+
+
+def _per_channel(op: OnnxOp, ctx: Context, slot: int, channels: int, rank: int, axis: int, role: str) -> np.ndarray:
     """The float32 constant at `slot`, NumPy-broadcast over the result (rank `rank`, channels on
-    axis 1): one value, or one per channel."""
+    `axis`): one value, or one per channel."""
     value = ctx.const(op.input(slot))
     shape = (1,) * (rank - value.ndim) + value.shape
-    if value.ndim > rank or any(n != 1 for axis, n in enumerate(shape) if axis != 1) or shape[1] not in (1, channels):
+    if value.ndim > rank or any(n != 1 for a, n in enumerate(shape) if a != axis) or shape[axis] not in (1, channels):
         raise op.error(
             f"is dequantised by a {role} of shape {list(value.shape)}; NNCG takes one value or one per output channel"
         )
     return np.ascontiguousarray(np.broadcast_to(value.reshape(-1), (channels,)), np.float32)
 
 
-def _constants(op: OnnxOp, ctx: Context, w: np.ndarray, channels: int, rank: int) -> list[str]:
-    """The weights, a zero int32 bias (the kernels fold the input zero point into it), the scale and
-    the bias (if the Add was fused)."""
-    if len(ctx.shape(op.node.output[0])) != rank:
-        raise op.error("is dequantised by a constant of a higher rank than its result, which NNCG does not take")
+def _constants(op: OnnxOp, ctx: Context, w: np.ndarray, channels: int, rank: int, axis: int) -> list[str]:
+    """The weights, a zero int32 bias (the kernels fold the input zero point into it) and, where the
+    result is dequantised, the scale and the bias (if the Add was fused)."""
     base = op.node.output[0]
-    names = [
-        ctx.add_constant(f"{base}_w", w),
-        ctx.add_constant(f"{base}_b", np.zeros(channels, np.int32)),
-        ctx.add_constant(f"{base}_scale", _per_channel(op, ctx, 4, channels, rank, "scale")),
-    ]
+    names = [ctx.add_constant(f"{base}_w", w), ctx.add_constant(f"{base}_b", np.zeros(channels, np.int32))]
+    if not _dequantized(op):
+        return names
+    if len(ctx.shape(base)) != rank:
+        raise op.error("is dequantised by a constant of a higher rank than its result, which NNCG does not take")
+    # a lone Cast is a scale of 1: float32(sum) * 1 is float32(sum), in one rounding as the Cast's
+    scale = _per_channel(op, ctx, 4, channels, rank, axis, "scale") if op.input(4) else np.ones(channels, np.float32)
+    names.append(ctx.add_constant(f"{base}_scale", scale))
     if op.input(5):
-        names.append(ctx.add_constant(f"{base}_bias", _per_channel(op, ctx, 5, channels, rank, "bias")))
+        names.append(ctx.add_constant(f"{base}_bias", _per_channel(op, ctx, 5, channels, rank, axis, "bias")))
     return names
 
 
@@ -66,21 +77,40 @@ def convert_conv_integer(op: OnnxOp, ctx: Context) -> Node:
     geometry = conv_geometry(op, ctx.shape(x), w_shape)
     x_zero = _x_zero_point(op, ctx)
     w = centred_weights(op, ctx, 1, 3, w_shape[0], 0)
-    attrs = IntegerConvAttrs(
-        geometry.kernel, geometry.strides, geometry.dilations, geometry.pads_begin, geometry.pads_end,
-        geometry.group, x_zero, bool(op.input(5)),
-    )  # fmt: skip
-    return op.ir_node("ConvInteger", [x, *_constants(op, ctx, w, w_shape[0], len(ctx.shape(x)))], attrs)
+    attrs = IntegerConvAttrs.of(geometry, x_zero, bool(op.input(5)), _dequantized(op))
+    return op.ir_node("ConvInteger", [x, *_constants(op, ctx, w, w_shape[0], len(ctx.shape(x)), 1)], attrs)
 
 
-def convert_matmul_integer(op: OnnxOp, ctx: Context) -> Node:
-    """MatMulInteger: A [M, K], B [K, N] (constant), a_zero_point, b_zero_point (per tensor or per
-    column), then qdq.py's scale and bias."""
+def convert_matmul_integer(op: OnnxOp, ctx: Context) -> Node | tuple[Node, ...]:
+    """MatMulInteger: A [..., M, K] or [K], B [K, N] or [K] (constant; batch dims of 1 only),
+    a_zero_point, b_zero_point (per tensor or per column), then qdq.py's scale and bias. NumPy's
+    matmul: A's rows, all batches together (a Reshape, a view, makes A [rows, K]), times B; the
+    node writes the rows in the result's shape."""
     x = op.input(0)
     x_shape, w_shape = ctx.shape(x), ctx.shape(op.input(1))
-    if len(x_shape) != 2 or len(w_shape) != 2:
-        raise op.error("multiplies inputs that are not both 2-D; NNCG's integer matrix product takes 2-D inputs")
-    x_zero = _x_zero_point(op, ctx)
-    w = centred_weights(op, ctx, 1, 3, w_shape[1], 1)
-    attrs = IntegerDenseAttrs(x_zero, bool(op.input(5)))
-    return op.ir_node("MatMulInteger", [x, *_constants(op, ctx, w, w_shape[1], 2)], attrs)
+    if any(n != 1 for n in w_shape[:-2]):
+        raise op.error(
+            f"multiplies by weights of shape {list(w_shape)}; NNCG's integer matrix product takes one [K, N] matrix"
+        )
+    k, n = (w_shape[0], 1) if len(w_shape) == 1 else w_shape[-2:]
+    if x_shape[-1] != k:
+        raise op.error(f"multiplies shapes {list(x_shape)} and {list(w_shape)}, whose inner dims differ")
+    shape = _product_shape(x_shape, w_shape)
+    w = centred_weights(op, ctx, 1, 3, n, max(len(w_shape) - 1, 0)).reshape(k, n)
+    attrs = IntegerDenseAttrs(_x_zero_point(op, ctx), bool(op.input(5)), _dequantized(op))
+    constants = _constants(op, ctx, w, n, len(shape), len(shape) - 1)
+    if len(x_shape) == 2:
+        return op.ir_node("MatMulInteger", [x, *constants], attrs)
+    rows_shape = (math.prod(x_shape[:-1]), k)
+    rows = ctx.intermediate(op, "rows", rows_shape)
+    return (
+        op.ir_step("Reshape", "rows", [x], rows, ReshapeAttrs(rows_shape)),
+        op.ir_node("MatMulInteger", [rows, *constants], attrs),
+    )
+
+
+def _product_shape(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
+    """The shape of NumPy's matmul of a and b: a 1-D operand gains a dim of 1 to multiply, which the
+    product loses."""
+    batch = np.broadcast_shapes(a[:-2], b[:-2])
+    return (*(int(d) for d in batch), *a[-2:-1], *(b[-1:] if len(b) > 1 else ()))

@@ -137,10 +137,7 @@ def convert_qlinear_conv(op: OnnxOp, ctx: Context) -> Node:
     w_shape = ctx.shape(op.input(3))
     geometry = conv_geometry(op, ctx.shape(x), w_shape)
     w, w_scales = integer_weights(op, ctx, 3, w_shape[0], 0)
-    attrs = QConvAttrs(
-        geometry.kernel, geometry.strides, geometry.dilations, geometry.pads_begin, geometry.pads_end,
-        geometry.group, x_zero, requantization(op, ctx, y_scale, y_zero, y_dtype),
-    )  # fmt: skip
+    attrs = QConvAttrs.of(geometry, x_zero, requantization(op, ctx, y_scale, y_zero, y_dtype))
     return op.ir_node(
         "QLinearConv",
         [x, *_parameters(op, ctx, w, int32_bias(op, ctx, 8, w_shape[0]), x_scale, w_scales, y_scale)],

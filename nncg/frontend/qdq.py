@@ -8,8 +8,8 @@ com.microsoft domain Gemm QGemm, Add QLinearAdd, Mul QLinearMul, Concat QLinearC
 GlobalAveragePool QLinearGlobalAveragePool, AveragePool QLinearAveragePool, Softmax QLinearSoftmax,
 LeakyRelu QLinearLeakyRelu and Sigmoid QLinearSigmoid; HardSwish and Tanh become NNCG's own
 QLinearHardSwish and QLinearTanh (these four are table lookups, see ops_qlookup.py). A ConvInteger or MatMulInteger
-dequantised by a Cast to float32, a Mul by a constant and possibly an Add of one becomes one node
-(ops_integer.py).
+whose result a Cast to float32 reads, then maybe a Mul by a constant and an Add of one, becomes one
+node (ops_integer.py).
 A Relu or a Clip between the op and its QuantizeLinear is folded into the output range: quantising
 is monotonic, so clamping before it is clamping its result; the real bounds travel beside the nodes
 (QdqNotes), never as ONNX attributes a model could also carry. MaxPool, Reshape, Flatten,
@@ -255,22 +255,24 @@ def _concat(model: _Model, concat: onnx.NodeProto):
 
 
 def _integer_product(model: _Model, node: onnx.NodeProto):
-    """A ConvInteger or MatMulInteger whose int32 result only a Cast to float32 reads, and that only
-    a Mul by a constant (and that, possibly, only an Add of a constant): the op in NNCG's domain with
-    two more inputs (the Mul's constant, the Add's or ""), which computes the float32 result in its
-    kernel's store, so that no int32 tensor is written."""
+    """A ConvInteger or MatMulInteger whose int32 result only a Cast to float32 reads, and that
+    possibly only a Mul by a constant (and that, possibly, only an Add of a constant): the op in
+    NNCG's domain with two more inputs (the Mul's constant or "" for none, the Add's or ""), which
+    computes the float32 result in its kernel's store, so that no int32 tensor is written."""
     cast = model.sole_reader(node.output[0], "Cast")
     to = next((a.i for a in cast.attribute if a.name == "to"), None) if cast is not None else None
-    mul = model.sole_reader(cast.output[0], "Mul") if to == onnx.TensorProto.FLOAT else None
+    if to != onnx.TensorProto.FLOAT:
+        return None
+    inputs = [*node.input, *[""] * (4 - len(node.input))]
+    mul = model.sole_reader(cast.output[0], "Mul")
     scale = _other_constant(model, mul, cast.output[0]) if mul is not None else None
     if scale is None:
-        return None
+        return _node(node.op_type, [*inputs, "", ""], cast.output[0], node, NNCG_DOMAIN), [cast]
     last, removed, bias = mul, [cast, mul], ""
     add = model.sole_reader(mul.output[0], "Add")
     if add is not None and _other_constant(model, add, mul.output[0]) is not None:
         last, removed, bias = add, [cast, mul, add], _other_constant(model, add, mul.output[0])
-    inputs = [*node.input, *[""] * (4 - len(node.input)), scale, bias]
-    return _node(node.op_type, inputs, last.output[0], node, NNCG_DOMAIN), removed
+    return _node(node.op_type, [*inputs, scale, bias], last.output[0], node, NNCG_DOMAIN), removed
 
 
 def _other_constant(model: _Model, node: onnx.NodeProto, value: str) -> str | None:

@@ -11,7 +11,7 @@ at raw ONNX attributes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Union
+from typing import TypeVar, Union
 
 import numpy as np
 
@@ -325,6 +325,9 @@ class Requantization:
         return f"{self.dtype}(zero_point={self.zero_point}, {self.low}..{self.high})"
 
 
+_Window = TypeVar("_Window", bound="IntegerWindow")
+
+
 @dataclass(frozen=True)
 class IntegerWindow:
     """The window of an integer convolution and its input's zero point: what QLinearConv
@@ -337,6 +340,13 @@ class IntegerWindow:
     pads_end: Shape
     group: int
     x_zero_point: int
+
+    @classmethod
+    def of(cls: type[_Window], geometry: ConvAttrs, x_zero_point: int, *rest: object) -> _Window:
+        """The record of `geometry`'s window (a Conv's, from the front end) and the input zero
+        point, then the subclass's own fields `rest` in order."""
+        g = geometry
+        return cls(g.kernel, g.strides, g.dilations, g.pads_begin, g.pads_end, g.group, x_zero_point, *rest)
 
 
 @dataclass(frozen=True)
@@ -361,22 +371,26 @@ class QDenseAttrs:
 
 @dataclass(frozen=True)
 class IntegerConvAttrs(IntegerWindow):
-    """ConvInteger dequantised in its store (frontend/qdq.py's ConvIntegerScaled): inputs x
-    (int8/uint8), w (as QConvAttrs's), b [C_out] (int32 constant: 0, or the zero point folded in),
-    scale [C_out] and, when `biased`, bias [C_out] (float32 constants). The result is
-    float32(b + sum (x - x_zero_point) * w) * scale (+ bias), each step rounded to float32 as
-    onnxruntime's Cast, Mul and Add round it."""
+    """ConvInteger: inputs x (int8/uint8), w (as QConvAttrs's), b [C_out] (int32 constant: 0, or
+    the zero point folded in). Its int32 result b + sum (x - x_zero_point) * w is the output as it
+    is, or, when `dequantized` (frontend/qdq.py fused the Cast, Mul and Add that read it), two more
+    float32 constants follow: scale [C_out] and, when `biased`, bias [C_out]; the output is then
+    float32(sum) * scale (+ bias), each step rounded to float32 as onnxruntime's Cast, Mul and Add
+    round it."""
 
     biased: bool
+    dequantized: bool = True
 
 
 @dataclass(frozen=True)
 class IntegerDenseAttrs:
-    """MatMulInteger dequantised in its store: x [M, K], w [K, N], b, scale and bias [N], as
-    IntegerConvAttrs's."""
+    """MatMulInteger of x [M, K] and w [K, N], with b [N] (then scale and bias [N] when
+    `dequantized`), as IntegerConvAttrs's. The output has M * N elements: [M, N], or the shape of
+    a batched MatMulInteger's result (its rows the batches' rows in order, x made [M, K] by a Reshape)."""
 
     x_zero_point: int
     biased: bool
+    dequantized: bool = True
 
 
 @dataclass(frozen=True)

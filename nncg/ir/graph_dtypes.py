@@ -10,6 +10,10 @@ from .kinds import DType
 
 FLOAT32, INT8, UINT8, INT16, INT32 = DType.FLOAT32, DType.INT8, DType.UINT8, DType.INT16, DType.INT32
 ACTIVATIONS = (INT8, UINT8)  # the types of quantized activations
+# What the generated function takes and writes: float32 or quantized values, and as outputs also
+# int32 (ArgMax's indices, a ConvInteger's or MatMulInteger's sums).
+INPUT_DTYPES = (FLOAT32, *ACTIVATIONS)
+OUTPUT_DTYPES = (*INPUT_DTYPES, INT32)
 # Ops that move elements without computing on them: their output has their input's dtype.
 TYPE_PRESERVING = ("MaxPool", "Reshape", "Identity", "Transpose", "Concat", "Pad")
 # Ops whose output holds indices: int32 (ONNX's are int64; C89 has no guaranteed 64-bit type).
@@ -31,6 +35,8 @@ QUANTIZED_INPUTS: dict[str, tuple[tuple[DType, ...], ...]] = {
 }
 # Quantized ops that write float32 (their int32 result dequantised in the store).
 DEQUANTIZING_OPS = ("DequantizeLinear", "ConvInteger", "MatMulInteger")
+# Of those, the ones that write their int32 result as it is where it is not `dequantized`.
+INTEGER_PRODUCTS = ("ConvInteger", "MatMulInteger")
 
 
 def moves_integers(node: Node) -> bool:
@@ -50,6 +56,8 @@ def output_dtype(node: Node, dtype_of: Callable[[str], DType]) -> DType:
         return INT32
     if node.op in ("QuantizeLinear", "QLinearLookup"):
         return node.attrs.dtype
+    if node.op in INTEGER_PRODUCTS and not node.attrs.dequantized:
+        return INT32
     if node.op in QUANTIZED_INPUTS and node.op not in DEQUANTIZING_OPS:
         return node.attrs.out.dtype
     return FLOAT32
@@ -88,10 +96,14 @@ def graph_dtype_problems(graph: Graph) -> list[str]:
             for out in node.outputs
             if graph.dtype(out) != expected
         ]
-    problems += [f"graph input {v.name} is not float32" for v in graph.inputs if graph.dtype(v.name) != FLOAT32]
     problems += [
-        f"graph output {v.name} is {graph.dtype(v.name)}, neither float32 nor int32 indices"
+        f"graph input {v.name} is {graph.dtype(v.name)}, not {'/'.join(INPUT_DTYPES)}"
+        for v in graph.inputs
+        if graph.dtype(v.name) not in INPUT_DTYPES
+    ]
+    problems += [
+        f"graph output {v.name} is {graph.dtype(v.name)}, not {'/'.join(OUTPUT_DTYPES)}"
         for v in graph.outputs
-        if graph.dtype(v.name) not in (FLOAT32, INT32)
+        if graph.dtype(v.name) not in OUTPUT_DTYPES
     ]
     return problems

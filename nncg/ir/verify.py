@@ -32,12 +32,11 @@ from ..ir.loops import (
 )
 from ..ir.ops import IR_OPS
 from .dtypes import buffer_dtypes, expr_dtype
-from .graph_dtypes import graph_dtype_problems
+from .graph_dtypes import OUTPUT_DTYPES, graph_dtype_problems
 from .kinds import BufferRole, DType, LoopKind
 
 FLOAT32, INT32 = DType.FLOAT32, DType.INT32
 ARENA_DTYPES = (DType.FLOAT32, DType.INT8, DType.UINT8)  # what an arena buffer may hold (c_file.py says why)
-OUTPUT_DTYPES = (DType.FLOAT32, DType.INT32)  # the caller's output arrays: values, or ArgMax's indices
 VECTOR_WIDTHS = (1, 2, 4, 8, 16)  # lanes a loop or expression may have
 
 

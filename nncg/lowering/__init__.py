@@ -188,7 +188,10 @@ def lower(
             ctx.in_place[node.outputs[0]] = (node.inputs[0], node.attrs.pads_begin[0] + 1)
     in_place = {name for name in in_place if by_name[name].outputs[0] in ctx.in_place}
     for value in graph.inputs:
-        ctx.refs[value.name] = ctx.add_buffer(value.name, "input", value.shape, row_major(len(value.shape)), value.name)
+        order = row_major(len(value.shape))
+        ctx.refs[value.name] = ctx.add_buffer(
+            value.name, "input", value.shape, order, value.name, graph.dtype(value.name)
+        )
     outputs = {}
     for value in graph.outputs:
         outputs[value.name] = ctx.add_buffer(

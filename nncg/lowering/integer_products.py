@@ -1,12 +1,13 @@
-"""Lowering of ConvInteger and MatMulInteger dequantised in their store (frontend/qdq.py fuses the
-Cast to float32, Mul and Add that read their int32 result): the integer convolution and matrix
-product of quantized.py, each int32 sum stored as float32(sum) * scale[c] (+ bias[c]). Each step is
-rounded to float32 as onnxruntime's Cast, Mul and Add round it: the product of two float32 values
-is exact in double, so computing it there and rounding once gives the float32 product; the sum
-likewise, unless its terms are more than 2^29 apart (then the double rounding could differ in the
-last bit at a tie). Where a sum can exceed 2^24 in magnitude (so float32(sum) rounds), a C compiler
-contracting float expressions (GCC in its default GNU mode with -mfma) may fuse the product and the
-addition: the result can then differ from onnxruntime's in the last bit; strict C89 does not."""
+"""Lowering of ConvInteger and MatMulInteger: the integer convolution and matrix product of
+quantized.py, each int32 sum stored as it is (a graph output), or dequantised in the store (where
+frontend/qdq.py fused the Cast to float32, Mul and Add that read it) as float32(sum) * scale[c]
+(+ bias[c]). Each step is rounded to float32 as onnxruntime's Cast, Mul and Add round it: the
+product of two float32 values is exact in double, so computing it there and rounding once gives
+the float32 product; the sum likewise, unless its terms are more than 2^29 apart (then the double
+rounding could differ in the last bit at a tie). Where a sum can exceed 2^24 in magnitude (so
+float32(sum) rounds), a C compiler contracting float expressions (GCC in its default GNU mode with
+-mfma) may fuse the product and the addition: the result can then differ from onnxruntime's in the
+last bit; strict C89 does not."""
 
 from __future__ import annotations
 
@@ -45,6 +46,11 @@ def _sums_are_float32(ctx: LoweringContext, node: Node) -> bool:
     return int(per_channel.max()) * max(zero_point - low, high - zero_point) <= 2**24
 
 
+def finished(ctx: LoweringContext, node: Node) -> Finish:
+    """The int32 sum as it is, or dequantised (see dequantized)."""
+    return dequantized(ctx, node) if node.attrs.dequantized else lambda acc, _channel: acc
+
+
 def dequantized(ctx: LoweringContext, node: Node) -> Finish:
     """float32(sum) * scale[c] (+ bias[c]): inputs 3 and 4 of the node."""
     scale = _per_channel(ctx, f"s_{node.name}", ctx.graph.constants[node.inputs[3]])
@@ -62,8 +68,8 @@ def dequantized(ctx: LoweringContext, node: Node) -> Finish:
 
 
 def lower_conv_integer(ctx: LoweringContext, node: Node) -> None:
-    integer_conv(ctx, node, dequantized(ctx, node))
+    integer_conv(ctx, node, finished(ctx, node))
 
 
 def lower_matmul_integer(ctx: LoweringContext, node: Node) -> None:
-    integer_dense(ctx, node, dequantized(ctx, node))
+    integer_dense(ctx, node, finished(ctx, node))

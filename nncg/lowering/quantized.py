@@ -27,6 +27,7 @@ from .context import LoweringContext, TensorRef, channels_last, nest, row_major
 from .elementwise import elementwise
 from .pool import window_counts
 from .requantize import Scales
+from .reshape import reshaped_view
 from .window import outside_window_nest, spatial_names, window_nest
 
 INT32, FLOAT32 = DType.INT32, DType.FLOAT32
@@ -122,7 +123,7 @@ def lower_qlinear_dense(ctx: LoweringContext, node: Node) -> None:
 
 def integer_dense(ctx: LoweringContext, node: Node, finish: Finish) -> None:
     """y[m, n] = finish(b[n] + sum_k (x[m, k] - x_zero_point) * w[k, n]), the zero point folded
-    into the bias (folded_bias)."""
+    into the bias (folded_bias); a y of another rank (a batched MatMulInteger's) is seen as [M, N]."""
     attrs: QDenseAttrs | IntegerDenseAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     weights = ctx.graph.constants[node.inputs[1]]
@@ -131,7 +132,9 @@ def integer_dense(ctx: LoweringContext, node: Node, finish: Finish) -> None:
     folded = folded_bias(b, attrs.x_zero_point, weights.astype(np.int64).sum(axis=0)) if attrs.x_zero_point else None
     bias = ctx.add_constant(f"b_{node.name}", b if folded is None else folded)
     x_zero_point = attrs.x_zero_point if folded is None else 0
-    out = ctx.output(node.outputs[0], row_major(2))
+    y_shape, matrix = ctx.graph.shape(node.outputs[0]), (x.shape[0], w.shape[1])
+    out = ctx.output(node.outputs[0], row_major(len(y_shape)))
+    out = out if y_shape == matrix else reshaped_view(out, matrix)
     k = w.shape[0]
 
     def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
