@@ -219,8 +219,11 @@ def matmul_model(x_shape, n):
 
 
 def test_cost_model_packs_a_wide_gemm_in_panels_of_one_register_block():
-    (gemm,) = graph_after(gemm_model(1, 512, 100), "cache-block").nodes  # 200 KiB
+    (gemm,) = graph_after(gemm_model(2, 512, 100), "cache-block").nodes  # 200 KiB
     assert gemm.attrs.panel == 32  # avx2: 4 vectors of 8
+    # one row (a GEMV): 4 reduction streams of accumulators per vector, (16 - 6) // 4 = 2 vectors
+    assert graph_after(gemm_model(1, 512, 100), "cache-block").nodes[0].attrs.panel == 16
+    assert graph_after(gemm_model(1, 512, 100), "cache-block", nncg.get_target("avx512")).nodes[0].attrs.panel == 64
     assert graph_after(gemm_model(1, 16, 10), "cache-block").nodes[0].attrs.panel == 0
     with pytest.raises(NncgError, match="give its panel alone"):
         graph_after(gemm_model(1, 16, 10), "cache-block{layers=Gemm_0:8x2}")
@@ -241,6 +244,32 @@ def test_packed_gemm_matches_onnxruntime(target_name, model, choice):
     facts = nncg.get_target(target_name)
     compiled = nncg.compile(m, target=target_name, pipeline=pipeline(facts, f"{import_onnx(m).nodes[0].name}:{choice}"))
     assert "for (p = 0;" in compiled.source or choice == "24"
+    check_against_onnxruntime(m, compiled, sanitize=target_name == "avx2")
+
+
+@pytest.mark.parametrize("target_name", TARGETS)
+@pytest.mark.parametrize(
+    "model,streams",
+    [
+        (lambda: gemm_model(1, 131, 100), 4),  # K = 4 x 32 + 3, N = 100: panels and a rest off the vector width
+        (lambda: gemm_model(1, 97, 91, trans_b=True, bias=False), 4),  # K odd, N = 7 x 13
+        (lambda: matmul_model((1, 1, 201), 45), 4),  # one row over two leading dims
+        (lambda: gemm_model(1, 63, 150), 1),  # too short a reduction to split
+        (lambda: gemm_model(2, 131, 100), 1),  # two rows reuse the weights: no streams
+    ],
+    ids=["gemv_tails", "gemv_odd", "matmul_gemv", "gemv_short", "two_rows"],
+)
+def test_gemv_reads_its_reduction_in_streams_and_matches_onnxruntime(target_name, model, streams):
+    m = model()
+    facts = nncg.get_target(target_name)
+    name = import_onnx(m).nodes[0].name
+    # ansi-c: no cache-block in its pipeline (nothing to pack without vectors); give it a panel by hand
+    text = default_pipeline(facts)
+    if target_name == "ansi-c":
+        text = text.replace(",lower,", f",cache-block{{layers={name}:8}},lower,")
+    compiled = nncg.compile(m, target=target_name, pipeline=text)
+    assert ("acc_seg3" in compiled.source) == (streams == 4)
+    assert "acc_seg" in compiled.source or streams == 1
     check_against_onnxruntime(m, compiled, sanitize=target_name == "avx2")
 
 

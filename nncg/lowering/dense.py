@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..ir.applicability import reduction_streams
 from ..ir.graph import DenseAttrs, Node
 from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
 from .activation import apply_activation
@@ -47,7 +48,9 @@ def lower_dense(ctx: LoweringContext, node: Node) -> None:
 
 def _lower_packed(ctx: LoweringContext, node: Node) -> None:
     """w packed in panels of `attrs.panel` columns, [panel][k][column], so each panel's columns are
-    one contiguous stream (the cache-block pass chose it): for each panel, the rows x its columns."""
+    one contiguous stream (the cache-block pass chose it): for each panel, the rows x its columns. A
+    GEMV reads its panel's reduction as `reduction_streams` segments side by side, each into an
+    accumulator of its own, summed before the store."""
     attrs: DenseAttrs = node.attrs
     w = ctx.graph.constants[node.inputs[1]]
     w = w.T if attrs.trans_w else w  # [K, N]
@@ -57,19 +60,32 @@ def _lower_packed(ctx: LoweringContext, node: Node) -> None:
     out_shape = ctx.graph.shape(node.outputs[0])
     out = ctx.output(node.outputs[0], row_major(len(out_shape)))
     row_loops = [(f"r{i}", d) for i, d in enumerate(out_shape[:-1])]
+    streams = reduction_streams(ctx.graph, node)
+    segment, tail = divmod(k_extent, streams)
+    partials = ["acc", *(f"acc_seg{s}" for s in range(1, streams))]
 
     def panel_nest(packed: TensorRef, panel: Affine, first_column: Affine, width: int) -> tuple[Stmt, ...]:
         def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
             rows, c = [env[v] for v, _ in row_loops], env["c"]
-            k = Affine.of("k") if k_extent > 1 else Affine()
-            x_load = Load(x.buffer, x.at([*_broadcast(x.shape[:-1], rows), k]))
-            product = Binary("*", x_load, Load(packed.buffer, packed.at([panel, k, c])))
-            update: tuple[Stmt, ...] = (Assign("acc", Binary("+", LocalRef("acc"), product)),)
-            reduce = (Loop("k", k_extent, update),) if k_extent > 1 else update
+
+            def add(name: str, k: Affine) -> Assign:
+                x_load = Load(x.buffer, x.at([*_broadcast(x.shape[:-1], rows), k]))
+                product = Binary("*", x_load, Load(packed.buffer, packed.at([panel, k, c])))
+                return Assign(name, Binary("+", LocalRef(name), product))
+
+            k = Affine.of("k") if segment > 1 else Affine()
+            reduce = _loop("k", segment, tuple(add(name, k + s * segment) for s, name in enumerate(partials)))
+            kt = Affine.of("kt") if tail > 1 else Affine()
+            reduce += _loop("kt", tail, (add("acc", kt + streams * segment),))
+            if streams > 1:
+                reduce += (Assign("acc", _pairwise_sum([LocalRef(name) for name in partials])),)
             index = [*rows, first_column + c]
             init, value = _scaled(attrs, _bias_term(attrs, bias, index))
             store = Store(out.buffer, out.at(index), apply_activation(value, attrs.activation))
-            return (Let("acc", init, (*reduce, store)),)
+            stmts: tuple[Stmt, ...] = (*reduce, store)
+            for name in reversed(partials[1:]):
+                stmts = (Let(name, Const.splat(0.0), stmts),)
+            return (Let("acc", init, stmts),)
 
         return nest([*row_loops, ("c", width)], body, parallel=True)
 
@@ -77,6 +93,18 @@ def _lower_packed(ctx: LoweringContext, node: Node) -> None:
         return _panels(w[:, start:stop], panels)
 
     ctx.emit(node.name, "Dense", by_panels(ctx, f"w_{node.name}", n_extent, attrs.panel, pack, panel_nest))
+
+
+def _loop(var: str, extent: int, body: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
+    """`body` over var in [0, extent): a loop, the body itself for one step, nothing for none."""
+    return (Loop(var, extent, body),) if extent > 1 else body if extent else ()
+
+
+def _pairwise_sum(terms: list[Expr]) -> Expr:
+    """The terms added in pairs (a shorter chain of dependent adds than left to right)."""
+    while len(terms) > 1:
+        terms = [Binary("+", *terms[i : i + 2]) if i + 1 < len(terms) else terms[i] for i in range(0, len(terms), 2)]
+    return terms[0]
 
 
 def _panels(w: np.ndarray, panels: int) -> np.ndarray:

@@ -26,11 +26,11 @@ import math
 from dataclasses import replace
 
 from ..errors import NncgError
-from ..ir.applicability import cache_block_applies, group_panels_apply, panel_packing_applies
+from ..ir.applicability import cache_block_applies, group_panels_apply, panel_packing_applies, reduction_streams
 from ..ir.graph import Graph, Node
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
-from .register_block import choose_blocks
+from .register_block import RESERVED, choose_blocks
 
 OFF = (0, 0)
 FLOAT_BYTES = 4
@@ -140,9 +140,13 @@ def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
 
 
 def panel_width(graph: Graph, node: Node, target: Target) -> int:
-    """The output channels one register block holds (all of them when they fit one)."""
+    """The output channels one register block holds (all of them when they fit one); a GEMV holds an
+    accumulator per reduction stream for each of them, so fewer where the registers would not hold all."""
     c_out, _, _, row = _shape(graph, node)
     channels = choose_blocks((row, -(-c_out // target.lanes)), target.registers)[1]
+    if node.op != "Conv":
+        streams = reduction_streams(graph, node)
+        channels = min(channels, max(1, (target.registers - RESERVED) // streams))
     return min(c_out, channels * target.lanes)
 
 
