@@ -8,7 +8,7 @@ channels-last nest over the band's rows (stream.py), or as Winograd over its til
 `winograd` x `banded`), which costs more than the same nest over the
 whole layer (the row loop cut into bands, line-buffer indices, shorter loops for register blocking
 and unrolling); a layer alone in bands has no line buffers, its nest is the whole layer's. On top,
-each band runs every layer's nest once (`per_band`) and shifts the line buffers (`shift`, per float).
+each band runs every layer's nest once (`per_band`) and shifts the line buffers (`shift`, per 4 bytes).
 
 The x86 figures are rounded from the memory suite's side-by-side runs of robot, pedestrian, resnet8,
 ball and mobilenet_v1_025 (speed, balanced, min; and speed against speed without Winograd) on a
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 class BandCosts:
     """Time per MAC relative to a whole direct Conv: `winograd` and `blocked` a whole Conv the graph
     passes made Winograd or cache-blocked (or pixel-vectorised), `banded` a Conv in a group of bands;
-    `per_band` MAC-equivalents per layer and band run, `shift` per float a line buffer shifts."""
+    `per_band` MAC-equivalents per layer and band run, `shift` per 4 bytes a line buffer shifts."""
 
     winograd: float
     blocked: float

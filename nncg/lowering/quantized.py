@@ -25,7 +25,7 @@ from ..ir.kinds import DType
 from ..ir.loops import Affine, Assign, Binary, Cast, Const, Expr, Let, Load, LocalRef, Loop, Requantize, Stmt, Store
 from .context import LoweringContext, TensorRef, channels_last, nest, row_major
 from .elementwise import elementwise
-from .pool import window_counts
+from .pool import lower_maxpool, window_counts
 from .requantize import Scales
 from .window import outside_window_nest, spatial_names, window_nest
 
@@ -254,3 +254,11 @@ def lower_integer_maxpool(ctx: LoweringContext, node: Node) -> None:
 
     loops = [("n", out.shape[0]), *out_loops, ("c", out.shape[1])]
     ctx.emit(node.name, "MaxPool", nest(loops, body, parallel=True))
+
+
+def lower_any_maxpool(ctx: LoweringContext, node: Node) -> None:
+    """MaxPool of floats, or of the integers of an int8 model."""
+    if ctx.graph.dtype(node.inputs[0]).is_integer:
+        lower_integer_maxpool(ctx, node)
+    else:
+        lower_maxpool(ctx, node)
