@@ -36,7 +36,6 @@ from .options import CompileOptions
 from .output_files import write_files
 from .passes import PassManager, parse_pipeline
 from .passes.expose_layers import with_exposed_layers
-from .passes.plan_memory import FLOAT_BYTES
 from .passes.unroll import CODE_BUDGET
 from .safe_text import c_comment, capped, shown
 

@@ -37,8 +37,8 @@ from .normalization import lower_normalization
 from .pad import lower_pad
 from .pool import lower_averagepool
 from .quantized import (
-    lower_dequantize_linear,
     lower_any_maxpool,
+    lower_dequantize_linear,
     lower_qlinear_average_pool,
     lower_qlinear_conv,
     lower_qlinear_dense,

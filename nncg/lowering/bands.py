@@ -1,16 +1,16 @@
 """Band geometry: a chain of layers run over bands of rows, so the tensors inside the chain are line
 buffers (the last few rows) instead of whole tensors.
 
-A group is a run of Conv and pooling layers, float or int8, and the int8 model's elementwise table
-lookups and requantised adds (a window of one row), consecutive in graph order, whose tensors other
-than the last layer's output are read only inside the group. Each band, the last layer produces `rows` more
-output rows and every other layer the rows its readers need next: tensor t advances `step` rows per
-band (`rows` times the strides between it and the output) and is complete up to row
-step * band + ahead, `ahead` being what its readers' windows reach beyond their own rows. A line
-buffer keeps the `lines` newest rows: from the lowest row a reader's window starts at to the newest.
-The first bands (band < 0, before the output's first row) fill the line buffers; rows outside a
-tensor are skipped, so the same loop body serves every band, and each band computes only rows no
-earlier band computed.
+A group is a run of Conv and pooling layers, float or int8, and the int8 model's elementwise
+QuantizeLinear, table lookups and requantised adds (a window of one row), consecutive in graph
+order, whose tensors other than the last layer's output are read only inside the group. Each band,
+the last layer produces `rows` more output rows and every other layer the rows its readers need
+next: tensor t advances `step` rows per band (`rows` times the strides between it and the output)
+and is complete up to row step * band + ahead, `ahead` being what its readers' windows reach beyond
+their own rows. A line buffer keeps the `lines` newest rows: from the lowest row a reader's window
+starts at to the newest. The first bands (band < 0, before the output's first row) fill the line
+buffers; rows outside a tensor are skipped, so the same loop body serves every band, and each band
+computes only rows no earlier band computed.
 
 Layers before a stride advance faster: where the steps fall along the chain (4, 4, 2, 2, 1), the
 faster layers run in nested loops (level 1 twice per band, level 2 twice per level-1 run), each run
@@ -30,7 +30,7 @@ from .conv import conv_extras
 from .winograd import TILE
 
 WINDOWED = ("Conv", "QLinearConv", "MaxPool", "AveragePool", "QLinearAveragePool")  # write channels last
-POINTWISE = ("QLinearLookup", "QLinearAdd")  # follow their first input's layout (elementwise.py)
+POINTWISE = ("QuantizeLinear", "QLinearLookup", "QLinearAdd")  # follow their first input's layout (elementwise.py)
 STREAMABLE = WINDOWED + POINTWISE
 
 
@@ -153,7 +153,10 @@ def _whole_tiles(rows: Rows) -> bool:
 def _channels_last_inputs(graph: Graph, node: Node, internal: tuple[str, ...]) -> bool:
     """An elementwise op in a group writes its output in its first input's layout, which must be
     channels last (a line buffer's): its first input from inside the group, every other one from
-    inside or from a windowed layer, which writes channels last (unless it vectorises pixels)."""
+    inside or from a windowed layer, which writes channels last (unless it vectorises pixels). A
+    QuantizeLinear in a group writes channels last whatever it reads (stream.py)."""
+    if node.op == "QuantizeLinear":
+        return True
     producers = {v: n for n in graph.nodes for v in n.outputs}
     inputs = [v for v in node.inputs if not graph.is_constant(v)]
     outside = [producers.get(v) for v in inputs[1:] if v not in internal]

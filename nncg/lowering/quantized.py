@@ -204,9 +204,9 @@ def lower_qlinear_average_pool(ctx: LoweringContext, node: Node) -> None:
     ctx.emit(node.name, "QLinearAveragePool", nest(loops, body, parallel=True))
 
 
-def lower_quantize_linear(ctx: LoweringContext, node: Node) -> None:
+def lower_quantize_linear(ctx: LoweringContext, node: Node, order: tuple[int, ...] | None = None) -> None:
     """QuantizeLinear as onnxruntime computes it: x / scale, clamped, rounded half to even, plus the
-    zero point (MLAS's MlasQuantizeLinear)."""
+    zero point (MLAS's MlasQuantizeLinear); the output in `order` (None: the input's)."""
     attrs: QuantAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     low, high = attrs.dtype.range
@@ -215,7 +215,7 @@ def lower_quantize_linear(ctx: LoweringContext, node: Node) -> None:
         scaled = Binary("/", Load(x.buffer, x.at(idx)), Const.splat(attrs.scale))
         return Requantize(scaled, attrs.zero_point, low, high, attrs.dtype)
 
-    elementwise(ctx, node, x.order, value)
+    elementwise(ctx, node, x.order if order is None else order, value)
 
 
 def lower_dequantize_linear(ctx: LoweringContext, node: Node) -> None:
