@@ -16,7 +16,11 @@ machine other jobs loaded, where two builds of the same C differed by up to 40 %
 they do not predict microseconds. On avx2 a dense 3x3 Conv loses more in bands than a depthwise or
 1x1 one (robot, resnet8 at min: 1.3-1.6x per MAC; ball 1.1x; mobilenet none): `banded` is in
 between. ansi-c (scalar: Winograd's saving nearer its 2.25x) and neon (the 4-lane figures) are not
-measured."""
+measured.
+
+An int8 Conv in bands stays scalar (vectorize.py vectorises whole int8 layers only), against the
+target's int8 vectors run whole: int8 resnet8 at min, all but its last stage in bands, took 16x
+speed's time on avx2 (memory suite --int8, a loaded machine); the 4-lane figure is from ssse3."""
 
 from __future__ import annotations
 
@@ -34,11 +38,12 @@ class BandCosts:
     banded: float
     per_band: float
     shift: float
+    integer_banded: float  # an int8 Conv in bands against run whole (scalar against the target's int8 vectors)
 
 
-SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0)
-VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5)
-VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25)
+SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0, integer_banded=1.0)
+VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5, integer_banded=8.0)
+VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=16.0)
 COSTS = {
     "ansi-c": SCALAR,
     "ssse3": VECTOR4,

@@ -36,6 +36,8 @@ MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
 BALANCED_LATENCY = 1.3  # issue 18: balanced at most 1.3x speed's latency ...
 BALANCED_CUT = 2  # ... with at least 2x less arena
+# ops whose kernels plan-memory may compute in place (elementwise.py, quantized*.py)
+ELEMENTWISE = (*POINTWISE, "QLinearMul", "ScaleShift", "Relu", "Clip", "LeakyRelu", "Add", "Sub", "Mul", "Div")
 CONVS = ("Conv", "QLinearConv")  # priced by their MACs (an int8 one as a float one)
 FLOAT_BYTES = DType.FLOAT32.bytes  # a Winograd scratch element; shifts are priced per 4 bytes moved
 
@@ -186,10 +188,13 @@ def _band_step(
     )
     runs = sum(geo.runs(0, geo.rows[n.outputs[0]].level) for n in graph.nodes[i:j])  # of the layers per band
     banded = costs.banded if j - i > 1 else 1.0  # one layer alone: its direct nest under a band loop
-    work = sum(
-        _conv_macs(graph, n) * banded * (costs.winograd if n.name in geo.winograd else 1.0) + _window_work(graph, n)
-        for n in graph.nodes[i:j]
-    )
+
+    def per_mac(node: Node) -> float:
+        if node.op == "QLinearConv":  # scalar in bands: the int8 vector kernels take whole layers (vectorize.py)
+            return costs.integer_banded
+        return banded * (costs.winograd if node.name in geo.winograd else 1.0)
+
+    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in graph.nodes[i:j])
     cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.bytes(i, j, geo.internal) + lines, cost, lines)
 
@@ -235,8 +240,8 @@ def _conv_macs(graph: Graph, node: Node) -> int:
 class _Liveness:
     """Which whole tensors are live across a run of nodes: produced before its end and read at or
     after its start (graph inputs and outputs are the caller's, not the arena's). A Conv run whole
-    whose fused residual dies at it writes its output over the residual, and an elementwise int8 op
-    over an input dying at it (plan-memory computes them in place), so its layer holds one of the
+    whose fused residual dies at it writes its output over the residual, and an elementwise op over
+    an input dying at it (plan-memory computes them in place), so its layer holds one of the
     two (`shared`). With `in_place`, the input and output of
     every depthwise Conv that can run in place (`leads`) count the rows it is stored down."""
 
@@ -296,9 +301,9 @@ def _writes_over_residual(graph: Graph, node: Node, i: int, readers, producers, 
 
 
 def _over_input(graph: Graph, node: Node, i: int, readers: dict[str, int]) -> bool:
-    """Whether plan-memory will compute the elementwise int8 op in place: an input of its output's
-    size and type, inside the arena, dies here."""
-    if node.op not in POINTWISE or graph.is_graph_output(node.outputs[0]):
+    """Whether plan-memory will compute the elementwise op in place: an input of its output's size
+    and type, inside the arena, dies here."""
+    if node.op not in ELEMENTWISE or graph.is_graph_output(node.outputs[0]):
         return False
     out = node.outputs[0]
     return any(
