@@ -20,7 +20,8 @@ measured.
 
 An int8 Conv in bands stays scalar (vectorize.py vectorises whole int8 layers only), against the
 target's int8 vectors run whole: int8 resnet8 at min, all but its last stage in bands, took 16x
-speed's time on avx2 (memory suite --int8, a loaded machine); the 4-lane figure is from ssse3."""
+speed's time on avx2, and int8 robot and resnet8 at min 4-8x on ssse3 (memory suite --int8, a
+loaded machine: they order plans)."""
 
 from __future__ import annotations
 
