@@ -1,12 +1,14 @@
 """The memory suite: each model at every --memory setting, latency against the arena it needs (issue 18).
 
-    python3 -m benchmarks.memory_suite [--models robot ...] [--targets ssse3 avx2] [--cpu 0] [--batches 15]
+    python3 -m benchmarks.memory_suite [--models robot ...] [--targets ssse3 avx2] [--cpu 0] [--batches 15] [--int8]
 
 For the paper's models and the MLPerf-Tiny-shaped ones, per x86 target, the three settings (speed, balanced,
 min) and onnxruntime (one thread) are timed in one interleaved run (nncg.bench.benchmark_variants), so each
 setting's latency ratio to speed's is measured side by side. Next to it: the arena (NAME_ARENA_BYTES), the
 layer-by-layer bound and all activations side by side (nncg.compiler.memory_figures), the plan and the error
-against onnxruntime. Writes the "memory" section of benchmarks/RESULTS.md and prints it.
+against onnxruntime. With --int8, each model also quantised as the int8 suite quantises it (rows "NAME int8",
+its errors against onnxruntime on the QDQ model). Writes the "memory" section of benchmarks/RESULTS.md and
+prints it.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from nncg.bench.peak import measure_peaks
 from nncg.lowering.band_plan import MEMORY_MODES
 from nncg.safe_text import markdown_text
 
+from .int8_suite import quantized_model
 from .suite import (
     MLPERF_TINY,
     PAPER,
@@ -35,6 +38,7 @@ from .suite import (
 )
 
 SECTION = "memory"
+INT8 = " int8"  # a model name's suffix: the QDQ model of the int8 suite
 # Issue 18's arena targets at --memory min (float32, bytes).
 MIN_TARGETS = {"robot": 48_000, "mobilenet_v1_025": 73_728, "resnet8": 65_536, "pedestrian": 16_384}
 PLAN_LIMIT = 400  # characters of a plan shown in a cell
@@ -63,11 +67,16 @@ class MemoryRow:
         return self.speed.arena_bytes / self.result.arena_bytes
 
 
+def suite_model(name: str):
+    """The file of a model of the suite, or for NAME int8 the int8 suite's QDQ model of NAME."""
+    return quantized_model(name.removesuffix(INT8)) if name.endswith(INT8) else model_path(name)
+
+
 def run_memory_suite(
     models, targets, *, cpu=None, batches=15, min_batch_seconds=0.02, peaks=None, progress=print, path_of=None,
 ) -> list[MemoryRow]:  # fmt: skip
     """A row per model, target and setting; a model that fails is one row per setting with the reason."""
-    path_of = path_of or model_path
+    path_of = path_of or suite_model
     peaks = peaks if peaks is not None else measure_peaks()
     variants = {row: {"memory": memory} for row, memory in SETTINGS.items()}
     timing = Timing(batches, min_batch_seconds, cpu=cpu, peaks=peaks)
@@ -166,10 +175,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
     parser.add_argument("--note", default="", help="a line for the section, e.g. the machine's load")
+    parser.add_argument("--int8", action="store_true", help="each model quantised too (the int8 suite's QDQ model)")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)
     peaks = measure_peaks()
-    rows = run_memory_suite(args.models, args.targets, cpu=args.cpu, batches=args.batches, peaks=peaks)
+    models = [*args.models, *(name + INT8 for name in args.models if args.int8)]
+    rows = run_memory_suite(models, args.targets, cpu=args.cpu, batches=args.batches, peaks=peaks)
     command = shlex.join(["python3", "-m", "benchmarks.memory_suite", *argv])
     date = datetime.date.today().isoformat()
     section = section_markdown(rows, peaks, args.cpu, date, args.batches, command, args.note)

@@ -31,12 +31,11 @@ from .ir.c_names import program_name
 from .ir.graph import Graph
 from .ir.loops import Program
 from .limits import check_program_limits
-from .lowering.band_plan import describe_plan, layer_bound_floats, plan_bands, whole_activation_floats
+from .lowering.band_plan import describe_plan, layer_bound_bytes, plan_bands, whole_activation_bytes
 from .options import CompileOptions
 from .output_files import write_files
 from .passes import PassManager, parse_pipeline
 from .passes.expose_layers import with_exposed_layers
-from .passes.plan_memory import FLOAT_BYTES
 from .passes.unroll import CODE_BUDGET
 from .safe_text import c_comment, capped, shown
 
@@ -218,8 +217,7 @@ def memory_figures(compiled: CompiledModel) -> MemoryFigures | None:
     lower = next(spec for spec in parse_pipeline(compiled.pipeline) if spec.name == "lower")
     params = dict(lower.params)
     groups = plan_bands(graph, params.get("memory", "speed"), int(params.get("budget", 0)), compiled.target)
-    bound, whole = layer_bound_floats(graph), whole_activation_floats(graph)
-    return MemoryFigures(bound * FLOAT_BYTES, whole * FLOAT_BYTES, describe_plan(groups))
+    return MemoryFigures(layer_bound_bytes(graph), whole_activation_bytes(graph), describe_plan(groups))
 
 
 def onnx_model(model, input_layout: str | None = None, example_inputs=None, exporter: str = DEFAULT_EXPORTER):

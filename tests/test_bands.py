@@ -15,7 +15,7 @@ from nncg.backends import BACKENDS, get_target
 from nncg.frontend import import_onnx
 from nncg.lowering import band_plan
 from nncg.lowering.band_costs import COSTS, band_costs
-from nncg.lowering.band_plan import layer_bound_floats, plan_bands
+from nncg.lowering.band_plan import layer_bound_bytes, plan_bands
 from nncg.lowering.bands import BandGroup, geometry
 from nncg.passes import PassManager, default_pipeline
 from nncg.verify_layers import verify_per_layer
@@ -180,7 +180,7 @@ MODEL_TARGETS = {  # (model, largest arena at --memory min the issue asks for)
 def test_models_at_min_match_onnxruntime_below_the_layer_bound(model, target):
     path, goal = MODEL_TARGETS[model]
     compiled = nncg.compile(path, target=target, memory="min")
-    bound = layer_bound_floats(lowered_graph(path, target)) * 4
+    bound = layer_bound_bytes(lowered_graph(path, target))
     assert compiled.arena_bytes < bound / 2
     assert compiled.arena_bytes <= goal
     check_against_onnxruntime(onnx.load(path), compiled, sanitize=target == "ansi-c" and model == "robot")
@@ -271,15 +271,15 @@ def test_speed_is_the_default_and_plans_nothing():
 
 
 def _plans(graph, target):
-    """(floats, estimated latency) of the fastest plan under every memory bound, and speed's."""
+    """(bytes, estimated latency) of the fastest plan under every memory bound, and speed's."""
     steps = band_plan.candidate_steps(graph, band_costs(target))
-    plans = (band_plan._cheapest(len(graph.nodes), steps, bound) for bound in sorted({s.floats for s in steps}))
+    plans = (band_plan._cheapest(len(graph.nodes), steps, bound) for bound in sorted({s.bytes for s in steps}))
     speed = band_plan.plan_steps(graph, "speed", 0, target)
     return [_figures(p) for p in plans if p], _figures(speed)
 
 
 def _figures(plan):
-    return max(s.floats for s in plan), sum(s.cost for s in plan)
+    return max(s.bytes for s in plan), sum(s.cost for s in plan)
 
 
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2"])
@@ -288,15 +288,15 @@ def test_balanced_is_the_fastest_plan_with_half_the_arena_within_the_latency_bou
     """Issue 18: balanced takes the fastest plan with at most half of speed's memory when its estimated
     latency is within 1.3x of speed's; when none is, the smallest memory within 1.3x."""
     graph = lowered_graph(model, target)
-    plans, (speed_floats, speed_time) = _plans(graph, target)
-    fast = [(floats, time) for floats, time in plans if time <= speed_time * band_plan.BALANCED_LATENCY]
-    cut = [(time, floats) for floats, time in fast if floats <= speed_floats / band_plan.BALANCED_CUT]
-    floats, time = _figures(band_plan.plan_steps(graph, "balanced", 0, target))
+    plans, (speed_bytes, speed_time) = _plans(graph, target)
+    fast = [(size, time) for size, time in plans if time <= speed_time * band_plan.BALANCED_LATENCY]
+    cut = [(time, size) for size, time in fast if size <= speed_bytes / band_plan.BALANCED_CUT]
+    size, time = _figures(band_plan.plan_steps(graph, "balanced", 0, target))
     assert time <= speed_time * band_plan.BALANCED_LATENCY
     if cut:
-        assert floats <= speed_floats / band_plan.BALANCED_CUT and time == min(cut)[0]
+        assert size <= speed_bytes / band_plan.BALANCED_CUT and time == min(cut)[0]
     else:
-        assert floats == min(f for f, _ in fast)
+        assert size == min(f for f, _ in fast)
 
 
 def test_balanced_halves_the_arena_where_a_plan_is_fast_enough():
@@ -322,9 +322,9 @@ def test_a_residual_conv_written_over_its_residual_counts_once():
     """resnet8: each residual Conv writes over its dying residual (plan-memory), so the layer bound is
     one input + output pair (issue 18's 131,072 B) and speed's estimate is its real arena."""
     graph = lowered_graph(RESNET8, "avx2")
-    assert layer_bound_floats(graph) * 4 == 131_072
-    _, (speed_floats, _) = _plans(graph, "avx2")
-    assert speed_floats * 4 == nncg.compile(RESNET8, target="avx2").arena_bytes
+    assert layer_bound_bytes(graph) == 131_072
+    _, (speed_bytes, _) = _plans(graph, "avx2")
+    assert speed_bytes == nncg.compile(RESNET8, target="avx2").arena_bytes
 
 
 def test_settings_order_the_arena():

@@ -121,6 +121,16 @@ def test_memory_suite_rows_set_each_setting_against_speed(tmp_path):
     assert table_bars(merge_section("# Benchmark results\n", "memory", text)) == []  # not a speed-up table
 
 
+def test_memory_suite_runs_the_int8_model_of_a_name():
+    rows = run_memory_suite(["ball int8"], ["ssse3"], batches=2, min_batch_seconds=0.001, peaks=PEAKS,
+                            progress=lambda _: None)  # fmt: skip
+    speed, small = rows[0].result, rows[2].result
+    assert [r.setting for r in rows] == ["speed", "balanced", "min", "speed again"]
+    assert speed.arena_bytes == speed.layer_bound_bytes  # 1 byte an activation, exact
+    assert small.arena_bytes < speed.arena_bytes and "in bands" in small.plan
+    assert all(r.result.max_abs_err == 0 for r in rows)  # bit-identical with onnxruntime on the QDQ model
+
+
 def test_memory_table_escapes_the_plan():
     speed = replace(PLAIN, plan="every layer computed whole")
     banded = replace(PLAIN, plan="'a|b<i>'..'c' in bands of 1 output row(s)", arena_bytes=500)

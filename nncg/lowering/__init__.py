@@ -35,10 +35,10 @@ from .integer_products import lower_conv_integer, lower_matmul_integer
 from .lrn import lower_lrn
 from .normalization import lower_normalization
 from .pad import lower_pad
-from .pool import lower_averagepool, lower_maxpool
+from .pool import lower_averagepool
 from .quantized import (
+    lower_any_maxpool,
     lower_dequantize_linear,
-    lower_integer_maxpool,
     lower_qlinear_average_pool,
     lower_qlinear_conv,
     lower_qlinear_dense,
@@ -69,14 +69,6 @@ def lower_any_conv(ctx: LoweringContext, node: Node) -> None:
         lower_blocked_conv(ctx, node)
     else:
         lower_conv(ctx, node)
-
-
-def lower_any_maxpool(ctx: LoweringContext, node: Node) -> None:
-    """MaxPool of floats, or of the integers of an int8 model."""
-    if ctx.graph.dtype(node.inputs[0]).is_integer:
-        lower_integer_maxpool(ctx, node)
-    else:
-        lower_maxpool(ctx, node)
 
 
 LOWERINGS = {

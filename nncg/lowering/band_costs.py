@@ -8,7 +8,7 @@ channels-last nest over the band's rows (stream.py), or as Winograd over its til
 `winograd` x `banded`), which costs more than the same nest over the
 whole layer (the row loop cut into bands, line-buffer indices, shorter loops for register blocking
 and unrolling); a layer alone in bands has no line buffers, its nest is the whole layer's. On top,
-each band runs every layer's nest once (`per_band`) and shifts the line buffers (`shift`, per float).
+each band runs every layer's nest once (`per_band`) and shifts the line buffers (`shift`, per 4 bytes).
 
 The x86 figures are rounded from the memory suite's side-by-side runs of robot, pedestrian, resnet8,
 ball and mobilenet_v1_025 (speed, balanced, min; and speed against speed without Winograd) on a
@@ -16,7 +16,12 @@ machine other jobs loaded, where two builds of the same C differed by up to 40 %
 they do not predict microseconds. On avx2 a dense 3x3 Conv loses more in bands than a depthwise or
 1x1 one (robot, resnet8 at min: 1.3-1.6x per MAC; ball 1.1x; mobilenet none): `banded` is in
 between. ansi-c (scalar: Winograd's saving nearer its 2.25x) and neon (the 4-lane figures) are not
-measured."""
+measured.
+
+An int8 Conv in bands stays scalar (vectorize.py vectorises whole int8 layers only), against the
+target's int8 vectors run whole: int8 resnet8 at min, all but its last stage in bands, took 16x
+speed's time on avx2, and int8 robot and resnet8 at min 4-8x on ssse3 (memory suite --int8, a
+loaded machine: they order plans)."""
 
 from __future__ import annotations
 
@@ -27,18 +32,19 @@ from dataclasses import dataclass
 class BandCosts:
     """Time per MAC relative to a whole direct Conv: `winograd` and `blocked` a whole Conv the graph
     passes made Winograd or cache-blocked (or pixel-vectorised), `banded` a Conv in a group of bands;
-    `per_band` MAC-equivalents per layer and band run, `shift` per float a line buffer shifts."""
+    `per_band` MAC-equivalents per layer and band run, `shift` per 4 bytes a line buffer shifts."""
 
     winograd: float
     blocked: float
     banded: float
     per_band: float
     shift: float
+    integer_banded: float  # an int8 Conv in bands against run whole (scalar against the target's int8 vectors)
 
 
-SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0)
-VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5)
-VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25)
+SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0, integer_banded=1.0)
+VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5, integer_banded=8.0)
+VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=16.0)
 COSTS = {
     "ansi-c": SCALAR,
     "ssse3": VECTOR4,

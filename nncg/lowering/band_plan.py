@@ -6,7 +6,8 @@ smallest arena within that latency), and a RAM budget the fastest plan that fits
 The model is cut into steps, consecutive in graph order: a layer run whole, or a group run in bands
 with some band height. A step needs the memory of the whole tensors live across it (its inputs, its
 output, tensors passing over it to later layers) plus its line buffers, and a Winograd layer run
-whole its scratch; a plan needs the largest of its steps. Its latency is estimated per target
+whole its scratch; a plan needs the largest of its steps. Memory is counted in bytes, each tensor at
+its type's size (an int8 model's activations 1 byte an element). Its latency is estimated per target
 (band_costs.py): a layer run whole keeps the graph passes' choices (Winograd, cache blocking), one in
 bands runs direct or, in a group's variant that keeps Winograd, Winograd over 2-row tiles (its scratch
 a band's, shared by the group's Winograd layers), and every band adds per-layer overhead and
@@ -22,10 +23,10 @@ import math
 from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
-from ..ir.kinds import ConvAlgorithm, VectorAxis
+from ..ir.kinds import ConvAlgorithm, DType, VectorAxis
 from ..safe_text import shown
 from .band_costs import BandCosts, band_costs
-from .bands import STREAMABLE, BandGroup, geometry, row_floats, streamable
+from .bands import POINTWISE, WINDOWED, BandGroup, geometry, row_bytes, streamable, window_attrs
 from .conv import conv_extras
 from .halo import conv_halos
 from .in_place import in_place_lead
@@ -35,17 +36,21 @@ MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
 BALANCED_LATENCY = 1.3  # issue 18: balanced at most 1.3x speed's latency ...
 BALANCED_CUT = 2  # ... with at least 2x less arena
+# ops whose kernels plan-memory may compute in place (elementwise.py, quantized*.py)
+ELEMENTWISE = (*POINTWISE, "QLinearMul", "ScaleShift", "Relu", "Clip", "LeakyRelu", "Add", "Sub", "Mul", "Div")
+CONVS = ("Conv", "QLinearConv")  # priced by their MACs (an int8 one as a float one)
+FLOAT_BYTES = DType.FLOAT32.bytes  # a Winograd scratch element; shifts are priced per 4 bytes moved
 
 
 @dataclass(frozen=True)
 class Step:
-    """Nodes [start, stop) run whole (group None) or in bands; `floats` live while it runs, `lines`
+    """Nodes [start, stop) run whole (group None) or in bands; `bytes` live while it runs, `lines`
     of them in line buffers."""
 
     start: int
     stop: int
     group: BandGroup | None
-    floats: int
+    bytes: int
     cost: float  # estimated time, in MACs of a whole direct Conv (band_costs.py)
     lines: int = 0
     in_place: bool = False  # a depthwise Conv run whole over its input (in_place.py)
@@ -88,37 +93,37 @@ def plan_steps(graph: Graph, memory: str, budget: int, target: str | None) -> li
     plans = _fastest_per_bound(count, exact)
     if _Liveness(graph).leads:
         plans += _fastest_per_bound(count, candidate_steps(graph, costs, in_place=True))
-    fitting = [p for p in plans if _floats(p) <= budget // 4] if budget else []
+    fitting = [p for p in plans if _bytes(p) <= budget] if budget else []
     if fitting:
-        return min(fitting, key=lambda p: (_cost(p), _in_place(p), _floats(p)))
+        return min(fitting, key=lambda p: (_cost(p), _in_place(p), _bytes(p)))
     if memory == "balanced" and not budget:
         return _balanced(plans, speed)
-    return min(plans, key=lambda p: (_floats(p), _cost(p), _in_place(p)))
+    return min(plans, key=lambda p: (_bytes(p), _cost(p), _in_place(p)))
 
 
 def _balanced(plans: list[list[Step]], speed: list[Step]) -> list[Step]:
     """The fastest plan with at most 1/BALANCED_CUT of speed's memory, if its latency is within
     BALANCED_LATENCY of speed's; else the smallest memory any plan within that latency needs."""
     fast = [p for p in plans if _cost(p) <= _cost(speed) * BALANCED_LATENCY]
-    cut = [p for p in fast if _floats(p) <= _floats(speed) / BALANCED_CUT]
+    cut = [p for p in fast if _bytes(p) <= _bytes(speed) / BALANCED_CUT]
     if cut:
-        return min(cut, key=lambda p: (_cost(p), _in_place(p), _floats(p)))
-    return min(fast, key=lambda p: (_floats(p), _cost(p), _in_place(p)))
+        return min(cut, key=lambda p: (_cost(p), _in_place(p), _bytes(p)))
+    return min(fast, key=lambda p: (_bytes(p), _cost(p), _in_place(p)))
 
 
 def _fastest_per_bound(count: int, steps: list[Step]) -> list[list[Step]]:
-    plans = (_cheapest(count, steps, bound) for bound in sorted({s.floats for s in steps}))
+    plans = (_cheapest(count, steps, bound) for bound in sorted({s.bytes for s in steps}))
     return [p for p in plans if p is not None]
 
 
-def layer_bound_floats(graph: Graph) -> int:
-    """The layer-by-layer bound: the most activation floats live at one layer computed whole (its
+def layer_bound_bytes(graph: Graph) -> int:
+    """The layer-by-layer bound: the most activation bytes live at one layer computed whole (its
     input and output, and tensors passing over it), scratch buffers left out."""
     live = _Liveness(graph)
     return max((live.whole(i) for i in range(len(graph.nodes))), default=0)
 
 
-def whole_activation_floats(graph: Graph) -> int:
+def whole_activation_bytes(graph: Graph) -> int:
     """Every activation of the arena computed whole, side by side (no reuse, no bands)."""
     return sum(size for _, _, _, size in _Liveness(graph).tensors)
 
@@ -145,9 +150,9 @@ def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> l
         )
         for i, node in enumerate(graph.nodes)
     ]  # fmt: skip
-    ceiling = max((s.floats for s in steps), default=0)  # what a plan of whole layers needs
+    ceiling = max((s.bytes for s in steps), default=0)  # what a plan of whole layers needs
     for i in live.leads if in_place else ():  # after the layer run whole, which wins a tie
-        steps.append(replace(steps[i], floats=steps[i].floats - live.size[graph.nodes[i].outputs[0]], in_place=True))
+        steps.append(replace(steps[i], bytes=steps[i].bytes - live.size[graph.nodes[i].outputs[0]], in_place=True))
     nodes = graph.nodes
     for i in range(len(nodes)):
         stop = i
@@ -175,54 +180,59 @@ def _band_step(
     geo = geometry(graph, group)
     if geo is None or (winograd and (j - i == 1 or not geo.winograd)):
         return None
-    scratch = band_scratch_floats(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd])
-    lines = sum(geo.rows[v].lines * row_floats(graph, v) for v in geo.internal) + scratch
+    scratch = band_scratch_floats(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd]) * FLOAT_BYTES
+    lines = sum(geo.rows[v].lines * row_bytes(graph, v) for v in geo.internal) + scratch
     shifted = sum(
-        (geo.rows[v].lines - geo.rows[v].step) * row_floats(graph, v) * geo.runs(0, geo.rows[v].level)
+        (geo.rows[v].lines - geo.rows[v].step) * row_bytes(graph, v) // FLOAT_BYTES * geo.runs(0, geo.rows[v].level)
         for v in geo.internal
     )
     runs = sum(geo.runs(0, geo.rows[n.outputs[0]].level) for n in graph.nodes[i:j])  # of the layers per band
     banded = costs.banded if j - i > 1 else 1.0  # one layer alone: its direct nest under a band loop
-    work = sum(
-        _conv_macs(graph, n) * banded * (costs.winograd if n.name in geo.winograd else 1.0) + _window_work(graph, n)
-        for n in graph.nodes[i:j]
-    )
+
+    def per_mac(node: Node) -> float:
+        if node.op == "QLinearConv":  # scalar in bands: the int8 vector kernels take whole layers (vectorize.py)
+            return costs.integer_banded
+        return banded * (costs.winograd if node.name in geo.winograd else 1.0)
+
+    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in graph.nodes[i:j])
     cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
-    return Step(i, j, group, live.floats(i, j, geo.internal) + lines, cost, lines)
+    return Step(i, j, group, live.bytes(i, j, geo.internal) + lines, cost, lines)
 
 
 def _scratch(graph: Graph, node: Node) -> int:
     winograd = node.op == "Conv" and node.attrs.algorithm == ConvAlgorithm.WINOGRAD
-    return scratch_floats(graph, node) if winograd else 0
+    return scratch_floats(graph, node) * FLOAT_BYTES if winograd else 0
 
 
 def _output_copy(graph: Graph, node: Node) -> int:
     """A graph output a Conv or pooling layer run whole writes channels last, then copies out."""
     shape = graph.shape(node.outputs[0])
-    copied = node.op in STREAMABLE and graph.is_graph_output(node.outputs[0]) and shape[1] > 1
-    return math.prod(shape) if copied and math.prod(shape[2:]) > 1 else 0
+    copied = node.op in WINDOWED and graph.is_graph_output(node.outputs[0]) and shape[1] > 1
+    return _tensor_bytes(graph, node.outputs[0]) if copied and math.prod(shape[2:]) > 1 else 0
 
 
 def _whole_time(graph: Graph, node: Node, costs: BandCosts) -> float:
     """A layer run whole: a Conv at the speed of what the graph passes chose for it."""
     macs = _conv_macs(graph, node)
     attrs = node.attrs
-    if macs and attrs.algorithm == ConvAlgorithm.WINOGRAD:
+    if macs and getattr(attrs, "algorithm", None) == ConvAlgorithm.WINOGRAD:
         macs *= costs.winograd
-    elif macs and (attrs.panel or attrs.vector_axis == VectorAxis.PIXELS):
+    elif macs and (getattr(attrs, "panel", 0) or getattr(attrs, "vector_axis", None) == VectorAxis.PIXELS):
         macs *= costs.blocked
     return macs + _window_work(graph, node)
 
 
 def _window_work(graph: Graph, node: Node) -> int:
-    """A pooling layer's window reads, whole or in bands alike."""
-    if node.op not in STREAMABLE or node.op == "Conv":
+    """A pooling layer's window reads, or an elementwise int8 op's one per element, whole or in bands alike."""
+    if node.op in POINTWISE:
+        return math.prod(graph.shape(node.outputs[0]))
+    if node.op not in WINDOWED or node.op in CONVS:
         return 0
-    return math.prod(graph.shape(node.outputs[0])) * math.prod(node.attrs.kernel)
+    return math.prod(graph.shape(node.outputs[0])) * math.prod(window_attrs(node).kernel)
 
 
 def _conv_macs(graph: Graph, node: Node) -> int:
-    if node.op != "Conv":
+    if node.op not in CONVS:
         return 0
     return math.prod(graph.shape(node.outputs[0])) * math.prod(graph.shape(node.inputs[1])[1:])
 
@@ -230,8 +240,9 @@ def _conv_macs(graph: Graph, node: Node) -> int:
 class _Liveness:
     """Which whole tensors are live across a run of nodes: produced before its end and read at or
     after its start (graph inputs and outputs are the caller's, not the arena's). A Conv run whole
-    whose fused residual dies at it writes its output over the residual (plan-memory computes it in
-    place), so its layer holds one of the two (`shared`). With `in_place`, the input and output of
+    whose fused residual dies at it writes its output over the residual, and an elementwise op over
+    an input dying at it (plan-memory computes them in place), so its layer holds one of the
+    two (`shared`). With `in_place`, the input and output of
     every depthwise Conv that can run in place (`leads`) count the rows it is stored down."""
 
     def __init__(self, graph: Graph, in_place: bool = False):
@@ -242,30 +253,30 @@ class _Liveness:
         halos = conv_halos(graph, blocked_only=True)
         leads = {i: in_place_lead(graph, node, readers, i, halos) for i, node in enumerate(graph.nodes)}
         self.leads = {i: lead for i, lead in leads.items() if lead}  # depthwise Convs that can run in place
-        self.size = {value: math.prod(graph.shape(value)) for node in graph.nodes for value in node.outputs}
+        self.size = {value: _tensor_bytes(graph, value) for node in graph.nodes for value in node.outputs}
         for i, lead in self.leads.items() if in_place else ():  # stored down `lead` rows, written over
             node = graph.nodes[i]
             for value in (node.inputs[0], node.outputs[0]):
-                self.size[value] += lead * row_floats(graph, value)
-        self.tensors = [  # (name, producer, last reader, floats)
+                self.size[value] += lead * row_bytes(graph, value)
+        self.tensors = [  # (name, producer, last reader, bytes)
             (value, i, max(i, readers.get(value, i)), self.size[value])
             for i, node in enumerate(graph.nodes)
             for value in node.outputs
             if value not in outputs
         ]
         self.shared = {
-            i: math.prod(graph.shape(node.outputs[0]))
+            i: _tensor_bytes(graph, node.outputs[0])
             for i, node in enumerate(graph.nodes)
-            if _writes_over_residual(graph, node, i, readers, producers, halos)
+            if _writes_over_residual(graph, node, i, readers, producers, halos) or _over_input(graph, node, i, readers)
         }
 
-    def floats(self, start: int, stop: int, inside: tuple[str, ...]) -> int:
+    def bytes(self, start: int, stop: int, inside: tuple[str, ...]) -> int:
         live = (size for name, made, last, size in self.tensors if made < stop and last >= start and name not in inside)
         return sum(live)
 
     def whole(self, i: int) -> int:
-        """The floats live while node i runs whole."""
-        return self.floats(i, i + 1, ()) - self.shared.get(i, 0)
+        """The bytes live while node i runs whole."""
+        return self.bytes(i, i + 1, ()) - self.shared.get(i, 0)
 
 
 def _writes_over_residual(graph: Graph, node: Node, i: int, readers, producers, halos) -> bool:
@@ -276,7 +287,7 @@ def _writes_over_residual(graph: Graph, node: Node, i: int, readers, producers, 
     residual, out = conv_extras(node)[1], node.outputs[0]
     source = producers.get(residual)
     planar = getattr(source.attrs, "vector_axis", None) == VectorAxis.PIXELS if source else True
-    channels_last = source is not None and source.op in STREAMABLE and not planar
+    channels_last = source is not None and source.op in WINDOWED and not planar
     return (
         channels_last
         and readers.get(residual) == i
@@ -289,11 +300,27 @@ def _writes_over_residual(graph: Graph, node: Node, i: int, readers, producers, 
     )
 
 
+def _over_input(graph: Graph, node: Node, i: int, readers: dict[str, int]) -> bool:
+    """Whether plan-memory will compute the elementwise op in place: an input of its output's size
+    and type, inside the arena, dies here."""
+    if node.op not in ELEMENTWISE or graph.is_graph_output(node.outputs[0]):
+        return False
+    out = node.outputs[0]
+    return any(
+        readers.get(v) == i
+        and graph.producer(v) is not None
+        and not graph.is_graph_output(v)
+        and graph.shape(v) == graph.shape(out)
+        and graph.dtype(v) == graph.dtype(out)
+        for v in node.inputs
+    )
+
+
 def _cheapest(count: int, steps: list[Step], limit: float) -> list[Step] | None:
-    """The plan of least cost whose steps each need at most `limit` floats, or None."""
+    """The plan of least cost whose steps each need at most `limit` bytes, or None."""
     by_start: dict[int, list[Step]] = {}
     for step in steps:
-        if step.floats <= limit:
+        if step.bytes <= limit:
             by_start.setdefault(step.start, []).append(step)
     best: dict[int, tuple[float, list[Step]]] = {count: (0.0, [])}
     for i in reversed(range(count)):
@@ -304,12 +331,16 @@ def _cheapest(count: int, steps: list[Step], limit: float) -> list[Step] | None:
     return best[0][1] if 0 in best else None
 
 
+def _tensor_bytes(graph: Graph, value: str) -> int:
+    return math.prod(graph.shape(value)) * graph.dtype(value).bytes
+
+
 def _cost(plan: list[Step]) -> float:
     return sum(s.cost for s in plan)
 
 
-def _floats(plan: list[Step]) -> int:
-    return max(s.floats for s in plan)
+def _bytes(plan: list[Step]) -> int:
+    return max(s.bytes for s in plan)
 
 
 def _in_place(plan: list[Step]) -> int:

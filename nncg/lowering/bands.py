@@ -1,15 +1,16 @@
 """Band geometry: a chain of layers run over bands of rows, so the tensors inside the chain are line
 buffers (the last few rows) instead of whole tensors.
 
-A group is a run of Conv and pooling layers, consecutive in graph order, whose tensors other than the
-last layer's output are read only inside the group. Each band, the last layer produces `rows` more
-output rows and every other layer the rows its readers need next: tensor t advances `step` rows per
-band (`rows` times the strides between it and the output) and is complete up to row
-step * band + ahead, `ahead` being what its readers' windows reach beyond their own rows. A line
-buffer keeps the `lines` newest rows: from the lowest row a reader's window starts at to the newest.
-The first bands (band < 0, before the output's first row) fill the line buffers; rows outside a
-tensor are skipped, so the same loop body serves every band, and each band computes only rows no
-earlier band computed.
+A group is a run of Conv and pooling layers, float or int8, and the int8 model's elementwise
+QuantizeLinear, table lookups and requantised adds (a window of one row), consecutive in graph
+order, whose tensors other than the last layer's output are read only inside the group. Each band,
+the last layer produces `rows` more output rows and every other layer the rows its readers need
+next: tensor t advances `step` rows per band (`rows` times the strides between it and the output)
+and is complete up to row step * band + ahead, `ahead` being what its readers' windows reach beyond
+their own rows. A line buffer keeps the `lines` newest rows: from the lowest row a reader's window
+starts at to the newest. The first bands (band < 0, before the output's first row) fill the line
+buffers; rows outside a tensor are skipped, so the same loop body serves every band, and each band
+computes only rows no earlier band computed.
 
 Layers before a stride advance faster: where the steps fall along the chain (4, 4, 2, 2, 1), the
 faster layers run in nested loops (level 1 twice per band, level 2 twice per level-1 run), each run
@@ -23,12 +24,14 @@ import math
 from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
-from ..ir.kinds import ConvAlgorithm
+from ..ir.kinds import ConvAlgorithm, VectorAxis
 from ..ir.loops import Affine
 from .conv import conv_extras
 from .winograd import TILE
 
-STREAMABLE = ("Conv", "MaxPool", "AveragePool")
+WINDOWED = ("Conv", "QLinearConv", "MaxPool", "AveragePool", "QLinearAveragePool")  # write channels last
+POINTWISE = ("QuantizeLinear", "QLinearLookup", "QLinearAdd")  # follow their first input's layout (elementwise.py)
+STREAMABLE = WINDOWED + POINTWISE
 
 
 @dataclass(frozen=True)
@@ -86,21 +89,31 @@ class Geometry:
 
 
 def streamable(graph: Graph, node: Node) -> bool:
-    """A 2-D Conv (constant weights) or pooling over a batch of one, at least two output rows."""
-    if node.op not in STREAMABLE or len(node.attrs.kernel) != 2 or len(node.outputs) != 1:
+    """A 2-D Conv (constant weights), pooling or elementwise int8 op over a batch of one, at least two
+    output rows; an elementwise op's tensors all of its output's shape."""
+    if node.op not in STREAMABLE or len(node.outputs) != 1:
         return False
     shape = graph.shape(node.outputs[0])
-    if shape[0] != 1 or shape[2] < 2:
+    if len(shape) != 4 or shape[0] != 1 or shape[2] < 2:
+        return False
+    if node.op in POINTWISE:
+        return all(graph.shape(v) == shape for v in node.inputs if not graph.is_constant(v))
+    if len(window_attrs(node).kernel) != 2:
         return False
     return node.op != "Conv" or all(graph.is_constant(v) for v in (node.inputs[1], conv_extras(node)[0]) if v)
 
 
+def window_attrs(node: Node):
+    """The kernel, strides, dilations and pads of a windowed layer."""
+    return node.attrs.pool if node.op == "QLinearAveragePool" else node.attrs
+
+
 def row_window(node: Node, index: int) -> tuple[int, int, int, int]:
     """(kernel, stride, dilation, padding before) along the rows, as `node` reads its input `index`;
-    a fused residual is read at the output's own rows."""
-    if index > 0:
+    a fused residual, and an elementwise op's every input, are read at the output's own rows."""
+    if index > 0 or node.op in POINTWISE:
         return 1, 1, 1, 0
-    attrs = node.attrs
+    attrs = window_attrs(node)
     return attrs.kernel[0], attrs.strides[0], attrs.dilations[0], attrs.pads_begin[0]
 
 
@@ -115,6 +128,8 @@ def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
     output = nodes[-1].outputs[0]
     internal = tuple(n.outputs[0] for n in nodes[:-1])
     if any(graph.is_graph_output(v) for v in internal) or not _kept_inside(graph, group, internal, output):
+        return None
+    if not all(_channels_last_inputs(graph, n, internal) for n in nodes if n.op in POINTWISE):
         return None
     tiled = {n.name for n in nodes if group.winograd and getattr(n.attrs, "algorithm", None) == ConvAlgorithm.WINOGRAD}
     flat = _rows(nodes, group.rows, {}, (1,), tiled)
@@ -133,6 +148,20 @@ def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
 def _whole_tiles(rows: Rows) -> bool:
     """Every run starts at an even row and computes an even number of rows: whole 2-row tiles."""
     return rows.step % TILE == 0 and rows.ahead % TILE == 0
+
+
+def _channels_last_inputs(graph: Graph, node: Node, internal: tuple[str, ...]) -> bool:
+    """An elementwise op in a group writes its output in its first input's layout, which must be
+    channels last (a line buffer's): its first input from inside the group, every other one from
+    inside or from a windowed layer, which writes channels last (unless it vectorises pixels). A
+    QuantizeLinear in a group writes channels last whatever it reads (stream.py)."""
+    if node.op == "QuantizeLinear":
+        return True
+    producers = {v: n for n in graph.nodes for v in n.outputs}
+    inputs = [v for v in node.inputs if not graph.is_constant(v)]
+    outside = [producers.get(v) for v in inputs[1:] if v not in internal]
+    planar = any(getattr(p.attrs, "vector_axis", None) == VectorAxis.PIXELS for p in outside if p)
+    return inputs[0] in internal and not planar and all(p is not None and p.op in WINDOWED for p in outside)
 
 
 def _kept_inside(graph: Graph, group: BandGroup, internal: tuple[str, ...], output: str) -> bool:
@@ -197,7 +226,7 @@ def _rows(
     return {v: r if v not in lowest else replace(r, lines=max(r.step, r.ahead - lowest[v])) for v, r in out.items()}
 
 
-def row_floats(graph: Graph, value: str) -> int:
-    """Floats in one row of a (1, C, H, W) tensor."""
+def row_bytes(graph: Graph, value: str) -> int:
+    """Bytes in one row of a (1, C, H, W) tensor."""
     shape = graph.shape(value)
-    return shape[1] * shape[3]
+    return shape[1] * shape[3] * graph.dtype(value).bytes

@@ -25,7 +25,7 @@ from ..ir.kinds import DType
 from ..ir.loops import Affine, Assign, Binary, Cast, Const, Expr, Let, Load, LocalRef, Loop, Requantize, Stmt, Store
 from .context import LoweringContext, TensorRef, channels_last, nest, row_major
 from .elementwise import elementwise
-from .pool import window_counts
+from .pool import lower_maxpool, window_counts
 from .requantize import Scales
 from .reshape import reshaped_view
 from .window import outside_window_nest, spatial_names, window_nest
@@ -207,9 +207,9 @@ def lower_qlinear_average_pool(ctx: LoweringContext, node: Node) -> None:
     ctx.emit(node.name, "QLinearAveragePool", nest(loops, body, parallel=True))
 
 
-def lower_quantize_linear(ctx: LoweringContext, node: Node) -> None:
+def lower_quantize_linear(ctx: LoweringContext, node: Node, order: tuple[int, ...] | None = None) -> None:
     """QuantizeLinear as onnxruntime computes it: x / scale, clamped, rounded half to even, plus the
-    zero point (MLAS's MlasQuantizeLinear)."""
+    zero point (MLAS's MlasQuantizeLinear); the output in `order` (None: the input's)."""
     attrs: QuantAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     low, high = attrs.dtype.range
@@ -218,7 +218,7 @@ def lower_quantize_linear(ctx: LoweringContext, node: Node) -> None:
         scaled = Binary("/", Load(x.buffer, x.at(idx)), Const.splat(attrs.scale))
         return Requantize(scaled, attrs.zero_point, low, high, attrs.dtype)
 
-    elementwise(ctx, node, x.order, value)
+    elementwise(ctx, node, x.order if order is None else order, value)
 
 
 def lower_dequantize_linear(ctx: LoweringContext, node: Node) -> None:
@@ -257,3 +257,11 @@ def lower_integer_maxpool(ctx: LoweringContext, node: Node) -> None:
 
     loops = [("n", out.shape[0]), *out_loops, ("c", out.shape[1])]
     ctx.emit(node.name, "MaxPool", nest(loops, body, parallel=True))
+
+
+def lower_any_maxpool(ctx: LoweringContext, node: Node) -> None:
+    """MaxPool of floats, or of the integers of an int8 model."""
+    if ctx.graph.dtype(node.inputs[0]).is_integer:
+        lower_integer_maxpool(ctx, node)
+    else:
+        lower_maxpool(ctx, node)

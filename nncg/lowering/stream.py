@@ -20,14 +20,27 @@ from ..ir.graph import ConvAttrs, Graph, Node
 from ..ir.kinds import ConvAlgorithm, VectorAxis
 from ..ir.loops import Affine, Bound, If, Load, Loop, Stmt, Store, map_body, map_stmt_exprs
 from ..ir.rename import substitute_body
-from .bands import BandGroup, Geometry, Rows, geometry
-from .context import LoweringContext
+from .bands import POINTWISE, BandGroup, Geometry, Rows, geometry
+from .context import LoweringContext, channels_last, dim_vars
 from .conv import lower_conv
-from .pool import lower_averagepool, lower_maxpool
+from .pool import lower_averagepool
+from .quantized import lower_any_maxpool, lower_qlinear_average_pool, lower_qlinear_conv, lower_quantize_linear
+from .quantized_add import lower_qlinear_add
+from .quantized_lookup import lower_qlinear_lookup
 from .winograd import TILE, lower_winograd_band
 
 BAND, SUB, ROW, SHIFT = "band", "sub", "row", "shift"
-STAGE_LOWERINGS = {"Conv": lower_conv, "MaxPool": lower_maxpool, "AveragePool": lower_averagepool}
+STAGE_LOWERINGS = {
+    "Conv": lower_conv,
+    "QLinearConv": lower_qlinear_conv,
+    "MaxPool": lower_any_maxpool,
+    "AveragePool": lower_averagepool,
+    "QLinearAveragePool": lower_qlinear_average_pool,
+    "QLinearLookup": lower_qlinear_lookup,
+    "QLinearAdd": lower_qlinear_add,
+    "QuantizeLinear": lambda ctx, node: lower_quantize_linear(ctx, node, channels_last(4)),  # a line buffer's layout
+}
+ELEMENTWISE_ROW = dim_vars(4)[2]  # an elementwise nest's row loop (elementwise.py), channels last
 
 
 def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
@@ -50,7 +63,9 @@ def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
         *helpers_now, stage = ctx.kernels[start:]
         del ctx.kernels[start:]
         helpers += helpers_now
-        body = stage.body if name in geo.winograd else _banded(stage.body, geo.rows[y], geo, ctx.graph.shape(y)[2])
+        row_var = ELEMENTWISE_ROW if node.op in POINTWISE else "oh"
+        height = ctx.graph.shape(y)[2]
+        body = stage.body if name in geo.winograd else _banded(stage.body, geo.rows[y], geo, height, row_var)
         stages.append((y, body))
     strides = _line_buffers(ctx, geo)
     levels = []
@@ -101,15 +116,15 @@ def _direct(node: Node) -> Node:
     return replace(node, attrs=replace(node.attrs, vector_axis=VectorAxis.CHANNELS, **direct))
 
 
-def _banded(stage: tuple[Stmt, ...], rows: Rows, geo: Geometry, height: int) -> tuple[Stmt, ...]:
-    """The layer's nest over one band: its output-row loop `oh` becomes the band's rows."""
-    if len(stage) != 1 or not isinstance(stage[0], Loop) or stage[0].var != "oh":
+def _banded(stage: tuple[Stmt, ...], rows: Rows, geo: Geometry, height: int, row_var: str) -> tuple[Stmt, ...]:
+    """The layer's nest over one band: its output-row loop `row_var` becomes the band's rows."""
+    if len(stage) != 1 or not isinstance(stage[0], Loop) or stage[0].var != row_var:
         raise NncgError("a banded layer's nest must start with its output-row loop")
     row = rows.first(_run(geo, rows.level)) + (Affine.of(ROW) if rows.step > 1 else 0)
     extents = {BAND: geo.bands, ROW: rows.step} | {f"{SUB}{i}": n for i, n in enumerate(geo.reps) if i}
     lo, hi = row.bounds(extents)
     bound = Bound(row, 0 if lo < 0 else None, height if hi >= height else None)
-    body = substitute_body(stage[0].body, {"oh": row})
+    body = substitute_body(stage[0].body, {row_var: row})
     if bound.lo is not None or bound.hi is not None:
         body = (If((bound,), body),)
     return (Loop(ROW, rows.step, body),) if rows.step > 1 else body

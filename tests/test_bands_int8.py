@@ -1,0 +1,150 @@
+"""int8 models in bands (issue 18): QuantizeLinear, QLinearConv (dense, depthwise, strided), int8
+MaxPool, QLinearAveragePool, table lookups and requantised adds streamed over bands of rows, the
+planner counting 1-byte activations; every plan bit-identical with onnxruntime running the same
+quantized model."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+from cross_helpers import TOOLCHAINS, missing_tools, runner
+from helpers import skip_unless_host_runs
+from int8_models import _model, _weights, compare, quantized, random_feeds, repository_model
+from onnx import helper
+from test_bands import band_kernels, lowered_graph
+from test_cross_targets import require
+
+import nncg
+from nncg import lowering
+from nncg.compiler import memory_figures
+from nncg.lowering.band_plan import plan_bands
+from nncg.lowering.bands import BandGroup, geometry
+
+MODELS = {  # the MLPerf-Tiny-shaped classifiers and robot, as tests/test_int8.py quantises them
+    "robot": "examples/robot.onnx",
+    "resnet8": "benchmarks/models/resnet8.onnx",
+    "mobilenet": "benchmarks/models/mobilenet_v1_025.onnx",
+    "dscnn": "benchmarks/models/dscnn.onnx",
+    "autoencoder": "benchmarks/models/autoencoder.onnx",
+}
+HIGH_RESOLUTION = ("robot", "resnet8", "mobilenet")  # a large first stage: balanced halves the arena
+FRAGMENTED = ("mobilenet",)  # plan-memory's greedy placement leaves a gap above the layer bound at speed
+
+
+def check(model: onnx.ModelProto, compiled: nncg.CompiledModel, feeds: int = 2, **run) -> None:
+    result = compare(model, compiled, random_feeds(model, feeds, 7), **run)
+    assert result.max_steps == 0 and result.identical == 1.0, result
+
+
+def chain_model(seed: int = 11) -> onnx.ModelProto:
+    """Conv 3x3 -> LeakyRelu (a table) -> depthwise 3x3 stride 2 with Relu -> MaxPool 3 stride 2
+    padded -> Conv 3x3 plus the pool's output (a requantised Add) -> AveragePool 3 padded -> Conv 1x1:
+    one chain of every int8 kind the bands take."""
+    rng = np.random.default_rng(seed)
+    init = {
+        "w1": _weights(rng, 8, 3, 3, 3),
+        "b1": rng.standard_normal(8) * 0.2,
+        "w2": _weights(rng, 8, 1, 3, 3),
+        "w3": _weights(rng, 8, 8, 3, 3),
+        "b3": rng.standard_normal(8) * 0.2,
+        "w4": _weights(rng, 6, 8, 1, 1),
+    }
+    nodes = [
+        helper.make_node("Conv", ["x", "w1", "b1"], ["a"], pads=[1, 1, 1, 1]),
+        helper.make_node("LeakyRelu", ["a"], ["a_r"], alpha=0.1),
+        helper.make_node("Conv", ["a_r", "w2"], ["b"], group=8, strides=[2, 2], pads=[1, 1, 1, 1]),
+        helper.make_node("Relu", ["b"], ["b_r"]),
+        helper.make_node("MaxPool", ["b_r"], ["c"], kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1]),
+        helper.make_node("Conv", ["c", "w3", "b3"], ["d"], pads=[1, 1, 1, 1]),
+        helper.make_node("Add", ["d", "c"], ["e"]),
+        helper.make_node("AveragePool", ["e"], ["f"], kernel_shape=[3, 3], pads=[1, 1, 1, 1]),
+        helper.make_node("Conv", ["f", "w4"], ["y"]),
+    ]
+    return _model(nodes, [1, 3, 37, 21], init)
+
+
+@pytest.fixture(scope="module")
+def chain() -> onnx.ModelProto:
+    return quantized(chain_model())
+
+
+def whole_chain(graph, rows: int) -> BandGroup:
+    """Every layer but the final DequantizeLinear, in one group."""
+    return BandGroup(tuple(n.name for n in graph.nodes[:-1]), rows)
+
+
+def test_every_int8_kind_streams_in_one_group(chain):
+    graph = lowered_graph(chain, "ansi-c")
+    kinds = {"QuantizeLinear", "QLinearConv", "QLinearLookup", "MaxPool", "QLinearAdd", "QLinearAveragePool"}
+    assert {n.op for n in graph.nodes} >= kinds
+    assert geometry(graph, whole_chain(graph, 1)) is not None
+    assert plan_bands(graph, "min")  # the plan takes the head, where the image is largest
+
+
+@pytest.mark.parametrize("rows", [1, 2, 3, 8])
+def test_every_band_height_is_bit_identical(chain, rows, monkeypatch):
+    """The whole chain in one group at each height (the plan would stop at the pool, where the
+    tensors become small)."""
+    monkeypatch.setattr(lowering, "plan_bands", lambda graph, *_: (whole_chain(graph, rows),))
+    compiled = nncg.compile(chain, target="ansi-c", memory="min", verify_ir=True)
+    assert band_kernels(compiled) == 1
+    check(chain, compiled, sanitize=rows == 3)
+
+
+@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512vnni"])
+def test_chain_on_the_x86_targets(chain, target):
+    skip_unless_host_runs(target)
+    compiled = nncg.compile(chain, target=target, memory="min", verify_ir=True)
+    assert band_kernels(compiled) >= 1
+    check(chain, compiled)
+
+
+@pytest.mark.parametrize("toolchain", ["aarch64-neon-dotprod", "aarch64-neon", "armhf-neon"])
+def test_chain_on_neon(chain, toolchain):
+    tc = TOOLCHAINS[toolchain]
+    require(missing_tools(tc))
+    compiled = nncg.compile(chain, target=tc.target, memory="min", verify_ir=True)
+    assert band_kernels(compiled) >= 1
+    check(chain, compiled, cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
+
+
+@pytest.fixture(scope="module", params=sorted(MODELS))
+def model(request) -> tuple[str, onnx.ModelProto]:
+    return request.param, quantized(repository_model(MODELS[request.param]))
+
+
+def test_models_at_each_setting(model):
+    """Speed's arena is the layer bound the planner counts (1 byte an activation); min takes at most a
+    third of it where there are bands to run, balanced at least halves speed's arena on the models
+    with a high-resolution first stage; all bit-identical."""
+    name, qdq = model
+    arenas = {}
+    for memory in ("speed", "balanced", "min"):
+        compiled = nncg.compile(qdq, target="ansi-c", memory=memory)
+        figures = memory_figures(compiled)
+        arenas[memory] = compiled.arena_bytes
+        if memory == "speed" and name not in FRAGMENTED:
+            assert compiled.arena_bytes == figures.layer_bound_bytes
+        check(qdq, compiled, feeds=1, sanitize=memory == "min" and name == "resnet8")
+    bound = figures.layer_bound_bytes
+    assert arenas["min"] <= arenas["balanced"] <= arenas["speed"]
+    if name in HIGH_RESOLUTION:
+        assert arenas["min"] <= bound / 2.5
+        assert arenas["balanced"] <= arenas["speed"] / 2
+
+
+def test_balanced_keeps_int8_convs_whole_where_they_run_in_vectors():
+    """In bands an int8 Conv is scalar: balanced bands them on ansi-c only (min on every target)."""
+    graph = lowered_graph(quantized(repository_model(MODELS["resnet8"])), "avx2")
+    assert plan_bands(graph, "balanced", target="ansi-c")
+    assert plan_bands(graph, "balanced", target="avx2") == ()
+    assert plan_bands(graph, "min", target="avx2")
+
+
+def test_ram_budget_is_met_or_refused_with_the_int8_minimum():
+    qdq = quantized(repository_model(MODELS["resnet8"]))
+    smallest = nncg.compile(qdq, target="ansi-c", memory="min").arena_bytes
+    assert nncg.compile(qdq, target="ansi-c", ram_budget=smallest).arena_bytes <= smallest
+    with pytest.raises(nncg.NncgError, match=f"smallest activation arena is {smallest} bytes"):
+        nncg.compile(qdq, target="ansi-c", ram_budget=smallest - 1)
