@@ -28,6 +28,7 @@ class Ssse3(SimdPrinter):
         dot_uint8=2,
         dot_int8=2,
         dot_uint8_int16=4,
+        dot2_int16_weights=True,
     )
     widths = {4: replace(x86_width("_mm", "__m128", select="bitwise", fma=False), **sse2_integer())}
     cflags = ("-mssse3",)
