@@ -97,6 +97,11 @@ SSE2 = {
     # 2 adjacent 8-bit activations widened to int16 in every int32 lane (no pmovzxbw, no vpbroadcastd)
     "pair_uint8": f"_mm_shuffle_epi32(_mm_unpacklo_epi8({SSE2_PAIR}, {ZERO}), 0)",
     "pair_int8": f"_mm_shuffle_epi32(_mm_srai_epi16(_mm_unpacklo_epi8({SSE2_PAIR}, {SSE2_PAIR}), 8), 0)",
+    # a depthwise's two taps (4 channels each) interleaved into int16 pairs: tap a low, tap b high
+    "pair_lanes_uint8": f"_mm_unpacklo_epi8(_mm_unpacklo_epi8({SSE2_BYTES.format(address='{a}')}, "
+    f"{SSE2_BYTES.format(address='{b}')}), {ZERO})",
+    "pair_lanes_int8": f"_mm_srai_epi16(_mm_unpacklo_epi8({ZERO}, _mm_unpacklo_epi8({SSE2_BYTES.format(address='{a}')}, "
+    f"{SSE2_BYTES.format(address='{b}')})), 8)",
     # the weights packed as int16 pairs at generation time (Target.dot2_int16_weights): no pmovsxbw
     "dot2": "_mm_madd_epi16({xs}, _mm_loadu_si128((const __m128i *)({address})))",
 }
