@@ -90,6 +90,8 @@ def x86_integer(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool 
 ZERO = "_mm_setzero_si128()"
 SSE2_BYTES = "_mm_loadu_si32((const void *)({address}))"
 SSE2_PAIR = "_mm_loadu_si16((const void *)({address}))"
+# the bytes of 4 channels' taps a and b interleaved: a0 b0 a1 b1 ...
+SSE2_TAPS = f"_mm_unpacklo_epi8({SSE2_BYTES.format(address='{a}')}, {SSE2_BYTES.format(address='{b}')})"
 SSE2 = {
     "widen_uint8": f"_mm_unpacklo_epi16(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {ZERO})",
     "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
@@ -98,10 +100,8 @@ SSE2 = {
     "pair_uint8": f"_mm_shuffle_epi32(_mm_unpacklo_epi8({SSE2_PAIR}, {ZERO}), 0)",
     "pair_int8": f"_mm_shuffle_epi32(_mm_srai_epi16(_mm_unpacklo_epi8({SSE2_PAIR}, {SSE2_PAIR}), 8), 0)",
     # a depthwise's two taps (4 channels each) interleaved into int16 pairs: tap a low, tap b high
-    "pair_lanes_uint8": f"_mm_unpacklo_epi8(_mm_unpacklo_epi8({SSE2_BYTES.format(address='{a}')}, "
-    f"{SSE2_BYTES.format(address='{b}')}), {ZERO})",
-    "pair_lanes_int8": f"_mm_srai_epi16(_mm_unpacklo_epi8({ZERO}, _mm_unpacklo_epi8({SSE2_BYTES.format(address='{a}')}, "
-    f"{SSE2_BYTES.format(address='{b}')})), 8)",
+    "pair_lanes_uint8": f"_mm_unpacklo_epi8({SSE2_TAPS}, {ZERO})",
+    "pair_lanes_int8": f"_mm_srai_epi16(_mm_unpacklo_epi8({ZERO}, {SSE2_TAPS}), 8)",
     # the weights packed as int16 pairs at generation time (Target.dot2_int16_weights): no pmovsxbw
     "dot2": "_mm_madd_epi16({xs}, _mm_loadu_si128((const __m128i *)({address})))",
 }
