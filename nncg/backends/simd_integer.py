@@ -119,6 +119,10 @@ class IntegerVectors:
         [32 j / K, 32 (j + 1) / K): widened to int32, the lower ones masked to their field unless
         they are uint8 (a signed or zero-point-shifted value would spill its sign bits)."""
         k = len(e.x)
+        pair = _byte_pair(e, self.dtypes)
+        if pair is not None and f"pair_lanes_{pair[0]}" in ints:
+            dtype, a, b = pair
+            return ints[f"pair_lanes_{dtype}"].format(a=a, b=b)
         bits = 32 // k
         parts = []
         for j, x in enumerate(e.x):
@@ -143,6 +147,15 @@ class IntegerVectors:
             source = self.dtypes[e.value.buffer].value
             return width.ints[f"widen_{source}"].format(address=f"&{e.value.buffer}[{c_affine(e.value.index)}]")
         raise TypeError(f"cannot print {e!r} on vectors")
+
+
+def _byte_pair(e: Dot, dtypes: dict[str, DType]) -> tuple[str, str, str] | None:
+    """(dtype, address, address) of a dot of two taps that are plain 8-bit vector loads of one type."""
+    loads = [x.value for x in e.x if isinstance(x, Cast) and isinstance(x.value, Load)]
+    if len(e.x) != 2 or len(loads) != 2 or dtypes[loads[0].buffer] != dtypes[loads[1].buffer]:
+        return None
+    a, b = (f"&{load.buffer}[{c_affine(load.index)}]" for load in loads)
+    return dtypes[loads[0].buffer].value, a, b
 
 
 def _helper_keys(stmt: Stmt, buffer_dtypes: dict[str, DType]) -> Iterator[tuple[int, str]]:

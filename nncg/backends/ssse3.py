@@ -3,7 +3,8 @@ _mm_max_ps/_mm_min_ps instructions; SSE has no blend (a select is and/andnot/or 
 no fused multiply-add, and no exp, log or tanh (a vector call calls math.h once per lane). The int8
 convolutions and matrix products run on SSE2's int32 vectors: uint8 activations four input channels
 per pmaddubsw + pmaddwd where the layer's weights are proven never to saturate pmaddubsw's int16 pair
-sums (x86_quads.py), else two per pmaddwd on int16 pairs (x86_integer.py)."""
+sums (x86_quads.py), else two per pmaddwd on int16 pairs (x86_integer.py), the pair weights stored as
+int16; a depthwise's interior columns as pmaddwd of two taps (Target.tap_dots), their bytes interleaved."""
 
 from __future__ import annotations
 
@@ -28,6 +29,8 @@ class Ssse3(SimdPrinter):
         dot_uint8=2,
         dot_int8=2,
         dot_uint8_int16=4,
+        dot2_int16_weights=True,
+        tap_dots=True,
     )
     widths = {4: replace(x86_width("_mm", "__m128", select="bitwise", fma=False), **sse2_integer())}
     cflags = ("-mssse3",)

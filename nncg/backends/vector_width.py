@@ -62,7 +62,10 @@ INTEGER_DOTS = {
     "pair_uint8": ("address",),
     "pair_int8": ("address",),
     "quad_uint8": ("address",),
-    # a depthwise's per-lane taps packed into the lanes (simd_integer._lane_activations)
+    # a depthwise's per-lane taps packed into the lanes (simd_integer._lane_activations): two taps'
+    # 8-bit vectors at addresses a and b interleaved into int16 pairs, else widened, shifted and or-ed
+    "pair_lanes_uint8": ("a", "b"),
+    "pair_lanes_int8": ("a", "b"),
     "shift_left": ("a", "bits"),
     "or": ("a", "b"),
     "and": ("a", "b"),

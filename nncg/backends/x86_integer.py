@@ -89,22 +89,28 @@ def x86_integer(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool 
 # (x - x_zero_point) in [-255, 255] by a weight in [-128, 127], both int16 values.
 ZERO = "_mm_setzero_si128()"
 SSE2_BYTES = "_mm_loadu_si32((const void *)({address}))"
+SSE2_PAIR = "_mm_loadu_si16((const void *)({address}))"
+# the bytes of 4 channels' taps a and b interleaved: a0 b0 a1 b1 ...
+SSE2_TAPS = f"_mm_unpacklo_epi8({SSE2_BYTES.format(address='{a}')}, {SSE2_BYTES.format(address='{b}')})"
 SSE2 = {
     "widen_uint8": f"_mm_unpacklo_epi16(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {ZERO})",
     "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
     "*": "_mm_madd_epi16({a}, _mm_and_si128({b}, _mm_set1_epi32(0xFFFF)))",
-    # int8 -> int16 without pmovsxbw: each byte into the high half of its int16, shifted down arithmetically
-    "dot2": "_mm_madd_epi16({xs}, "
-    "_mm_srai_epi16(_mm_unpacklo_epi8(_mm_setzero_si128(), _mm_loadl_epi64((const __m128i *)({address}))), 8))",
+    # 2 adjacent 8-bit activations widened to int16 in every int32 lane (no pmovzxbw, no vpbroadcastd)
+    "pair_uint8": f"_mm_shuffle_epi32(_mm_unpacklo_epi8({SSE2_PAIR}, {ZERO}), 0)",
+    "pair_int8": f"_mm_shuffle_epi32(_mm_srai_epi16(_mm_unpacklo_epi8({SSE2_PAIR}, {SSE2_PAIR}), 8), 0)",
+    # a depthwise's two taps (4 channels each) interleaved into int16 pairs: tap a low, tap b high
+    "pair_lanes_uint8": f"_mm_unpacklo_epi8({SSE2_TAPS}, {ZERO})",
+    "pair_lanes_int8": f"_mm_srai_epi16(_mm_unpacklo_epi8({ZERO}, {SSE2_TAPS}), 8)",
+    # the weights packed as int16 pairs at generation time (Target.dot2_int16_weights): no pmovsxbw
+    "dot2": "_mm_madd_epi16({xs}, _mm_loadu_si128((const __m128i *)({address})))",
 }
 
 
 def sse2_integer() -> dict:
     """x86_integer(4) in SSE2 intrinsics and SSSE3's pmaddubsw, for the ssse3 target."""
     fields = x86_integer(4, maddubs=True)
-    sse41 = ("pair_uint8", "pair_int8", "quad_uint8")  # pmovzxbw and vpbroadcastd: packed in a scalar int instead
-    ints = {op: t for op, t in fields["ints"].items() if op not in sse41}
-    return {**fields, "ints": {**ints, **SSE2, "quad_uint8": SSE2_QUAD}}
+    return {**fields, "ints": {**fields["ints"], **SSE2, "quad_uint8": SSE2_QUAD}}
 
 
 def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:

@@ -28,6 +28,9 @@ class Target:
     dot_uint8 only for a layer whose weights it proves keep every pair sum within int16, 0: none.
     tap_dots: the dot products also take a depthwise convolution's taps, each lane its own channel's
     activations (loops.Dot with vector x; passes/dot_taps.py).
+    dot2_int16_weights: the K = 2 dot products read their weights as int16 pairs packed at generation
+    time (ssse3: without SSE4.1's pmovsxbw, widening int8 weights per use took three instructions
+    per pmaddwd; the weights take twice the bytes).
     dot_int8_activations: the K = 4 dot multiplies int8 activations (AArch64 sdot: s8 x s8 quads), so
     uint8 activations and zero points the lowering did not fold are offset into int8 and the constant
     difference is added back per output channel (passes/dot_product.py)."""
@@ -44,6 +47,7 @@ class Target:
     dot_int8: int = 0
     dot_uint8_int16: int = 0
     tap_dots: bool = False
+    dot2_int16_weights: bool = False
     dot_int8_activations: bool = False
 
     @property

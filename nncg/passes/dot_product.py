@@ -16,8 +16,9 @@ shared by all lanes) and a depthwise's (x depends on the channel too: the dots' 
 vectors, each lane its own channel's K taps). passes/dot_taps.py splits off the border columns first.
 
 The weights [lead..., C, Cs] are repacked at generation time as wK [lead..., C / K (rounded up), Cs, K]
-(the missing channels' weights 0): the K weights of one output channel side by side, the output
-channels one after another, exactly the order one vector instruction reads them. Exact: the products
+(the missing channels' weights 0; pairs as int16 where Target.dot2_int16_weights): the K weights of
+one output channel side by side, the output channels one after another, exactly the order one vector
+instruction reads them. Exact: the products
 and sums are those of the loop, in int32.
 
 Where the dot takes int8 activations only (Target.dot_int8_activations: AArch64 sdot), an activation
@@ -125,7 +126,7 @@ class _Packer:
         lead, co = split
         c, cs = array.shape[-2:]
         index = lead * (-(-c // k) * k * cs) + co * k + Affine.of(loop.var) * (k * cs)
-        packed = self.packed_buffer(w.buffer, array, k)
+        packed = self.packed_buffer(w.buffer, array, k, np.int16 if k == 2 and target.dot2_int16_weights else np.int8)
         channels, groups = loop.extent, loop.extent // k
         offset = 128 * (xbuf.dtype == DType.UINT8) if target.dot_int8_activations and k == 4 else zero_point
 
@@ -161,18 +162,21 @@ class _Packer:
         self.corrections[(name, difference)] = new
         return new
 
-    def packed_buffer(self, name: str, array: np.ndarray, k: int) -> str:
-        """The weights of `name` (`array`) as [lead..., C / K, Cs, K], once per (array, K)."""
+    def packed_buffer(self, name: str, array: np.ndarray, k: int, dtype: type[np.integer]) -> str:
+        """The weights of `name` (`array`) as [lead..., C / K, Cs, K] of `dtype` (int8, or int16 where
+        Target.dot2_int16_weights), once per (array, K)."""
         if (name, k) in self.packed:
             return self.packed[(name, k)]
         *lead, c, cs = array.shape
         groups = -(-c // k)
-        padded = np.zeros((*lead, groups * k, cs), np.int8)
+        padded = np.zeros((*lead, groups * k, cs), dtype)
         padded[..., :c, :] = array
         packed = np.ascontiguousarray(np.moveaxis(padded.reshape(*lead, groups, k, cs), -2, -1))
         new = _fresh(f"{name}_dot{k}", self.names)
         self.names.add(new)
-        self.added.append(replace(self.buffers[name], name=new, size=packed.size, shape=packed.shape, offset=None))
+        base = self.buffers[name]
+        wide = DType.INT16 if dtype == np.int16 else base.dtype
+        self.added.append(replace(base, name=new, size=packed.size, shape=packed.shape, offset=None, dtype=wide))
         self.arrays[new] = packed
         self.packed[(name, k)] = new
         self.replaced.add(name)
