@@ -60,9 +60,8 @@ def check(float_model, target: str, activations: str = "uint8", scale: float = 1
 def test_channel_tails_and_borders(c_in, target):
     compiled = check(padded_conv_model(c_in), target)
     conv = compiled.source.split("QLinearConv */")[1].split("/* ")[0]
-    # below 4 channels the input zero point is not folded: x - x_zero_point is signed, pmaddwd pairs
-    expected = "_mm512_madd_epi16(" if target == "avx512vnni" and c_in < 4 else DOT[target]
-    assert expected in conv
+    # the input zero point is folded for every channel count of a dense Conv: uint8 activations, vpdpbusd
+    assert DOT[target] in conv
 
 
 @pytest.mark.parametrize("target", TARGETS)
@@ -88,11 +87,11 @@ def test_residual_add_runs_on_vectors(activations, target):
 
 
 def test_zero_point_is_folded_into_the_bias():
-    """No per-tap subtraction of the input zero point (from 4 input channels on): the border taps add
-    back a constant instead. With fewer, the dot products take x - x_zero_point (test_channel_tails)."""
-    model = quantized(padded_conv_model(5))
-    source = nncg.compile(model, target="ansi-c").source
-    assert "zw_" in source and ") - " not in source.split("QLinearConv */")[1].split("/* ")[0]
+    """No per-tap subtraction of the input zero point (a dense Conv of 2 or more input channels): the
+    border taps add back a constant instead."""
+    for c_in in (2, 5):
+        source = nncg.compile(quantized(padded_conv_model(c_in)), target="ansi-c").source
+        assert "zw_" in source and ") - " not in source.split("QLinearConv */")[1].split("/* ")[0]
 
 
 def test_ansi_c_is_strict_c89_and_exact():

@@ -49,8 +49,8 @@ def conv_source(compiled: nncg.CompiledModel) -> str:
 @pytest.mark.parametrize("toolchain", TOOLCHAINS_BY_PATH)
 @pytest.mark.parametrize("c_in", [2, 3, 4, 5, 8, 11])
 def test_channel_tails_and_borders(c_in, toolchain):
-    """Below 4 channels the lowering leaves the input zero point unfolded: x - x_zero_point in the
-    pairs, and for sdot x read as int8 and the zero point added back with the offset correction."""
+    """The input zero point folded for every channel count (a dense Conv): uint8 x in the pairs, and
+    for sdot x read as int8 and the offset added back with the offset correction."""
     target = TOOLCHAINS[toolchain].target
     conv = conv_source(check(toolchain, padded_conv_model(c_in)))
     assert DOT[target] in conv
