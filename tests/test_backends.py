@@ -267,7 +267,7 @@ def test_neon_preamble_definitions_then_table_then_math_functions():
         "/* acc + a * b: fused (one rounding) where the ISA has it; ARMv7 NEON without VFPv4 has only vmlaq_f32,",
         "/* constant vectors that are not splats, loaded with vld1q_f32 */",
         "static const float nncg_vectors[2][4] = {",
-        "/* exp of each lane: x = n ln2 + r, exp(r) by a degree-7 polynomial, times 2^n; max error 1.5 ULP "
+        "/* exp of each lane: x = n ln2 + r, exp(r) by a degree-6 polynomial, times 2^n; max error 1.5 ULP "
         "(nncg/backends/vector_math.py) */",
         "/* log of each lane: x = m 2^e, log(m) by a degree-11 polynomial in m - 1, plus e ln2; max error 1 ULP "
         "(nncg/backends/vector_math.py) */",

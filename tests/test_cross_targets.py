@@ -147,7 +147,7 @@ NEON_PRINTS = {
     "fma_and_tail": ["nncg_vfmaq_f32("],
     "select": ["vbslq_f32(vcgtq_f32("],
     "max": ["vmaxq_f32("],
-    "lane_wise_call": ["nncg_vexpq_f32(", "nncg_vdivq_f32("],
+    "lane_wise_call": ["nncg_vsigmoidq_f32(", "nncg_vdivq_f32("],
     "vectors_and_tail": ["nncg_vfmaq_f32(", "float acc"],
     "overlapped_tail": ["nncg_vfmaq_f32("],
     "div": ["nncg_vdivq_f32(vld1q_f32("],

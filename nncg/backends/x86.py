@@ -46,7 +46,7 @@ def x86_width(prefix: str, vector_type: str, select: str, fma: bool) -> VectorWi
         "<<": f"{p}_slli_epi32({{a}}, {{n}})",
         ">>": f"{p}_srai_epi32({{a}}, {{n}})",
     }
-    return VectorWidth(vector_type, ops, bits=bits)
+    return VectorWidth(vector_type, ops, bits=bits, blends=select != "bitwise")
 
 
 def _select(p: str, style: str, cmp: str) -> str:
