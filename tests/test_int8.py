@@ -219,17 +219,21 @@ def test_leftover_quantize_and_dequantize_are_explicit_layers():
         np.testing.assert_array_equal(ours, onnxruntime_outputs(model, feed)[0].reshape(ours.shape))
 
 
-def test_integer_ops_writing_int32_tensors_are_refused_by_name():
-    """A ConvInteger whose int32 result a Cast reads, but no Mul by a scale: an int32 tensor."""
+def test_integer_ops_writing_int32_tensors_are_refused_by_name(tmp_path):
+    """A ConvInteger whose int32 result an integer Add reads (not a Cast or the graph's output): an
+    int32 tensor between two layers, which the arena cannot hold."""
     nodes = [
         helper.make_node("QuantizeLinear", ["x", "s", "z"], ["q"]),
         helper.make_node("ConvInteger", ["q", "w"], ["i"]),
-        helper.make_node("Cast", ["i"], ["y"], to=TensorProto.FLOAT),
+        helper.make_node("Add", ["i", "i"], ["j"]),
+        helper.make_node("Cast", ["j"], ["y"], to=TensorProto.FLOAT),
     ]
     init = {"s": np.float32(0.1), "z": np.uint8(0), "w": np.ones((1, 1, 1, 1), np.uint8)}
-    result = nncg_onnx(_saved(onnx_model(nodes, inputs={"x": (1, 1, 3, 3)}, initializers=init)), "-o", "/tmp")
+    out = tmp_path / "out"
+    result = nncg_onnx(_saved(onnx_model(nodes, inputs={"x": (1, 1, 3, 3)}, initializers=init)), "-o", str(out))
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert "ConvInteger" in result.stderr and "int32 tensor" in result.stderr
+    assert not out.exists()
 
 
 def test_transpose_moves_integers():
