@@ -486,6 +486,20 @@ class Node:
     outputs: tuple[str, ...]
     attrs: AttrRecord | None = None  # the record nncg.ir.ops.IR_OPS names for `op` (the verifier checks)
 
+    # The graph passes' choices for a float Conv (ConvAttrs), read by planners that see every op.
+    @property
+    def runs_winograd(self) -> bool:
+        return isinstance(self.attrs, ConvAttrs) and self.attrs.algorithm == ConvAlgorithm.WINOGRAD
+
+    @property
+    def vectorises_pixels(self) -> bool:
+        """Written planar (channels first), not channels last: the vectorize-pixels pass's choice."""
+        return isinstance(self.attrs, ConvAttrs) and self.attrs.vector_axis == VectorAxis.PIXELS
+
+    @property
+    def cache_blocked(self) -> bool:
+        return isinstance(self.attrs, ConvAttrs) and self.attrs.panel > 0
+
 
 @dataclass(frozen=True)
 class Graph:

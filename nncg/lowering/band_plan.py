@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
 from ..ir.kinds import ConvAlgorithm, DType, VectorAxis
+from ..ir.ops import IR_OPS
 from ..safe_text import shown
 from .band_costs import BandCosts, band_costs
 from .bands import POINTWISE, WINDOWED, BandGroup, geometry, row_bytes, streamable, window_attrs
@@ -36,8 +37,6 @@ MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
 BALANCED_LATENCY = 1.3  # issue 18: balanced at most 1.3x speed's latency ...
 BALANCED_CUT = 2  # ... with at least 2x less arena
-# ops whose kernels plan-memory may compute in place (elementwise.py, quantized*.py)
-ELEMENTWISE = (*POINTWISE, "QLinearMul", "ScaleShift", "Relu", "Clip", "LeakyRelu", "Add", "Sub", "Mul", "Div")
 CONVS = ("Conv", "QLinearConv")  # priced by their MACs (an int8 one as a float one)
 FLOAT_BYTES = DType.FLOAT32.bytes  # a Winograd scratch element; shifts are priced per 4 bytes moved
 
@@ -121,6 +120,12 @@ def layer_bound_bytes(graph: Graph) -> int:
     input and output, and tensors passing over it), scratch buffers left out."""
     live = _Liveness(graph)
     return max((live.whole(i) for i in range(len(graph.nodes))), default=0)
+
+
+def overwriting_layers(graph: Graph) -> set[int]:
+    """The layers counted as writing their output over an input that dies there (plan-memory's in
+    place: elementwise ops, Convs over their fused residual), by index."""
+    return set(_Liveness(graph).shared)
 
 
 def whole_activation_bytes(graph: Graph) -> int:
@@ -214,10 +219,9 @@ def _output_copy(graph: Graph, node: Node) -> int:
 def _whole_time(graph: Graph, node: Node, costs: BandCosts) -> float:
     """A layer run whole: a Conv at the speed of what the graph passes chose for it."""
     macs = _conv_macs(graph, node)
-    attrs = node.attrs
-    if macs and getattr(attrs, "algorithm", None) == ConvAlgorithm.WINOGRAD:
+    if macs and node.runs_winograd:
         macs *= costs.winograd
-    elif macs and (getattr(attrs, "panel", 0) or getattr(attrs, "vector_axis", None) == VectorAxis.PIXELS):
+    elif macs and (node.cache_blocked or node.vectorises_pixels):
         macs *= costs.blocked
     return macs + _window_work(graph, node)
 
@@ -286,7 +290,7 @@ def _writes_over_residual(graph: Graph, node: Node, i: int, readers, producers, 
         return False
     residual, out = conv_extras(node)[1], node.outputs[0]
     source = producers.get(residual)
-    planar = getattr(source.attrs, "vector_axis", None) == VectorAxis.PIXELS if source else True
+    planar = source.vectorises_pixels if source else True
     channels_last = source is not None and source.op in WINDOWED and not planar
     return (
         channels_last
@@ -303,7 +307,7 @@ def _writes_over_residual(graph: Graph, node: Node, i: int, readers, producers, 
 def _over_input(graph: Graph, node: Node, i: int, readers: dict[str, int]) -> bool:
     """Whether plan-memory will compute the elementwise op in place: an input of its output's size
     and type, inside the arena, dies here."""
-    if node.op not in ELEMENTWISE or graph.is_graph_output(node.outputs[0]):
+    if not IR_OPS[node.op].elementwise or graph.is_graph_output(node.outputs[0]):
         return False
     out = node.outputs[0]
     return any(

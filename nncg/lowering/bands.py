@@ -24,7 +24,6 @@ import math
 from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
-from ..ir.kinds import ConvAlgorithm, VectorAxis
 from ..ir.loops import Affine
 from .conv import conv_extras
 from .winograd import TILE
@@ -131,7 +130,7 @@ def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
         return None
     if not all(_channels_last_inputs(graph, n, internal) for n in nodes if n.op in POINTWISE):
         return None
-    tiled = {n.name for n in nodes if group.winograd and getattr(n.attrs, "algorithm", None) == ConvAlgorithm.WINOGRAD}
+    tiled = {n.name for n in nodes if group.winograd and n.runs_winograd}
     flat = _rows(nodes, group.rows, {}, (1,), tiled)
     if flat is None:
         return None
@@ -157,10 +156,9 @@ def _channels_last_inputs(graph: Graph, node: Node, internal: tuple[str, ...]) -
     QuantizeLinear in a group writes channels last whatever it reads (stream.py)."""
     if node.op == "QuantizeLinear":
         return True
-    producers = {v: n for n in graph.nodes for v in n.outputs}
     inputs = [v for v in node.inputs if not graph.is_constant(v)]
-    outside = [producers.get(v) for v in inputs[1:] if v not in internal]
-    planar = any(getattr(p.attrs, "vector_axis", None) == VectorAxis.PIXELS for p in outside if p)
+    outside = [graph.producer(v) for v in inputs[1:] if v not in internal]
+    planar = any(p.vectorises_pixels for p in outside if p)
     return inputs[0] in internal and not planar and all(p is not None and p.op in WINDOWED for p in outside)
 
 

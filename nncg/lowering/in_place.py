@@ -34,9 +34,9 @@ def in_place_lead(graph: Graph, node: Node, readers: dict[str, int], index: int,
     shape = graph.shape(x)
     depthwise = attrs.group == shape[1] == graph.shape(node.inputs[1])[0] and graph.shape(node.inputs[1])[1] == 1
     plain = attrs.strides == (1, 1) and attrs.dilations == (1, 1) and attrs.vector_axis != VectorAxis.PIXELS
-    producer = next((n for n in graph.nodes if x in n.outputs), None)
+    producer = graph.producer(x)
     written = producer is not None and producer.op in ("Conv", "MaxPool", "AveragePool")
-    written = written and getattr(producer.attrs, "vector_axis", None) != VectorAxis.PIXELS
+    written = written and not producer.vectorises_pixels
     if not (depthwise and plain and written and shape[0] == 1 and graph.shape(y) == shape):
         return 0
     if readers.get(x) != index or any(graph.is_graph_output(v) for v in (x, y)) or x in halos or y in halos:
