@@ -7,9 +7,9 @@ scalar direct convolution and exits 1 on any difference, which stops this script
 
     python3 -m benchmarks.int8_winograd [--models resnet8 ...] [--targets ssse3 avx2]
 
-Instruction counts do not depend on the machine's load; both sides are built by the same compiler
-with -O2 and the target's flags (NNCG's C with -fno-inline-functions-called-once, so each layer stays its
-own function)."""
+ssse3 and avx2 only: valgrind does not run AVX-512. Instruction counts do not depend on the machine's
+load; both sides are built by the same compiler with -O2 and the target's flags (NNCG's C with
+-fno-inline-functions-called-once, so each layer stays its own function)."""
 
 from __future__ import annotations
 
@@ -96,7 +96,7 @@ def measure(name: str, target: str, cc: str, workdir: Path) -> list[tuple[str, d
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=["resnet8"])
-    parser.add_argument("--targets", nargs="+", default=["ssse3", "avx2"])
+    parser.add_argument("--targets", nargs="+", default=["ssse3", "avx2"], choices=["ssse3", "avx2"])
     args = parser.parse_args(argv)
     cc = find_c_compiler(None)
     print("| model | target | layer | out side x C_in -> C_out | direct Ir | Winograd Ir | Winograd / direct |")
