@@ -14,14 +14,10 @@ import onnx
 from onnx import numpy_helper
 
 from .errors import NncgError
+from .frontend.io_quantization import MOVING_OPS
 
 # ops whose first output is quantised integers (onnxruntime's contrib QLinear* included)
 _QUANTIZING = ("QuantizeLinear", "QLinear")
-QUANTIZED_OPS = frozenset(
-    {"QuantizeLinear", "DequantizeLinear", "ConvInteger", "MatMulInteger", "DynamicQuantizeLinear"}
-)
-# ops that move values without changing them: their output has their input's (per-tensor) step
-_MOVING_OPS = frozenset({"Reshape", "Flatten", "Transpose", "Squeeze", "Unsqueeze", "Identity"})
 ALLOWED_STEPS = 1
 # A one-step difference of two dequantised float32 values reads 1 up to the rounding of the products
 # (q - zero_point) * scale: the pass rule counts steps to this many decimals.
@@ -60,11 +56,6 @@ class Comparison:
         return f"max {self.max_steps:g} steps, {100 * self.identical:.2f} % of {self.elements} identical"
 
 
-def is_quantized(model: onnx.ModelProto) -> bool:
-    """A model with QDQ pairs or QOperator nodes: judged in quantisation steps."""
-    return any(n.op_type in QUANTIZED_OPS or n.op_type.startswith("QLinear") for n in model.graph.node)
-
-
 def tensor_steps(model: onnx.ModelProto) -> dict[str, Step]:
     """The quantisation step of every tensor that has one (see the module's docstring)."""
     consts = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
@@ -86,7 +77,7 @@ def _step_of(node: onnx.NodeProto, consts: dict[str, np.ndarray], steps: dict[st
         scale = consts[node.input[1]]
         axis = next((a.i for a in node.attribute if a.name == "axis"), 1)
         return Step(scale, axis) if scale.ndim <= 1 else None  # blocked scales (opset 21) are not per channel
-    if node.op_type in _MOVING_OPS and node.input and node.input[0] in steps:
+    if node.op_type in MOVING_OPS and node.input and node.input[0] in steps:  # the input's per-tensor step
         step = steps[node.input[0]]
         return step if step.scale.ndim == 0 else None  # a per-channel axis may move
     return None
