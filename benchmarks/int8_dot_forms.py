@@ -24,7 +24,7 @@ from nncg.backends import BACKENDS
 from nncg.bench.benchmark import interleaved_medians, pinned
 from nncg.bench.harness import CompiledHarness
 from nncg.bench.onnxruntime_timer import OnnxruntimeTimer
-from nncg.bench.steps import compare_steps
+from nncg.quant_steps import compare_steps
 from nncg.verify import find_c_compiler, random_inputs
 
 from .int8_suite import quantized_model

@@ -33,9 +33,9 @@ from nncg.bench.benchmark import interleaved_medians, pinned
 from nncg.bench.harness import CompiledHarness
 from nncg.bench.onnxruntime_timer import OnnxruntimeTimer
 from nncg.bench.peak import TARGET_ISA, host_targets, measure_peaks
-from nncg.bench.steps import Comparison, compare_steps
 from nncg.compiler import CompiledModel
 from nncg.ir.kinds import BufferRole
+from nncg.quant_steps import Comparison, compare_steps
 from nncg.verify import build_model, find_c_compiler, random_inputs
 
 from .suite import (

@@ -157,7 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--verify",
         action="store_true",
         help="compile the C with the host compiler, run it and onnxruntime on the same random "
-        "inputs, print the errors; exit 1 above tolerance",
+        "inputs, print the errors; exit 1 above tolerance. A quantised output (a DequantizeLinear's or "
+        "QuantizeLinear's) is judged in quantisation steps: max steps and share identical, pass within one step",
     )
     p.add_argument(
         "--per-layer",
@@ -165,7 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --verify: also build a debug build that writes every layer's output, compare each with "
         "onnxruntime's and name the first layer above tolerance",
     )
-    p.add_argument("--tolerance", type=float, default=1e-4, help="max relative error for --verify (default 1e-4)")
+    p.add_argument(
+        "--tolerance", type=float, default=1e-4, help="max relative error for --verify of a float output (default 1e-4)"
+    )
     p.add_argument(
         "--benchmark",
         action="store_true",

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import os
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
@@ -22,7 +23,8 @@ from .backends.weights import external_weights, weights_blob
 from .bench.macs import macs_by_layer
 from .cmake import CMAKE_LISTS, cmake_file
 from .errors import NncgError
-from .frontend import import_onnx
+from .frontend import import_onnx, load_model
+from .frontend.io_quantization import io_quantization
 from .frontend.keras_export import is_keras_model, is_keras_path, keras_layout, keras_to_onnx
 from .frontend.layout import graph_layout, model_layout, with_input_layout
 from .frontend.load import read_model
@@ -155,6 +157,8 @@ def compile(
     from_torch = is_torch_module(model)
     model, header_layout = onnx_model(model, input_layout, example_inputs, exporter)
     graph = import_onnx(model, input_shapes)
+    integer_io = any(v.name in graph.dtypes for v in (*graph.inputs, *graph.outputs))
+    io_quant = io_quantization(load_model(model, input_shapes)) if integer_io else {}
 
     def build(options: CompileOptions) -> CompiledModel:
         manager = PassManager(
@@ -172,7 +176,10 @@ def compile(
         if input_shapes:
             shapes = ",".join(f"{capped(k)}={'x'.join(map(str, v))}" for k, v in input_shapes.items())
             described += " input-shape=" + shapes
-        compiled = emit(program, target, described, _sha256(model), manager.pipeline, profile, header_layout)
+        compiled = emit(
+            program, target, described, _sha256(model), manager.pipeline, profile, header_layout,
+            io_quantization=io_quant,
+        )  # fmt: skip
         record = CompileRecord(
             program,
             manager.inputs.get("lower"),
@@ -250,10 +257,12 @@ def emit(
     profile: bool = False,
     input_layout: str | None = None,
     requantize: str = "float",
+    io_quantization: Mapping[str, tuple[float, int]] | None = None,
 ) -> CompiledModel:
     """Prints a lowered program (run through a PassManager, which ends it with plan-memory) with the
     backend of `target`; `profile` adds per-layer timers; `input_layout` is what the header says of
-    the 4-D inputs' layout (None: as in ONNX)."""
+    the 4-D inputs' layout (None: as in ONNX); `io_quantization` (ONNX name -> scale, zero point) its
+    integer inputs' and outputs' NAME_X_SCALE and NAME_X_ZERO_POINT."""
     backend = get_backend(target)
     if program.arena is None:
         raise NncgError("the program has no memory plan: run its pipeline through a PassManager (ends in plan-memory)")
@@ -270,7 +279,7 @@ def emit(
         name=program.name,
         target=target,
         source=backend.source(program, first_line, header_name, profile),
-        header=backend.header(program, first_line, input_layout),
+        header=backend.header(program, first_line, input_layout, io_quantization),
         inputs=param("input"),
         outputs=param("output"),
         cflags=backend.cflags,

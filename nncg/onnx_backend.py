@@ -5,20 +5,23 @@
 
 `prepare` compiles the model to C and builds it once, with the test harness of nncg.verify, into a
 program in a private temporary directory; every `run` feeds the inputs through files and reads the
-outputs back, shaped as the ONNX outputs. NNCG compiles float32 models with static shapes only:
-anything else is refused with an NncgError (a BackendError for what is wrong with the inputs).
+outputs back, shaped as the ONNX outputs. NNCG compiles models with static shapes whose inputs and
+outputs are float32, or int8/uint8 quantised values (int32 sums of ConvInteger and MatMulInteger,
+ArgMax's indices as int64 out): anything else is refused with an NncgError (a BackendError for what
+is wrong with the inputs).
 
 Parameter inputs. NNCG needs operator parameters (Reshape's shape, Slice's starts/ends/axes/steps,
 Pad's pads, Resize's scales, ...) as compile-time constants, while onnx's test cases
 often feed them as graph inputs. As an ahead-of-time backend would, this adapter specialises on
 them: a graph input is a parameter input when every node reading it reads it in a slot listed in
 PARAMETER_INPUTS (made from the op records in nncg/frontend/ops.py) and the graph does not return
-it, or when it is not float32. For a model with parameter inputs, `prepare` only checks the model
-and the first `run` binds the values given for those inputs as initializers (they are no longer
-graph inputs), compiles and builds; the build is cached by the bound values, so a later run with
-the same values reuses it and one with other values compiles again. The other (data) inputs are
-passed to the C program as usual. This is the adapter's behaviour only: nncg.compile and
-`nncg-onnx` still refuse parameters that are not constants.
+it (the weights of the integer kernels in CONSTANT_WEIGHTS count as parameters here), or when it
+is neither float32 nor int8/uint8 read as data. For a model with parameter inputs,
+`prepare` only checks the model and the first `run` binds the values given for those inputs as
+initializers (they are no longer graph inputs), compiles and builds; the build is cached by the
+bound values, so a later run with the same values reuses it and one with other values compiles
+again. The other (data) inputs are passed to the C program as usual. This is the adapter's behaviour
+only: nncg.compile and `nncg-onnx` still refuse parameters that are not constants.
 """
 
 from __future__ import annotations
@@ -42,6 +45,17 @@ from nncg.frontend.ops import PARAMETER_INPUTS
 from nncg.frontend.shapes import dtype_name
 from nncg.verify import BuiltModel, build_model
 
+# Element types of the data inputs and outputs the C function takes and writes (int32: ConvInteger's sums)
+DATA_INPUT_TYPES = frozenset({onnx.TensorProto.FLOAT, onnx.TensorProto.INT8, onnx.TensorProto.UINT8})
+DATA_OUTPUT_TYPES = DATA_INPUT_TYPES | {onnx.TensorProto.INT32}
+# Weights that NNCG's integer kernels take as constants, not operator parameters for nncg.compile: onnx's
+# node tests feed them as graph inputs, so the adapter binds them as it binds parameters.
+CONSTANT_WEIGHTS: dict[str, tuple[int, ...]] = {
+    "QLinearConv": (3, 8), "QLinearMatMul": (3,), "ConvInteger": (1,), "MatMulInteger": (1,),
+}  # fmt: skip
+BOUND_INPUTS = {
+    op: (*PARAMETER_INPUTS.get(op, ()), *CONSTANT_WEIGHTS.get(op, ())) for op in {*PARAMETER_INPUTS, *CONSTANT_WEIGHTS}
+}
 # Keyword arguments of prepare; onnx's test runner also passes its comparison tolerances through.
 _COMPILE_KWARGS = ("target", "unroll", "input_shapes", "pipeline", "weights", "code_budget")
 _BUILD_KWARGS = ("cc", "opt", "extra_cflags")
@@ -113,8 +127,8 @@ class NncgBackendRep(BackendRep):
 
     def run(self, inputs: Any, **kwargs: Any) -> tuple[np.ndarray, ...]:
         """Inputs as a list in graph order, a dict by name, or one array for a one-input model;
-        returns the outputs as float32 arrays (ArgMax/ArgMin's as int64) with the ONNX output shapes,
-        in graph order."""
+        returns the outputs as arrays of their ONNX types (float32, int8, uint8, int32; ArgMax/ArgMin's
+        as int64) with the ONNX output shapes, in graph order."""
         if kwargs:
             raise TypeError(f"NncgBackendRep.run() got unexpected keyword arguments {sorted(kwargs)}")
         given = dict(zip(self._input_names, self._ordered(inputs)))
@@ -155,10 +169,8 @@ class NncgBackendRep(BackendRep):
     @staticmethod
     def _checked(spec: Any, value: Any) -> np.ndarray:
         array = np.asarray(value)
-        if array.dtype != np.float32:
-            raise BackendError(
-                f"input {spec.name!r} is {array.dtype}; NNCG compiles float32 models and takes float32 inputs only"
-            )
+        if array.dtype != np.dtype(spec.dtype):
+            raise BackendError(f"input {spec.name!r} is {array.dtype}; the model takes {spec.dtype}")
         if tuple(array.shape) != tuple(spec.shape):
             raise BackendError(
                 f"input {spec.name!r} has shape {tuple(array.shape)}; the model was compiled for {tuple(spec.shape)}"
@@ -222,9 +234,11 @@ class NncgBackend(Backend):
         indices = index_outputs(proto.graph)
         for value in proto.graph.output:  # refused now rather than at the first run
             elem = value.type.tensor_type.elem_type if value.type.HasField("tensor_type") else None
-            if elem != onnx.TensorProto.FLOAT and value.name not in indices:
+            if elem not in DATA_OUTPUT_TYPES and value.name not in indices:
                 what = dtype_name(elem) if elem is not None else "not a tensor"
-                raise BackendError(f"NNCG compiles float32 models; output {value.name!r} is {what}")
+                raise BackendError(
+                    f"NNCG writes float32, int8, uint8 or int32 outputs; output {value.name!r} is {what}"
+                )
         if isinstance(source, onnx.ModelProto):  # a snapshot: the caller may change theirs
             proto = onnx.ModelProto()
             proto.CopyFrom(source)
@@ -253,12 +267,14 @@ class NncgBackend(Backend):
         outputs_info: Sequence[tuple[np.dtype, tuple[int, ...]]] | None = None,
         **kwargs: Any,
     ) -> tuple[np.ndarray, ...]:
-        """Runs one node: wraps it in a float32 model with the inputs' shapes (outputs inferred)."""
+        """Runs one node: wraps it in a model with the inputs' types and shapes; the outputs are of the
+        types in `outputs_info` (default float32), their shapes inferred."""
         arrays = list(inputs.values()) if isinstance(inputs, Mapping) else list(inputs)
         names = [n for n in node.input if n]
         if len(names) != len(arrays):
             raise BackendError(f"node {node.op_type} has {len(names)} inputs, got {len(arrays)} arrays")
         opset = kwargs.pop("opset_version", onnx.defs.onnx_opset_version())
+        outputs = [n for n in node.output if n]
         graph = helper.make_graph(
             [node],
             node.name or node.op_type.lower(),
@@ -266,7 +282,10 @@ class NncgBackend(Backend):
                 helper.make_tensor_value_info(n, helper.np_dtype_to_tensor_dtype(np.asarray(a).dtype), np.shape(a))
                 for n, a in zip(names, arrays)
             ],
-            [helper.make_tensor_value_info(n, onnx.TensorProto.FLOAT, None) for n in node.output if n],
+            [
+                helper.make_tensor_value_info(n, elem, None)
+                for n, elem in zip(outputs, _output_types(outputs, outputs_info))
+            ],
         )
         model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
         return cls.prepare(model, device, **kwargs).run(arrays)
@@ -279,12 +298,19 @@ class NncgBackend(Backend):
             return False
 
 
+def _output_types(outputs: Sequence[str], outputs_info: Sequence[tuple[np.dtype, Any]] | None) -> list[int]:
+    if outputs_info is None:
+        return [onnx.TensorProto.FLOAT] * len(outputs)
+    return [helper.np_dtype_to_tensor_dtype(np.dtype(dtype)) for dtype, _ in outputs_info]
+
+
 def parameter_inputs(graph: onnx.GraphProto) -> list[onnx.ValueInfoProto]:
-    """The graph inputs (without an initializer) the adapter binds at the first run: those not
-    float32 and those read only in PARAMETER_INPUTS slots of the graph's nodes (not returned)."""
+    """The graph inputs (without an initializer) the adapter binds at the first run: those read only in
+    PARAMETER_INPUTS slots of the graph's nodes (not returned), and those of another type than the C
+    function takes (float32, and int8/uint8 quantised values read as data)."""
     slots: dict[str, set[bool]] = {}  # input name -> {read as a parameter?} over its readers
     for node in graph.node:
-        params = PARAMETER_INPUTS.get(node.op_type, ()) if node.domain in ("", "ai.onnx") else ()
+        params = BOUND_INPUTS.get(node.op_type, ()) if node.domain in ("", "ai.onnx") else ()
         for index, name in enumerate(node.input):
             if name:
                 slots.setdefault(name, set()).add(index in params)
@@ -292,8 +318,12 @@ def parameter_inputs(graph: onnx.GraphProto) -> list[onnx.ValueInfoProto]:
     found = []
     for value in _real_inputs(graph):
         tensor = value.type.tensor_type if value.type.HasField("tensor_type") else None
-        if tensor is not None and tensor.elem_type != onnx.TensorProto.FLOAT:
+        if tensor is not None and tensor.elem_type not in DATA_INPUT_TYPES:
             found.append(value)
+        elif (
+            tensor is not None and tensor.elem_type != onnx.TensorProto.FLOAT and False not in slots.get(value.name, ())
+        ):
+            found.append(value)  # an integer read only as a parameter (a zero point)
         elif tensor is not None and slots.get(value.name) == {True} and value.name not in returned:
             found.append(value)
     return found

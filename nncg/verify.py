@@ -8,8 +8,8 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +18,7 @@ import onnx
 
 from nncg.c_harness import harness_source
 from nncg.errors import NncgError
+from nncg.quant_steps import ALLOWED_STEPS, Step, steps_apart, tensor_steps, within_allowed_steps
 from nncg.safe_text import capped, escaped, terminal_line
 from nncg.tools import output_head, run_tool
 
@@ -47,6 +48,10 @@ class ErrorStat:
     max_rel is max|out - ref| / max(max|ref|, 1e-12): the error relative to the output's scale.
     Element-wise relative error is meaningless where the reference crosses zero (any rounding
     difference next to a zero is an "infinite" relative error), so one scale per output is used.
+
+    A quantised output (nncg.quant_steps: a DequantizeLinear's or a QuantizeLinear's) also has
+    max_steps, its largest difference in quantisation steps, and the share of identical elements;
+    it is judged by those, not by max_rel.
     """
 
     name: str
@@ -56,6 +61,36 @@ class ErrorStat:
     problem: str | None = None
     # an integer output (ArgMax's indices, quantized values, int32 sums), compared exactly: any difference fails
     indices: bool = False
+    max_steps: float | None = None
+    identical: float | None = None  # 0 to 1, with max_steps
+
+    @property
+    def quantized(self) -> bool:
+        return self.max_steps is not None
+
+    def passes(self, tolerance: float) -> bool:
+        """Comparable, and within one quantisation step (a quantised output) or `tolerance` (max_rel)."""
+        if self.problem is not None:
+            return False
+        if self.max_steps is not None:
+            return within_allowed_steps(self.max_steps)
+        return self.max_rel <= tolerance
+
+    def step_cells(self) -> tuple[str, str]:
+        """max steps and identical, as the report tables print them ("-" for a float output)."""
+        if self.max_steps is None or self.identical is None:
+            return "-", "-"
+        return f"{self.max_steps:.3g}", f"{100 * self.identical:.2f} %"
+
+
+def requirement(stats: Sequence[ErrorStat], tolerance: float) -> str:
+    """The pass rule the outputs in `stats` are judged by, for the verdict line."""
+    steps = f"quantised outputs within {ALLOWED_STEPS} quantisation step of onnxruntime's"
+    if all(s.quantized for s in stats):
+        return steps
+    if any(s.quantized for s in stats):
+        return f"{steps}, others max rel err <= {tolerance:g}"
+    return f"max rel err <= {tolerance:g}"
 
 
 @dataclass(frozen=True)
@@ -70,19 +105,28 @@ class VerifyReport:
 
     @property
     def ok(self) -> bool:
-        """True when every output is comparable and its max_rel is within the tolerance."""
-        return all(s.problem is None and s.max_rel <= self.tolerance for s in self.stats)
+        """True when every output passes (ErrorStat.passes)."""
+        return all(s.passes(self.tolerance) for s in self.stats)
+
+    @property
+    def requirement(self) -> str:
+        return requirement(self.stats, self.tolerance)
 
     def format(self) -> str:
-        """A small aligned table (output, shape, max abs err, max rel err) and a PASS/FAIL line."""
-        rows = [("output", "shape", "max abs err", "max rel err")]
-        rows += [(_shown(s.name), str(s.shape), f"{s.max_abs:.3g}", f"{s.max_rel:.3g}") for s in self.stats]
-        widths = [max(len(row[i]) for row in rows) for i in range(4)]
+        """A small aligned table (output, shape, max abs err, max rel err; max steps and identical for a
+        quantised model) and a PASS/FAIL line."""
+        steps = any(s.quantized for s in self.stats)
+        rows = [("output", "shape", "max abs err", "max rel err") + (("max steps", "identical") if steps else ())]
+        rows += [
+            (_shown(s.name), str(s.shape), f"{s.max_abs:.3g}", f"{s.max_rel:.3g}") + (s.step_cells() if steps else ())
+            for s in self.stats
+        ]
+        widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
         lines = [f"verify {self.name} (target {self.target}, seed {self.seed})"]
         lines += ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
         lines += [f"{_shown(s.name)}: {terminal_line(s.problem)}" for s in self.stats if s.problem is not None]
         verdict = "PASS" if self.ok else "FAIL"
-        lines.append(f"{verdict}: max rel err <= {self.tolerance:g} required")
+        lines.append(f"{verdict}: {self.requirement} required")
         return "\n".join(lines)
 
 
@@ -339,13 +383,21 @@ def reference_outputs(
         raise VerificationError(f"onnxruntime cannot run this model for comparison: {first}") from None
 
 
-def _error_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
-    """Errors of one output; elements where the reference is NaN are not compared."""
+def _error_stat(name: str, out: np.ndarray, ref: np.ndarray, step: Step | None = None) -> ErrorStat:
+    """Errors of one output (in quantisation steps too when it has a `step`); elements where the
+    reference is NaN are not compared."""
     shape = tuple(out.shape)
     if out.shape != ref.shape:
         return ErrorStat(name, shape, math.inf, math.inf, f"shape {shape} != reference shape {tuple(ref.shape)}")
+    if step is not None:
+        return _quantized_stat(name, out, ref, step)
     if out.dtype.kind in "iu" or ref.dtype.kind in "iu":
         return _integer_stat(name, out, ref)
+    return _float_stat(name, out, ref)
+
+
+def _float_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
+    shape = tuple(out.shape)
     out64, ref64 = out.astype(np.float64), ref.astype(np.float64)
     ref_nan = np.isnan(ref64)
     bad_nan = int(np.count_nonzero(np.isnan(out64) & ~ref_nan))
@@ -358,6 +410,20 @@ def _error_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
     max_abs = float(diff.max()) if diff.size else 0.0
     scale = max(float(finite_ref.max()) if finite_ref.size else 0.0, 1e-12)
     return ErrorStat(name, shape, max_abs, max_abs / scale)
+
+
+def _quantized_stat(name: str, out: np.ndarray, ref: np.ndarray, step: Step) -> ErrorStat:
+    """A quantised output: float (dequantised) against float, integers against integers."""
+    if (out.dtype.kind in "iu") != (ref.dtype.kind in "iu"):
+        problem = f"{out.dtype} output where the reference is {ref.dtype}"
+        return ErrorStat(name, tuple(out.shape), math.inf, math.inf, problem)
+    stat = _float_stat(name, out, ref)
+    if stat.problem is not None:
+        return stat
+    apart = steps_apart(step, out, ref)
+    max_steps = float(apart.max()) if apart.size else 0.0
+    identical = float(np.mean(out == ref)) if out.size else 1.0
+    return replace(stat, max_steps=max_steps, identical=identical)
 
 
 def _integer_stat(name: str, out: np.ndarray, ref: np.ndarray) -> ErrorStat:
@@ -378,12 +444,15 @@ def compare(
     outputs: Sequence[np.ndarray],
     references: Sequence[np.ndarray],
     names: Sequence[str] | None = None,
+    steps: Mapping[str, Step] | None = None,
 ) -> list[ErrorStat]:
-    """Per-output max abs and max rel error (see ErrorStat), shape and NaN checks."""
+    """Per-output max abs and max rel error (see ErrorStat), shape and NaN checks; for the outputs
+    named in `steps` (nncg.quant_steps.tensor_steps), the error in quantisation steps too."""
     if len(outputs) != len(references):
         raise VerificationError(f"{len(outputs)} outputs but {len(references)} reference outputs")
     names = list(names) if names is not None else [f"output{i}" for i in range(len(outputs))]
-    return [_error_stat(n, np.asarray(o), np.asarray(r)) for n, o, r in zip(names, outputs, references)]
+    steps = steps or {}
+    return [_error_stat(n, np.asarray(o), np.asarray(r), steps.get(n)) for n, o, r in zip(names, outputs, references)]
 
 
 def _check_interface(model: onnx.ModelProto, compiled: Any) -> None:
@@ -412,7 +481,8 @@ def verify(
     extra_cflags: Sequence[str] = (),
     runner: Sequence[str] = (),
 ) -> VerifyReport:
-    """Run the compiled C and onnxruntime on the same fixed-seed inputs and compare every output.
+    """Run the compiled C and onnxruntime on the same fixed-seed inputs and compare every output:
+    a quantised one in quantisation steps (within one passes), any other by max_rel <= `tolerance`.
 
     `cc`, `extra_cflags` and `runner` build and run it elsewhere, e.g. a cross compiler under qemu."""
     _check_interface(model, compiled)
@@ -421,5 +491,5 @@ def verify(
         compiled, inputs, cc=cc, sanitize=sanitize, opt=opt, extra_cflags=extra_cflags, runner=runner
     )
     references = reference_outputs(model, compiled.inputs, inputs)
-    stats = compare(outputs, references, [spec.name for spec in compiled.outputs])
+    stats = compare(outputs, references, [spec.name for spec in compiled.outputs], tensor_steps(model))
     return VerifyReport(compiled.name, compiled.target, tuple(stats), tolerance, seed)

@@ -23,8 +23,9 @@ from .errors import NncgError
 from .frontend import load_model
 from .frontend.names import node_names
 from .frontend.shapes import infer
+from .quant_steps import tensor_steps
 from .safe_text import capped, escaped, terminal_line
-from .verify import ErrorStat, compare, random_inputs, reference_outputs, run_compiled
+from .verify import ErrorStat, compare, random_inputs, reference_outputs, requirement, run_compiled
 
 
 @dataclass(frozen=True)
@@ -40,13 +41,22 @@ class LayerStat:
         return len(self.nodes) > 1
 
     def exceeds(self, tolerance: float) -> bool:
-        return self.stat.problem is not None or self.stat.max_rel > tolerance
+        return not self.stat.passes(tolerance)
 
-    def cells(self) -> tuple[str, ...]:
+    def cells(self, steps: bool = False) -> tuple[str, ...]:
+        """The row's cells; `steps` adds max steps and identical (a quantised model's table)."""
         layer = capped(escaped("+".join(name for name, _ in self.nodes)))
         op = capped(escaped("+".join(op for _, op in self.nodes))) + (" (fused)" if self.fused else "")
         s = self.stat
-        return layer, op, capped(escaped(s.name)), str(s.shape), f"{s.max_abs:.3g}", f"{s.max_rel:.3g}"
+        cells = (layer, op, capped(escaped(s.name)), str(s.shape), f"{s.max_abs:.3g}", f"{s.max_rel:.3g}")
+        return cells + (s.step_cells() if steps else ())
+
+    def excess(self, tolerance: float) -> str:
+        """How this layer's error breaks its rule, for the FAIL line."""
+        s = self.stat
+        if s.max_steps is not None:
+            return f"max steps {s.max_steps:.3g} > 1"
+        return f"max rel err {s.max_rel:.3g} > {tolerance:g}"
 
 
 @dataclass(frozen=True)
@@ -69,20 +79,24 @@ class LayerReport:
         return self.first_failure is None
 
     def format(self) -> str:
-        rows = [("layer", "op", "tensor", "shape", "max abs err", "max rel err")]
-        rows += [layer.cells() for layer in self.layers]
+        steps = any(layer.stat.quantized for layer in self.layers)
+        rows = [
+            ("layer", "op", "tensor", "shape", "max abs err", "max rel err")
+            + (("max steps", "identical") if steps else ())
+        ]
+        rows += [layer.cells(steps) for layer in self.layers]
         widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
         lines = [f"verify per layer {self.name} (target {self.target}, seed {self.seed})"]
         lines += ["  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip() for row in rows]
         lines += [f"{row.cells()[2]}: {terminal_line(row.stat.problem)}" for row in self.layers if row.stat.problem]
         failure = self.first_failure
         if failure is None:
-            lines.append(f"PASS: every layer's max rel err <= {self.tolerance:g}")
+            rule = requirement([layer.stat for layer in self.layers], self.tolerance)
+            lines.append(f"PASS: every layer's {rule}")
         else:
             layer, op, tensor = failure.cells()[:3]
             lines.append(
-                f"FAIL: first layer above tolerance: {layer} ({op}), tensor {tensor}: "
-                f"max rel err {failure.stat.max_rel:.3g} > {self.tolerance:g}"
+                f"FAIL: first layer above tolerance: {layer} ({op}), tensor {tensor}: {failure.excess(self.tolerance)}"
             )
         return "\n".join(lines)
 
@@ -133,7 +147,7 @@ def verify_layers(
         compiled, inputs, cc=cc, sanitize=sanitize, opt=opt, extra_cflags=extra_cflags, runner=runner
     )
     references = reference_outputs(with_outputs(model, names), compiled.inputs, inputs, names)
-    stats = compare([outputs[i] for i in exposed], references, names)
+    stats = compare([outputs[i] for i in exposed], references, names, tensor_steps(model))
     covered = covered_nodes(model.graph, names)
     layers = tuple(LayerStat(covered[stat.name], stat) for stat in stats)
     return LayerReport(compiled.name, compiled.target, layers, tolerance, seed)

@@ -19,9 +19,9 @@ import numpy as np
 import onnx
 
 import nncg
-from nncg.bench.steps import Comparison, compare_steps
 from nncg.c_harness import PrintedOutputs, harness_source
 from nncg.compiler import CompiledModel
+from nncg.quant_steps import Comparison, compare_steps
 from nncg.tools import run_tool
 from nncg.verify import VerificationError, VerifyReport, compare, random_inputs, reference_outputs, verify
 

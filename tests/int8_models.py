@@ -15,7 +15,7 @@ from helpers import onnx_model
 from onnx import TensorProto, helper, numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
-from nncg.bench.steps import Comparison, compare_steps, output_scales  # noqa: F401 - output_scales for the tests
+from nncg.quant_steps import Comparison, compare_steps, tensor_steps  # noqa: F401 - tensor_steps for the tests
 from nncg.verify import run_compiled
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -317,3 +317,51 @@ def test_exclusions_leave_over_95_percent_of_the_float32_cases_running() -> None
     float32 = [case.name for case in NODE_CASES if conformance.is_float32_case(case.name)]
     running = [name for name in float32 if conformance.exclusion_reason(name) is None]
     assert len(running) / len(float32) > 0.95, f"{len(running)} of {len(float32)}"
+
+
+# --- quantised data: int8/uint8 inputs and outputs, integer kernels' weights bound -------------------
+
+
+def _qlinear_conv_fed_weights() -> onnx.ModelProto:
+    """x (uint8 data) -> QLinearConv -> y (uint8), its weights w (int8) and zero points graph inputs, as
+    onnx's node tests feed them."""
+    inputs = ["x", "xs", "xz", "w", "ws", "wz", "ys", "yz"]
+    types = {"x": TensorProto.UINT8, "xz": TensorProto.UINT8, "w": TensorProto.INT8, "wz": TensorProto.INT8}
+    types["yz"] = TensorProto.UINT8
+    shapes = {"x": [1, 2, 4, 4], "w": [3, 2, 3, 3]}  # the others are scalars
+    graph = helper.make_graph(
+        [helper.make_node("QLinearConv", inputs, ["y"], pads=[1, 1, 1, 1])],
+        "qconv",
+        [helper.make_tensor_value_info(n, types.get(n, TensorProto.FLOAT), shapes.get(n, [])) for n in inputs],
+        [helper.make_tensor_value_info("y", TensorProto.UINT8, None)],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+
+def test_integer_data_inputs_are_data_and_integer_weights_are_bound() -> None:
+    """x is read as data: the C function takes it; its zero points and scales (parameter slots) and the
+    int8 weights NNCG's kernels take as constants (CONSTANT_WEIGHTS) are bound."""
+    bound = [v.name for v in parameter_inputs(_qlinear_conv_fed_weights().graph)]
+    assert bound == ["xs", "xz", "w", "ws", "wz", "ys", "yz"]
+
+
+@needs_cc
+def test_backend_runs_uint8_in_and_out_like_onnxruntime(compiles: list) -> None:
+    import onnxruntime as ort
+
+    model = _qlinear_conv_fed_weights()
+    rng = np.random.default_rng(0)
+    feeds = {
+        "x": rng.integers(0, 256, (1, 2, 4, 4), dtype=np.uint8), "xs": np.float32(0.03), "xz": np.uint8(120),
+        "w": rng.integers(-127, 128, (3, 2, 3, 3), dtype=np.int8), "ws": np.float32(0.01), "wz": np.int8(0),
+        "ys": np.float32(0.05), "yz": np.uint8(100),
+    }  # fmt: skip
+    feeds = {n: np.asarray(a) for n, a in feeds.items()}
+    rep = NncgBackend.prepare(model)
+    (ours,) = rep.run(feeds)
+    (expected,) = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, feeds)
+    assert ours.dtype == np.uint8 and rep.compiled.inputs[0].dtype == "uint8"
+    np.testing.assert_array_equal(ours, expected)
+    with pytest.raises(BackendError, match="input 'x' is int8; the model takes uint8"):
+        rep.run({**feeds, "x": feeds["x"].astype(np.int8)})
+    assert len(compiles) == 1  # the bound values did not change

@@ -3,6 +3,7 @@ the .c and .h it prints for a program, legalised for the target first."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from ..ir.loops import Program
@@ -52,6 +53,13 @@ class Backend:
         program = fuse_multiply_add(program, self.target)
         return c_file.source(self.printer, program, first_line, header_name, profile)
 
-    def header(self, program: Program, first_line: str, input_layout: str | None = None) -> str:
-        """The .h file; `input_layout` (nchw, nhwc) is what its comments say of the 4-D inputs."""
-        return c_header.header(program, first_line, input_layout)
+    def header(
+        self,
+        program: Program,
+        first_line: str,
+        input_layout: str | None = None,
+        io_quantization: Mapping[str, tuple[float, int]] | None = None,
+    ) -> str:
+        """The .h file; `input_layout` (nchw, nhwc) is what its comments say of the 4-D inputs;
+        `io_quantization` the scale and zero point of integer inputs and outputs (by ONNX name)."""
+        return c_header.header(program, first_line, input_layout, io_quantization)

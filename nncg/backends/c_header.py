@@ -3,10 +3,13 @@ points' signatures (which the .c repeats)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 from ..ir.kinds import BufferRole, DType
 from ..ir.loops import Buffer, Program, Store, walk_stmts
 from ..safe_text import comment_name
 from .c_integer import SMALL_C_TYPES, c_type, header_typedefs
+from .c_text import c_float, c_int
 from .weights import external_weights, weights_header
 
 LAYOUT_NOTES = {
@@ -15,8 +18,14 @@ LAYOUT_NOTES = {
 }
 
 
-def header(program: Program, first_line: str, input_layout: str | None = None) -> str:
-    """NAME.h; `input_layout` (nchw, nhwc) names the layout of the 4-D inputs (default: as in ONNX)."""
+def header(
+    program: Program,
+    first_line: str,
+    input_layout: str | None = None,
+    io_quantization: Mapping[str, tuple[float, int]] | None = None,
+) -> str:
+    """NAME.h; `input_layout` (nchw, nhwc) names the layout of the 4-D inputs (default: as in ONNX);
+    `io_quantization` (ONNX name -> scale, zero point) gives the integer inputs' and outputs' macros."""
     guard = f"{program.name.upper()}_H"
     macro = program.name.upper()
     arena = program.arena
@@ -40,6 +49,8 @@ def header(program: Program, first_line: str, input_layout: str | None = None) -
             f"/* {buf.role} {comment_name(buf.onnx_name)}: {buf.dtype}[{shape}], {layout}{_dtype_note(program, buf)} */"
         )
         lines.append(f"#define {macro}_{buf.name.upper()}_SIZE {buf.size}")
+        if buf.dtype.is_integer and buf.onnx_name in (io_quantization or {}):
+            lines += _quantization_macros(f"{macro}_{buf.name.upper()}", *io_quantization[buf.onnx_name])
     lines += [
         "",
         f"/* Activation memory: one arena of {macro}_ARENA_BYTES (the memory plan reuses space: without",
@@ -84,6 +95,17 @@ def _dtype_note(program: Program, buf: Buffer) -> str:
     if _writer(program, buf) in ("ArgMax", "ArgMin"):
         return "; indices (ArgMax/ArgMin), int32 where ONNX says int64: C89 has no guaranteed 64-bit type"
     return "; int32 sums (ConvInteger/MatMulInteger), in nncg_int32 (int, or long where int is narrower)"
+
+
+def _quantization_macros(prefix: str, scale: float, zero_point: int) -> list[str]:
+    """An integer input's or output's scale and zero point. The suffixes _SIZE, _SCALE and _ZERO_POINT
+    do not end one another, and buffer names differ ignoring case: no two macros coincide."""
+    return [
+        f"/* real = (q - {prefix}_ZERO_POINT) * {prefix}_SCALE; q = real / {prefix}_SCALE",
+        f"   rounded half to even, plus {prefix}_ZERO_POINT, saturated to the type's range */",
+        f"#define {prefix}_SCALE {c_float(scale)}",
+        f"#define {prefix}_ZERO_POINT {c_int(zero_point)}",
+    ]
 
 
 def _writer(program: Program, buf: Buffer) -> str:
