@@ -94,6 +94,7 @@ CLANG_NEON_FLAGS = {
 }
 CORTEX_M4_MODELS = ("ball", "pedestrian", "robot")
 CORTEX_M4_INT8_MODELS = tuple(MLPERF_TINY)  # quantised as tests/test_int8.py quantises the repository's models
+CORTEX_M4_MIN_INT8_MODELS = ("ball", "pedestrian", "robot", "resnet8", "mobilenet_v1_025", "dscnn")
 
 
 @functools.cache
@@ -301,17 +302,24 @@ def verify_on_cortex_m4(
     return VerifyReport(compiled.name, "cortex-m4", tuple(stats), TOLERANCE, SEED), result
 
 
-def verify_int8_on_cortex_m4(model: str, workdir: Path) -> tuple[Comparison, CortexM4Result, CompiledModel]:
-    """MLPERF_TINY[model] quantised (tests/int8_models.py), its ansi-c int8 C run on the Cortex-M4, the
-    outputs against onnxruntime on the same QDQ model in quantisation steps."""
-    from int8_models import onnxruntime_outputs, quantized, repository_model
+def quantized_model(model: str) -> onnx.ModelProto:
+    """MODELS[model] quantised as tests/test_int8.py quantises the repository's models (tests/int8_models.py)."""
+    from int8_models import quantized, repository_model
 
-    qdq = quantized(repository_model(MLPERF_TINY[model].relative_to(ROOT)))
-    compiled = nncg.compile(qdq, target="ansi-c", verify_ir=True)
+    return quantized(repository_model(MODELS[model].relative_to(ROOT)))
+
+
+def verify_int8_on_cortex_m4(
+    qdq: onnx.ModelProto, compiled: CompiledModel, workdir: Path, **memory
+) -> tuple[Comparison, CortexM4Result]:
+    """`compiled` (the ansi-c int8 C of the QDQ model `qdq`) run on the Cortex-M4 (`memory`:
+    build_cortex_m4's ram and stack), the outputs against onnxruntime on `qdq` in quantisation steps."""
+    from int8_models import onnxruntime_outputs
+
     inputs = random_inputs(compiled.inputs, SEED)
-    result = run_cortex_m4(compiled, inputs, workdir)
+    result = run_cortex_m4(compiled, inputs, workdir, **memory)
     reference = onnxruntime_outputs(qdq, {spec.name: x for spec, x in zip(compiled.inputs, inputs)})
-    return compare_steps(qdq, [(result.outputs, reference)]), result, compiled
+    return compare_steps(qdq, [(result.outputs, reference)]), result
 
 
 def size_row(result: CortexM4Result, arena_bytes: int) -> dict[str, int]:

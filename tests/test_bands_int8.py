@@ -1,7 +1,7 @@
 """int8 models in bands (issue 18): QuantizeLinear, QLinearConv (dense, depthwise, strided), int8
 MaxPool, QLinearAveragePool, table lookups and requantised adds streamed over bands of rows, the
-planner counting 1-byte activations; every plan bit-identical with onnxruntime running the same
-quantized model."""
+planner counting 1-byte activations, and a depthwise QLinearConv in place; every plan bit-identical
+with onnxruntime running the same quantized model."""
 
 from __future__ import annotations
 
@@ -12,13 +12,13 @@ from cross_helpers import TOOLCHAINS, missing_tools, runner
 from helpers import skip_unless_host_runs
 from int8_models import _model, _weights, compare, quantized, random_feeds, repository_model
 from onnx import helper
-from test_bands import band_kernels, lowered_graph
+from test_bands import band_kernels, depthwise_peak_model, lowered_graph
 from test_cross_targets import require
 
 import nncg
 from nncg import lowering
 from nncg.compiler import memory_figures
-from nncg.lowering.band_plan import plan_bands
+from nncg.lowering.band_plan import in_place_layers, plan_bands
 from nncg.lowering.bands import BandGroup, geometry
 
 MODELS = {  # the MLPerf-Tiny-shaped classifiers and robot, as tests/test_int8.py quantises them
@@ -148,3 +148,49 @@ def test_ram_budget_is_met_or_refused_with_the_int8_minimum():
     assert nncg.compile(qdq, target="ansi-c", ram_budget=smallest).arena_bytes <= smallest
     with pytest.raises(nncg.NncgError, match=f"smallest activation arena is {smallest} bytes"):
         nncg.compile(qdq, target="ansi-c", ram_budget=smallest - 1)
+
+
+# ---------------------------------------------------------------------------- in-place depthwise
+
+IN_PLACE_BUDGET = 40_000  # bytes: below speed's 65,536, above the in-place plans (38,912 B; 39,936 at 5x5)
+
+
+@pytest.fixture(scope="module", params=[(3, (1, 1, 1, 1)), (5, (2, 1, 2, 3))], ids=["3x3", "5x5-asymmetric"])
+def depthwise_peak(request) -> onnx.ModelProto:
+    """tests/test_bands.py's model whose depthwise layer is the largest, quantised (1x1 QLinearConv
+    8 -> 32 channels, the depthwise QLinearConv, 1x1 QLinearConv 32 -> 4)."""
+    kernel, pads = request.param
+    return quantized(depthwise_peak_model(kernel, list(pads)))
+
+
+def depthwise_layer(graph) -> str:
+    return next(n.name for n in graph.nodes if n.op == "QLinearConv" and n.attrs.group > 1)
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2", "avx512vnni"])
+def test_int8_depthwise_runs_in_place_where_the_budget_needs_it(depthwise_peak, target):
+    """Under the budget the depthwise QLinearConv writes its output over its input (stored pad + 1
+    rows down; the QuantizeLinear and first layer run in bands, their 8 KB input not live beside the
+    32 KB tensor): bit-identical with onnxruntime, under the sanitizers on ansi-c."""
+    skip_unless_host_runs(target)
+    graph = lowered_graph(depthwise_peak, target)
+    assert in_place_layers(graph, "speed", IN_PLACE_BUDGET, target) == {depthwise_layer(graph)}
+    compiled = nncg.compile(depthwise_peak, target=target, ram_budget=IN_PLACE_BUDGET, verify_ir=True)
+    assert nncg.compile(depthwise_peak, target=target).arena_bytes == 65_536
+    assert compiled.arena_bytes <= IN_PLACE_BUDGET
+    check(depthwise_peak, compiled, sanitize=target == "ansi-c")
+
+
+def test_int8_depthwise_runs_in_place_on_neon(depthwise_peak):
+    tc = TOOLCHAINS["aarch64-neon-dotprod"]
+    require(missing_tools(tc))
+    compiled = nncg.compile(depthwise_peak, target=tc.target, ram_budget=IN_PLACE_BUDGET, verify_ir=True)
+    assert in_place_layers(lowered_graph(depthwise_peak, tc.target), "speed", IN_PLACE_BUDGET, tc.target)
+    assert compiled.arena_bytes <= IN_PLACE_BUDGET
+    check(depthwise_peak, compiled, cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
+
+
+def test_int8_depthwise_stays_apart_where_it_does_not_pay(depthwise_peak):
+    graph = lowered_graph(depthwise_peak, "ssse3")
+    assert not in_place_layers(graph, "speed", 70_000, "ssse3")  # speed fits
+    assert not in_place_layers(graph, "min", 0, "ssse3")  # bands take less

@@ -18,6 +18,7 @@ from cross_helpers import (
     CASES,
     CLANG_NEON_FLAGS,
     CORTEX_M4_INT8_MODELS,
+    CORTEX_M4_MIN_INT8_MODELS,
     CORTEX_M4_MODELS,
     CORTEX_M4_TOOLS,
     MODELS,
@@ -27,6 +28,7 @@ from cross_helpers import (
     compile_with_clang,
     format_table,
     missing_tools,
+    quantized_model,
     runner,
     size_row,
     verify_int8_on_cortex_m4,
@@ -96,20 +98,45 @@ def test_neon_at_min_memory_matches_onnxruntime(toolchain, model):
 RAM_MARGIN = 512  # bytes beyond what the first build measured (section alignment)
 
 
+def only_the_ram(measured) -> dict[str, int]:
+    """build_cortex_m4's ram and stack for a program whose first build measured `measured`: RAM for
+    just the data and bss (the arena, the test program's buffers), the stack it used and a margin."""
+    stack = measured.stack_bytes + RAM_MARGIN
+    return {"ram": measured.image_sizes["data"] + measured.image_sizes["bss"] + stack + RAM_MARGIN, "stack": stack}
+
+
 @pytest.mark.parametrize("model", CORTEX_M4_MODELS)
 def test_min_memory_model_runs_in_only_the_ram_its_plan_needs(model, tmp_path):
-    """At --memory min, linked with RAM for just the data and bss (the arena, the test program's
-    output buffers), the stack measured in a first run and a small margin, and run again."""
+    """At --memory min, linked with only_the_ram after a first run, and run again."""
     require([tool for tool in CORTEX_M4_TOOLS if shutil.which(tool) is None])
     compiled = nncg.compile(MODELS[model], target="ansi-c", memory="min")
     _, measured = verify_on_cortex_m4(model, compiled, tmp_path)
-    stack = measured.stack_bytes + RAM_MARGIN
-    ram = measured.image_sizes["data"] + measured.image_sizes["bss"] + stack + RAM_MARGIN
-    report, result = verify_on_cortex_m4(model, compiled, tmp_path, ram=ram, stack=stack)
-    print(f"{report.format()}\nRAM {ram} bytes: {format_table({model: size_row(result, compiled.arena_bytes)})}")
+    memory = only_the_ram(measured)
+    report, result = verify_on_cortex_m4(model, compiled, tmp_path, **memory)
+    table = format_table({model: size_row(result, compiled.arena_bytes)})
+    print(f"{report.format()}\nRAM {memory['ram']} bytes: {table}")
     assert report.ok, report.format()
     if model != "ball":  # ball's tensors are smaller than the program's stack
-        assert ram < nncg.compile(MODELS[model], target="ansi-c").arena_bytes  # below the speed arena alone
+        assert memory["ram"] < nncg.compile(MODELS[model], target="ansi-c").arena_bytes  # below the speed arena alone
+
+
+@pytest.mark.parametrize("model", CORTEX_M4_MIN_INT8_MODELS)
+def test_int8_min_memory_model_runs_in_only_the_ram_its_plan_needs(model, tmp_path):
+    """The int8 model (quantised as tests/test_int8.py does) at --memory min, linked with only_the_ram
+    after a first run and run again: the same bits as onnxruntime on the QDQ model."""
+    require([tool for tool in CORTEX_M4_TOOLS if shutil.which(tool) is None])
+    qdq = quantized_model(model)
+    compiled = nncg.compile(qdq, target="ansi-c", memory="min", verify_ir=True)
+    _, measured = verify_int8_on_cortex_m4(qdq, compiled, tmp_path)
+    memory = only_the_ram(measured)
+    comparison, result = verify_int8_on_cortex_m4(qdq, compiled, tmp_path, **memory)
+    speed_arena = nncg.compile(qdq, target="ansi-c").arena_bytes
+    row = {**size_row(result, compiled.arena_bytes), "speed arena": speed_arena}
+    print(f"{model} int8 on cortex-m4: {comparison}\nRAM {memory['ram']} bytes: {format_table({model: row})}")
+    assert comparison.max_steps == 0 and comparison.identical == 1.0, comparison
+    assert compiled.arena_bytes < speed_arena
+    if model != "ball":  # ball's tensors are smaller than the program's stack
+        assert memory["ram"] < speed_arena  # the whole program's RAM below the speed arena alone
 
 
 @pytest.mark.parametrize("model", CORTEX_M4_INT8_MODELS)
@@ -117,7 +144,9 @@ def test_int8_model_matches_onnxruntime_on_cortex_m4(model, tmp_path):
     """The int8 C (strict C89) on the Cortex-M4's FPU rounds as onnxruntime's x86 kernels: uint8
     activations give the same bits (as tests/test_int8.py asserts on the host)."""
     require([tool for tool in CORTEX_M4_TOOLS if shutil.which(tool) is None])
-    comparison, result, compiled = verify_int8_on_cortex_m4(model, tmp_path)
+    qdq = quantized_model(model)
+    compiled = nncg.compile(qdq, target="ansi-c", verify_ir=True)
+    comparison, result = verify_int8_on_cortex_m4(qdq, compiled, tmp_path)
     print(f"{model} int8 on cortex-m4: {comparison}\n{format_table({model: size_row(result, compiled.arena_bytes)})}")
     assert comparison.max_steps <= 1 and comparison.identical == 1.0, comparison
     assert result.model_sizes["bss"] >= compiled.arena_bytes
