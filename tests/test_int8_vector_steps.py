@@ -1,10 +1,11 @@
 """The int8 kernels besides the multiply-accumulates on int32 vectors over channels (issue 16): an int8
 MaxPool (int32 maxima; ssse3 without pmaxsd takes them with pmaxsw, exact for 8-bit values),
-QLinearGlobalAveragePool (int32 sums, requantised per vector) and DequantizeLinear (one float32
-product of the int32 difference), bit-identical with onnxruntime on ssse3, avx2, avx512, avx512vnni
-and NEON under qemu (AArch64 and ARMv7), uint8 and int8 activations; 20 channels leave tails (avx2:
-8 + 8 + 4). The lookups (QLinearSigmoid, LeakyRelu, HardSwish as 256-entry tables) stay scalar: no
-target here has a byte shuffle over 256 entries."""
+QLinearGlobalAveragePool (int32 sums, requantised per vector), DequantizeLinear (one float32 product
+of the int32 difference), and QLinearAdd on ssse3 (its fused multiply-adds in double, as the scalar C
+computes them; the FMA targets had it already): bit-identical with onnxruntime on ssse3, avx2,
+avx512, avx512vnni and NEON under qemu (AArch64 and ARMv7), uint8 and int8 activations; 20 channels
+leave tails (avx2: 8 + 8 + 4). The lookups (QLinearSigmoid, LeakyRelu, HardSwish as 256-entry
+tables) stay scalar: no target here has a byte shuffle over 256 entries."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 from cross_helpers import TOOLCHAINS, missing_tools, runner
 from helpers import skip_unless_host_runs
-from int8_models import _model, _weights, clip_gemm_model, compare, quantized, random_feeds
+from int8_models import _model, _weights, add_model, clip_gemm_model, compare, quantized, random_feeds
 from onnx import helper
 from test_cross_targets import require
 
@@ -35,6 +36,7 @@ MODELS = {
     "MaxPool": lambda: pool_model("MaxPool", kernel_shape=[3, 3], strides=[2, 2], pads=[1, 1, 1, 1]),
     "QLinearGlobalAveragePool": lambda: pool_model("GlobalAveragePool"),
     "DequantizeLinear": clip_gemm_model,  # the Gemm's 5 outputs dequantised: 4 lanes and a scalar tail
+    "QLinearAdd": add_model,
 }
 # what each target's vector form of each kernel prints
 GLOBAL = "QLinearGlobalAveragePool"
@@ -43,6 +45,10 @@ VECTOR = {
     "avx2": {"MaxPool": "_max_epi32(", GLOBAL: "_mm256_cvtps_epi32(", "DequantizeLinear": "_cvtepi32_ps("},
     "neon": {"MaxPool": "vmaxq_s32(", GLOBAL: "nncg_vrequantizeq_s32(", "DequantizeLinear": "vcvtq_f32_s32("},
 }
+# QLinearAdd's fused multiply-adds: in double on ssse3 (no FMA), over the 8 columns of its NCHW output
+VECTOR["ssse3"]["QLinearAdd"] = "nncg_fma_pd("
+VECTOR["avx2"]["QLinearAdd"] = "_mm256_fmadd_ps("
+VECTOR["neon"]["QLinearAdd"] = "nncg_vfmaq_f32("
 VECTOR["avx512"] = VECTOR["avx512vnni"] = {**VECTOR["avx2"], GLOBAL: "_mm512_cvtps_epi32("}
 X86 = ("ssse3", "avx2", "avx512", "avx512vnni")
 ARM = ("aarch64-neon", "armhf-neon")

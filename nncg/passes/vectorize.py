@@ -102,17 +102,17 @@ INTEGER_OPS = (
     "DequantizeLinear",
 )
 # onnxruntime computes these in float fused multiply-adds (lowering/quantized_add.py), which vectors of a
-# target with FMA do too; the other int8 kernels stay scalar
+# target with FMA do too, or, without, in double (Target.fma_in_double); the other int8 kernels stay scalar
 FUSED_OPS = ("QLinearAdd",)
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
-    """A convolution or matrix product of int8 or a QuantizeLinear on a target with integer vectors,
-    or a QLinearAdd on one with FMA as well, requantised in the float form."""
+    """One of INTEGER_OPS on a target with integer vectors, or a QLinearAdd on one with a fused
+    multiply-add as well, requantised in the float form."""
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
-    ops = INTEGER_OPS + (FUSED_OPS if target.fma else ())
+    ops = INTEGER_OPS + (FUSED_OPS if target.fma or target.fma_in_double else ())
     return target.integer_vectors and kernel.op in ops and not fixed
 
 
