@@ -111,6 +111,7 @@ def neon_integer() -> dict:
         "+": "vaddq_s32({a}, {b})",
         "-": "vsubq_s32({a}, {b})",
         "*": "vmulq_s32({a}, {b})",
+        "max": "vmaxq_s32({a}, {b})",
         "convert": "vcvtq_f32_s32({a})",
         "requantize": "nncg_vrequantizeq_s32({value}, {low}, {high}, {zero_point})",
         "store_uint8": "nncg_vstoreq_uint8({address}, {value})",

@@ -56,8 +56,13 @@ class IntegerVectors:
         return isinstance(e, Cast | Requantize) or expr_dtype(e, self.dtypes, self.dtypes).is_integer
 
     def integer_store(self, store: Store, width: VectorWidth) -> str:
-        op = f"store_{self.dtypes[store.buffer].value}"
-        return width.ints[op].format(address=f"&{store.buffer}[{c_affine(store.index)}]", value=self.expr(store.value))
+        dtype = self.dtypes[store.buffer]
+        value = store.value
+        if isinstance(value, Cast) and value.dtype == dtype:  # int32 lanes already in range (a MaxPool's maxima)
+            value = value.value
+        return width.ints[f"store_{dtype.value}"].format(
+            address=f"&{store.buffer}[{c_affine(store.index)}]", value=self.expr(value)
+        )
 
     def integer_vector(self, e: Expr, width: VectorWidth) -> str:
         ints = width.ints

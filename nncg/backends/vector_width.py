@@ -45,7 +45,7 @@ INTEGER_OPERATIONS = {
     "widen_int8": ("address",),
     "splat": ("value",),
     "vector": ("values",),  # a constant vector lane by lane
-    **{op: ("a", "b") for op in ("+", "-", "*")},
+    **{op: ("a", "b") for op in ("+", "-", "*", "max")},
     "convert": ("a",),  # the float value of each lane
     "requantize": ("value", "low", "high", "zero_point"),  # float lanes clamped, rounded half to even, + zp
     "store_uint8": ("address", "value"),  # int32 lanes already in the type's range, stored as bytes

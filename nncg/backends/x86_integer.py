@@ -73,6 +73,7 @@ def x86_integer(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool 
         "+": f"{p}_add_epi32({{a}}, {{b}})",
         "-": f"{p}_sub_epi32({{a}}, {{b}})",
         "*": f"{p}_mullo_epi32({{a}}, {{b}})",
+        "max": f"{p}_max_epi32({{a}}, {{b}})",
         "convert": f"{p}_cvtepi32_ps({{a}})",
         "requantize": f"{p}_add_epi32({p}_cvtps_epi32({p}_min_ps({p}_max_ps({{value}}, {p}_set1_ps({{low}})), "
         f"{p}_set1_ps({{high}}))), {p}_set1_epi32({{zero_point}}))",
@@ -96,6 +97,9 @@ SSE2 = {
     "widen_uint8": f"_mm_unpacklo_epi16(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {ZERO})",
     "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
     "*": "_mm_madd_epi16({a}, _mm_and_si128({b}, _mm_set1_epi32(0xFFFF)))",
+    # no pmaxsd: the int8 kernels take maxima of 8-bit values, which pmaxsw takes in the low int16
+    # halves (the high halves, their sign extensions, follow the same lane)
+    "max": "_mm_max_epi16({a}, {b})",
     # 2 adjacent 8-bit activations widened to int16 in every int32 lane (no pmovzxbw, no vpbroadcastd)
     "pair_uint8": f"_mm_shuffle_epi32(_mm_unpacklo_epi8({SSE2_PAIR}, {ZERO}), 0)",
     "pair_int8": f"_mm_shuffle_epi32(_mm_srai_epi16(_mm_unpacklo_epi8({SSE2_PAIR}, {SSE2_PAIR}), 8), 0)",

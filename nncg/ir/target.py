@@ -33,7 +33,10 @@ class Target:
     per pmaddwd; the weights take twice the bytes).
     dot_int8_activations: the K = 4 dot multiplies int8 activations (AArch64 sdot: s8 x s8 quads), so
     uint8 activations and zero points the lowering did not fold are offset into int8 and the constant
-    difference is added back per output channel (passes/dot_product.py)."""
+    difference is added back per output channel (passes/dot_product.py).
+    fma_in_double: without FMA, its vectors still compute a fused multiply-add of float32 values
+    (loops.Fma) with one rounding, in double as the scalar C does (ssse3), so QLinearAdd's vector form
+    matches its scalar one."""
 
     name: str
     vector_widths: tuple[int, ...] = ()
@@ -49,6 +52,7 @@ class Target:
     tap_dots: bool = False
     dot2_int16_weights: bool = False
     dot_int8_activations: bool = False
+    fma_in_double: bool = False
 
     @property
     def lanes(self) -> int:

@@ -17,7 +17,9 @@ whole, requantised per vector; where the target has integer dot products, the re
 channels first becomes dot products of 2 or 4 channels (dot_product.py), and with Target.tap_dots a
 depthwise's interior columns (split from the borders, dot_taps.py) dot products of 2 or 4 taps whose
 activations are vectors, each lane its own channel's. QuantizeLinear runs as its
-float quotient requantised per vector; QLinearAdd, on targets with FMA, in vector fused
+float quotient requantised per vector, DequantizeLinear as its float product; an int8 MaxPool takes
+int32 maxima and QLinearGlobalAveragePool int32 sums over channels; the lookups (256-entry tables)
+stay scalar gathers; QLinearAdd, on targets with FMA, in vector fused
 multiply-adds as onnxruntime computes it. A kernel in the fixed-point form stays scalar."""
 
 from __future__ import annotations
@@ -88,20 +90,29 @@ def vectorize(program: Program, target: Target) -> Program:
     return replace(program, kernels=tuple(kernels))
 
 
-# the multiply-accumulate kernels, and QuantizeLinear (float division, then requantised as they are)
-INTEGER_OPS = ("QLinearConv", "QLinearDense", "QuantizeLinear")
+# the multiply-accumulate kernels, QuantizeLinear (float division, then requantised as they are), the
+# int32 sums of QLinearGlobalAveragePool, the int32 maxima of an int8 MaxPool, and DequantizeLinear
+# (one float32 product of the int32 difference): the same arithmetic in every lane as in scalar C
+INTEGER_OPS = (
+    "QLinearConv",
+    "QLinearDense",
+    "QuantizeLinear",
+    "QLinearGlobalAveragePool",
+    "MaxPool",
+    "DequantizeLinear",
+)
 # onnxruntime computes these in float fused multiply-adds (lowering/quantized_add.py), which vectors of a
-# target with FMA do too; the other int8 kernels stay scalar
+# target with FMA do too, or, without, in double (Target.fma_in_double); the other int8 kernels stay scalar
 FUSED_OPS = ("QLinearAdd",)
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
-    """A convolution or matrix product of int8 or a QuantizeLinear on a target with integer vectors,
-    or a QLinearAdd on one with FMA as well, requantised in the float form."""
+    """One of INTEGER_OPS on a target with integer vectors, or a QLinearAdd on one with a fused
+    multiply-add as well, requantised in the float form."""
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
-    ops = INTEGER_OPS + (FUSED_OPS if target.fma else ())
+    ops = INTEGER_OPS + (FUSED_OPS if target.fma or target.fma_in_double else ())
     return target.integer_vectors and kernel.op in ops and not fixed
 
 
