@@ -114,6 +114,7 @@ CONVS = {
     "conv3d": conv_case(x=(1, 3, 4, 5, 6), kernel=(3, 3, 3), c_out=8, pads=[1, 1, 1, 1, 1, 1]),
     "20_channels": conv_case(c_out=20, pads=[1, 1, 1, 1]),
     "narrow_input": conv_case(x=(1, 6, 3, 2), pads=[1, 1, 1, 1]),
+    "one_vector": conv_case(x=(1, 3, 5, 30), c_out=16, pads=[1, 1, 1, 1]),
 }
 BLOCKS = [(16, None), (32, None), (16, "Conv_0:1x1"), (16, "Conv_0:7x5")]  # registers, per-layer shapes
 
@@ -219,3 +220,13 @@ def test_whole_row_blocks_match_onnxruntime(target, channels, size, block):
         pytest.skip(f"{', '.join(missing_tools(toolchain))} not installed")
     report = verify_on(toolchain, m, compiled)
     assert report.ok, report.format()
+
+
+def test_float_layer_of_one_vector_blocks_its_columns():
+    # 16 channels: one vector on avx512, whose multiply-add broadcasts its input from memory (24
+    # accumulators), two on avx2; 8 channels: one vector on avx2 (an accumulator and a broadcast each)
+    for name, channels, block in (("avx512", 16, (24, 1)), ("avx2", 16, (5, 2)), ("avx2", 8, (7, 1))):
+        m = narrow_conv_pair(channels, 30)
+        upto = direct(name).split(",register-block")[0]
+        program = PassManager(upto, nncg.get_target(name), verify=True).run(import_onnx(m))
+        assert chosen_blocks(program, nncg.get_target(name))["conv"] == block

@@ -9,9 +9,9 @@ input value is loaded (broadcast) once for C channels and each weight once for P
 
 The *channel loops* are parallel loops that hold accumulators directly and whose iterations store
 side by side (the output-channel vector loop and its tail); the *pixel loop* is the innermost
-parallel loop around them that encloses all of a layer's accumulators. When a layer's channels fill
-exactly one vector, consecutive output columns are side by side too: the column loop is then the
-channel loop and the row loop the pixel loop, and the block is 2-D (rows x columns). Border checks
+parallel loop around them that encloses all of a layer's accumulators (for a layer of one channel
+vector, the column loop). A block of more pixels than a row holds takes whole rows: it is 2-D
+(rows x columns), each weight vector serving the pixels of several rows. Border checks
 that depend on a jammed loop would differ between the jammed iterations, so that loop is first
 split into its border iterations (kept as they were) and the interior, where the checks always hold
 and are dropped. Choice and mechanism are apart: `choose_blocks` is the cost model, `layers`
@@ -60,6 +60,11 @@ VECTOR_INPUT_PIXELS = 3
 # (15 accumulators, 15 broadcasts), measured 1.8x slower than 12 (8, 10 and 16 within 15 % of 12) on
 # resnet8's 32x32x16 layers.
 ONE_VECTOR_INT8_PIXELS = 12
+# Pixels per block of a float layer of one channel vector where the multiply-add broadcasts its input
+# from memory (avx512): accumulators only, with RESERVED registers and two more left. mobilenet_v1_025
+# on avx512 (loaded, interleaved): 78.0 us with its stem and first pointwise Conv at 24 pixels, 82.1
+# with the 6 rows x 4 columns they had, 90.7 at 15 pixels (an accumulator and a broadcast each).
+ONE_VECTOR_FLOAT_PIXELS = 24
 
 
 def parse_block(text: str) -> tuple[int, int]:
@@ -143,12 +148,22 @@ def chosen_blocks(
         vector_inputs = multiplies_vector_inputs(pixel, constants)
         rows = row_extent(kernel.body, pixel)
         pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers, fma, vector_inputs, rows)
-        if kernel.name not in layers and fma and channels == 1 and is_integer_kernel(kernel, program):
-            pixels = min(pixels, ONE_VECTOR_INT8_PIXELS)
+        if kernel.name not in layers and fma and channels == 1:
+            pixels = one_vector_pixels(kernel, program, target, shape[0], pixels, vector_inputs)
         if kernel.name not in layers and reads_across_planes(kernel.body, planar_tensors(program)):
             pixels = 1
         blocks[kernel.name] = (pixels, channels)
     return blocks
+
+
+def one_vector_pixels(kernel: Kernel, program: Program, target: Target, extent: int, pixels: int, vector_inputs: bool):
+    """The pixels of a fused layer of one channel vector: at most ONE_VECTOR_INT8_PIXELS (int8), up to
+    ONE_VECTOR_FLOAT_PIXELS (float, its broadcast inputs read by the multiply-adds)."""
+    if is_integer_kernel(kernel, program):
+        return min(pixels, ONE_VECTOR_INT8_PIXELS)
+    if target.broadcast_operands and not vector_inputs:
+        return min(extent, max(pixels, ONE_VECTOR_FLOAT_PIXELS))
+    return pixels
 
 
 # ---------------------------------------------------------------------------- structure
@@ -187,7 +202,7 @@ def row_extent(body: tuple[Stmt, ...], pixel: Loop | None) -> int:
 def is_channel_loop(loop: Loop) -> bool:
     """A loop over output-channel blocks: it holds accumulators directly and its iterations store
     side by side (the vector loop strides by its lanes, the scalar tail by 1); not the column loop of
-    an int8 layer of one channel vector, which also stores side by side (one_vector_columns)."""
+    a layer of one channel vector, which also stores side by side (one_vector_columns)."""
     stores = [s for s in walk_stmts(loop.body) if isinstance(s, Store)]
     accumulators = [s for s in loop.body if is_accumulator(s)]
     if not accumulators or one_vector_columns(loop, accumulators):
@@ -196,12 +211,10 @@ def is_channel_loop(loop: Loop) -> bool:
 
 
 def one_vector_columns(loop: Loop, accumulators: list[Let]) -> bool:
-    """Whether the loop's dot-product accumulators (int8) start from a load that stays put (one
-    vector's bias): it runs over pixels, blocked as such (resnet8's 32x32x16 layers on avx512vnni
-    1.8x faster than jamming 4 columns). Float layers of one vector keep the column jam
-    (mobilenet_v1_025's avx512 stem measured 1.2x slower blocked by pixels)."""
-    dots = any(isinstance(e, Dot) for s in walk_stmts(loop.body) for top in stmt_exprs(s) for e in walk_exprs(top))
-    return dots and any(isinstance(s.init, Load) and loop.var not in s.init.index.vars for s in accumulators)
+    """Whether the loop's accumulators start from a load that stays put (one vector's bias): it runs
+    over pixels, blocked as such (resnet8's 32x32x16 layers on avx512vnni 1.8x faster than jamming 4
+    columns)."""
+    return any(isinstance(s.init, Load) and loop.var not in s.init.index.vars for s in accumulators)
 
 
 def first_pixel_loop(body: tuple[Stmt, ...]) -> Loop | None:
