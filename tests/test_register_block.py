@@ -3,6 +3,7 @@
 from dataclasses import replace
 
 import pytest
+from cross_helpers import TOOLCHAINS, missing_tools, verify_on
 from helpers import check_against_onnxruntime, onnx_model, target, weights
 from onnx import helper
 from test_ops import conv_model
@@ -12,7 +13,7 @@ from nncg.errors import NncgError
 from nncg.frontend import import_onnx
 from nncg.ir.loops import If, Let, Loop, Store, walk_stmts
 from nncg.passes import PassManager
-from nncg.passes.register_block import choose_blocks, fma_from_memory, parse_layers
+from nncg.passes.register_block import choose_blocks, chosen_blocks, fma_from_memory, parse_layers
 
 LOWER = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation,lower"
 
@@ -113,6 +114,7 @@ CONVS = {
     "conv3d": conv_case(x=(1, 3, 4, 5, 6), kernel=(3, 3, 3), c_out=8, pads=[1, 1, 1, 1, 1, 1]),
     "20_channels": conv_case(c_out=20, pads=[1, 1, 1, 1]),
     "narrow_input": conv_case(x=(1, 6, 3, 2), pads=[1, 1, 1, 1]),
+    "one_vector": conv_case(x=(1, 3, 5, 30), c_out=16, pads=[1, 1, 1, 1]),
 }
 BLOCKS = [(16, None), (32, None), (16, "Conv_0:1x1"), (16, "Conv_0:7x5")]  # registers, per-layer shapes
 
@@ -153,3 +155,78 @@ def test_unroll_layer_budgets_name_existing_layers():
     m = conv_model((1, 2, 4, 4), 4, (3, 3))
     with pytest.raises(NncgError, match="unroll: no layer named conv9"):
         PassManager(f"{LOWER},unroll{{level=auto,layers=conv9:16}}").run(import_onnx(m))
+
+
+def narrow_conv_pair(channels: int, size: int):
+    """A 3x3 Conv reading the output of another (so it reads a zero halo and no pixel is a border
+    pixel), `channels` channels on `size` x `size` pixels, as resnet18's layer4 at 96x96 (512, 3)."""
+    nodes = [
+        helper.make_node("Conv", ["x", "w0", "b0"], ["a"], name="first", pads=[1, 1, 1, 1]),
+        helper.make_node("Relu", ["a"], ["r"]),
+        helper.make_node("Conv", ["r", "w1", "b1"], ["y"], name="conv", pads=[1, 1, 1, 1]),
+    ]
+    inits = {
+        "w0": weights(channels, 8, 3, 3),
+        "b0": weights(channels),
+        "w1": weights(channels, channels, 3, 3),
+        "b1": weights(channels),
+    }
+    return onnx_model(nodes, inputs={"x": (1, 8, size, size)}, initializers=inits)
+
+
+def test_cost_model_blocks_whole_rows_of_narrow_images():
+    # avx512, 3 pixels a row of 4 channel vectors: two rows (24 accumulators and 6 broadcasts)
+    assert choose_blocks((3, 4), 32, fused=True, rows=3) == (6, 4)
+    assert choose_blocks((3, 2), 32, fused=True, rows=3) == (9, 2)  # all 3 rows
+    assert choose_blocks((3, 4), 16, fused=True, rows=3) == (3, 4)  # avx2: one row is the fit
+    assert choose_blocks((40, 4), 32, fused=True, rows=40) == (6, 4)  # wide rows: as before
+    assert choose_blocks((3, 4), 32, fused=True) == (3, 4)  # no row loop: as before
+
+
+def direct(target: str, block: str | None = None) -> str:
+    """The default pipeline without Winograd (which takes such small convs), `block` forced."""
+    pipeline = nncg.default_pipeline(nncg.get_target(target)).replace("winograd,", "")
+    return pipeline.replace("register-block", f"register-block{{layers={block}}}") if block else pipeline
+
+
+def test_whole_row_block_jams_rows_and_columns():
+    m = narrow_conv_pair(32, 3)
+    compiled = nncg.compile(m, target="avx512", pipeline=direct("avx512"))
+    blocks = chosen_blocks(compiled.record.before_register_block, nncg.get_target("avx512"))
+    assert blocks["conv"] == (9, 2)
+    upto = direct("avx512").split(",register-block")[0] + ",register-block"
+    program = PassManager(upto, nncg.get_target("avx512"), verify=True).run(import_onnx(m))
+    kernel = next(k for k in program.kernels if k.name == "conv")
+    loops = {s.var for s in walk_stmts(kernel.body) if isinstance(s, Loop)}
+    assert not loops & {"oh", "ow"}  # all 9 pixels in one block
+    assert len({s.name for s in walk_stmts(kernel.body) if isinstance(s, Let)}) == 18  # 9 pixels x 2 vectors
+
+
+WHOLE_ROWS = [(32, 3, None), (64, 3, None), (24, 4, "conv:8x3"), (64, 5, "conv:10x1")]
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2", "avx512", "neon"])
+@pytest.mark.parametrize("channels, size, block", WHOLE_ROWS)
+def test_whole_row_blocks_match_onnxruntime(target, channels, size, block):
+    # the cost model's blocks of whole rows, and forced ones: two rows of 4 (the third row left over)
+    # and two rows of 5 with the channel loop left around them; neon on qemu
+    m = narrow_conv_pair(channels, size)
+    compiled = nncg.compile(m, target=target, pipeline=direct(target, block))
+    if target != "neon":
+        check_against_onnxruntime(m, compiled, opt="-O1")
+        return
+    toolchain = TOOLCHAINS["aarch64-neon"]
+    if missing_tools(toolchain):
+        pytest.skip(f"{', '.join(missing_tools(toolchain))} not installed")
+    report = verify_on(toolchain, m, compiled)
+    assert report.ok, report.format()
+
+
+def test_float_layer_of_one_vector_blocks_its_columns():
+    # 16 channels: one vector on avx512, whose multiply-add broadcasts its input from memory (24
+    # accumulators), two on avx2; 8 channels: one vector on avx2 (an accumulator and a broadcast each)
+    for name, channels, block in (("avx512", 16, (24, 1)), ("avx2", 16, (5, 2)), ("avx2", 8, (7, 1))):
+        m = narrow_conv_pair(channels, 30)
+        upto = direct(name).split(",register-block")[0]
+        program = PassManager(upto, nncg.get_target(name), verify=True).run(import_onnx(m))
+        assert chosen_blocks(program, nncg.get_target(name))["conv"] == block

@@ -48,7 +48,7 @@ class Avx2(SimdPrinter):
 
 
 class Avx512(SimdPrinter):
-    target = Target("avx512", vector_widths=(16, 8, 4), **{**X86, "registers": 32})
+    target = Target("avx512", vector_widths=(16, 8, 4), **{**X86, "registers": 32, "broadcast_operands": True})
     widths = {16: AVX_512, 8: AVX_256, 4: AVX_128}
     cflags = ("-mavx512f", "-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
@@ -61,7 +61,9 @@ class Avx512Vnni(SimdPrinter):
     weights) and int8 activations 2 per 512-bit vpmaddwd; float code is avx512's."""
 
     target = Target(
-        "avx512vnni", vector_widths=(16, 8, 4), **{**X86, "registers": 32, "dot_uint8": 4, "tap_dots": True}
+        "avx512vnni",
+        vector_widths=(16, 8, 4),
+        **{**X86, "registers": 32, "broadcast_operands": True, "dot_uint8": 4, "tap_dots": True},
     )
     widths = {16: VNNI_512, 8: VNNI_256, 4: VNNI_128}
     cflags = ("-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512vnni", "-mavx2", "-mfma")

@@ -20,6 +20,8 @@ class Target:
     narrowing 8-bit stores, so the vectorize pass vectorises the int8 kernels too.
     memory_operands: an arithmetic instruction may read one operand straight from memory (x86), so a
     fused multiply-add needs no register for the weight vector it reads.
+    broadcast_operands: that memory operand may also be one float broadcast to every lane (AVX-512's
+    {1to16}), so a multiply-add by a broadcast input needs no register for the input either.
     dot_uint8, dot_int8: the input channels one integer dot product (loops.Dot) multiplies per lane,
     for uint8 and for int8 activations: 2 (pmaddwd on int16 pairs), 4 (vpdpbusd on u8 x s8 quads);
     0: none, the int8 kernels multiply channel by channel.
@@ -46,6 +48,7 @@ class Target:
     l2_bytes: int = 0
     integer_vectors: bool = False
     memory_operands: bool = False
+    broadcast_operands: bool = False
     dot_uint8: int = 0
     dot_int8: int = 0
     dot_uint8_int16: int = 0

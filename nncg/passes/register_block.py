@@ -9,9 +9,9 @@ input value is loaded (broadcast) once for C channels and each weight once for P
 
 The *channel loops* are parallel loops that hold accumulators directly and whose iterations store
 side by side (the output-channel vector loop and its tail); the *pixel loop* is the innermost
-parallel loop around them that encloses all of a layer's accumulators. When a layer's channels fill
-exactly one vector, consecutive output columns are side by side too: the column loop is then the
-channel loop and the row loop the pixel loop, and the block is 2-D (rows x columns). Border checks
+parallel loop around them that encloses all of a layer's accumulators (for a layer of one channel
+vector, the column loop). A block of more pixels than a row holds takes whole rows: it is 2-D
+(rows x columns), each weight vector serving the pixels of several rows. Border checks
 that depend on a jammed loop would differ between the jammed iterations, so that loop is first
 split into its border iterations (kept as they were) and the interior, where the checks always hold
 and are dropped. Choice and mechanism are apart: `choose_blocks` is the cost model, `layers`
@@ -60,6 +60,11 @@ VECTOR_INPUT_PIXELS = 3
 # (15 accumulators, 15 broadcasts), measured 1.8x slower than 12 (8, 10 and 16 within 15 % of 12) on
 # resnet8's 32x32x16 layers.
 ONE_VECTOR_INT8_PIXELS = 12
+# Pixels per block of a float layer of one channel vector where the multiply-add broadcasts its input
+# from memory (avx512): accumulators only, with RESERVED registers and two more left. mobilenet_v1_025
+# on avx512 (loaded, interleaved): 78.0 us with its stem and first pointwise Conv at 24 pixels, 82.1
+# with the 6 rows x 4 columns they had, 90.7 at 15 pixels (an accumulator and a broadcast each).
+ONE_VECTOR_FLOAT_PIXELS = 24
 
 
 def parse_block(text: str) -> tuple[int, int]:
@@ -115,7 +120,8 @@ def _block_kernel(
 
     def per_nest(pixel: Loop) -> tuple[int, int]:
         shape = (pixel.extent, sum(_vectors(s) for s in pixel.body))
-        pixels, channels = choose_blocks(shape, registers, fma, multiplies_vector_inputs(pixel, constants))
+        vector_inputs = multiplies_vector_inputs(pixel, constants)
+        pixels, channels = choose_blocks(shape, registers, fma, vector_inputs, row_extent(kernel.body, pixel))
         return (1 if reads_across_planes((pixel,), planar) else pixels), channels
 
     return block_body(kernel.body, *block, per_nest)
@@ -138,14 +144,26 @@ def chosen_blocks(
         if shape is None:
             continue
         fma = fused_kernel(kernel, program, target)
-        vector_inputs = multiplies_vector_inputs(first_pixel_loop(kernel.body), constants)
-        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers, fma, vector_inputs)
-        if kernel.name not in layers and fma and channels == 1 and is_integer_kernel(kernel, program):
-            pixels = min(pixels, ONE_VECTOR_INT8_PIXELS)
+        pixel = first_pixel_loop(kernel.body)
+        vector_inputs = multiplies_vector_inputs(pixel, constants)
+        rows = row_extent(kernel.body, pixel)
+        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers, fma, vector_inputs, rows)
+        if kernel.name not in layers and fma and channels == 1:
+            pixels = one_vector_pixels(kernel, program, target, shape[0], pixels, vector_inputs)
         if kernel.name not in layers and reads_across_planes(kernel.body, planar_tensors(program)):
             pixels = 1
         blocks[kernel.name] = (pixels, channels)
     return blocks
+
+
+def one_vector_pixels(kernel: Kernel, program: Program, target: Target, extent: int, pixels: int, vector_inputs: bool):
+    """The pixels of a fused layer of one channel vector: at most ONE_VECTOR_INT8_PIXELS (int8), up to
+    ONE_VECTOR_FLOAT_PIXELS (float, its broadcast inputs read by the multiply-adds)."""
+    if is_integer_kernel(kernel, program):
+        return min(pixels, ONE_VECTOR_INT8_PIXELS)
+    if target.broadcast_operands and not vector_inputs:
+        return min(extent, max(pixels, ONE_VECTOR_FLOAT_PIXELS))
+    return pixels
 
 
 # ---------------------------------------------------------------------------- structure
@@ -164,10 +182,27 @@ def pixel_loop_of(stmt: Stmt) -> Loop | None:
     return stmt
 
 
+def row_loop_of(body: tuple[Stmt, ...], pixel: Loop) -> Loop | None:
+    """The parallel loop in body directly around the pixel loop (its rows), if its iterations may run
+    jammed and the pixel loop is all it blocks; else None."""
+    for loop in walk_stmts(body):
+        if isinstance(loop, Loop) and any(s is pixel for s in loop.body):
+            inner = [s for s in loop.body if isinstance(s, Loop) and holds_accumulators(s)]
+            fits = loop.parallel and inner == [pixel] and not is_channel_loop(loop) and jammable(loop)
+            return loop if fits else None
+    return None
+
+
+def row_extent(body: tuple[Stmt, ...], pixel: Loop | None) -> int:
+    """Rows a block of the pixel loop in body may span: its row loop's extent, else 1."""
+    rows = None if pixel is None else row_loop_of(body, pixel)
+    return 1 if rows is None else rows.extent
+
+
 def is_channel_loop(loop: Loop) -> bool:
     """A loop over output-channel blocks: it holds accumulators directly and its iterations store
     side by side (the vector loop strides by its lanes, the scalar tail by 1); not the column loop of
-    an int8 layer of one channel vector, which also stores side by side (one_vector_columns)."""
+    a layer of one channel vector, which also stores side by side (one_vector_columns)."""
     stores = [s for s in walk_stmts(loop.body) if isinstance(s, Store)]
     accumulators = [s for s in loop.body if is_accumulator(s)]
     if not accumulators or one_vector_columns(loop, accumulators):
@@ -176,12 +211,10 @@ def is_channel_loop(loop: Loop) -> bool:
 
 
 def one_vector_columns(loop: Loop, accumulators: list[Let]) -> bool:
-    """Whether the loop's dot-product accumulators (int8) start from a load that stays put (one
-    vector's bias): it runs over pixels, blocked as such (resnet8's 32x32x16 layers on avx512vnni
-    1.8x faster than jamming 4 columns). Float layers of one vector keep the column jam
-    (mobilenet_v1_025's avx512 stem measured 1.2x slower blocked by pixels)."""
-    dots = any(isinstance(e, Dot) for s in walk_stmts(loop.body) for top in stmt_exprs(s) for e in walk_exprs(top))
-    return dots and any(isinstance(s.init, Load) and loop.var not in s.init.index.vars for s in accumulators)
+    """Whether the loop's accumulators start from a load that stays put (one vector's bias): it runs
+    over pixels, blocked as such (resnet8's 32x32x16 layers on avx512vnni 1.8x faster than jamming 4
+    columns)."""
+    return any(isinstance(s.init, Load) and loop.var not in s.init.index.vars for s in accumulators)
 
 
 def first_pixel_loop(body: tuple[Stmt, ...]) -> Loop | None:
@@ -248,17 +281,14 @@ def tuning_candidates(program: Program, target: Target) -> dict[str, tuple[tuple
     """For --tune: each blockable layer's block shapes worth timing."""
     kernels = {k.name: k for k in program.kernels}
     constants = constant_buffers(program)
-    return {
-        name: tuple(
-            block_candidates(
-                shape,
-                target.registers,
-                fused_kernel(kernels[name], program, target),
-                multiplies_vector_inputs(first_pixel_loop(kernels[name].body), constants),
-            )
-        )
-        for name, shape in blockable(program).items()
-    }
+    out = {}
+    for name, shape in blockable(program).items():
+        body = kernels[name].body
+        pixel = first_pixel_loop(body)
+        fused = fused_kernel(kernels[name], program, target)
+        vector_inputs = multiplies_vector_inputs(pixel, constants)
+        out[name] = tuple(block_candidates(shape, target.registers, fused, vector_inputs, row_extent(body, pixel)))
+    return out
 
 
 def blockable(program: Program) -> dict[str, tuple[int, int]]:
@@ -268,12 +298,12 @@ def blockable(program: Program) -> dict[str, tuple[int, int]]:
 
 
 def block_candidates(
-    shape: tuple[int, int], registers: int, fused: bool = False, vector_inputs: bool = False
+    shape: tuple[int, int], registers: int, fused: bool = False, vector_inputs: bool = False, rows: int = 1
 ) -> list[tuple[int, int]]:
     """Block shapes worth timing: the cost model's first, then pixel counts up to a register file
     of accumulators, with all channel vectors of a pixel (or 2, 3, 4 of them when there are many)."""
     extent, vectors = shape
-    first = choose_blocks(shape, registers, fused, vector_inputs)
+    first = choose_blocks(shape, registers, fused, vector_inputs, rows)
     channel_options = [vectors] if vectors <= 5 else [2, 3, 4]
     out = [first]
     for channels in channel_options:
@@ -301,7 +331,7 @@ def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
 
 
 def choose_blocks(
-    shape: tuple[int, int], registers: int, fused: bool = False, vector_inputs: bool = False
+    shape: tuple[int, int], registers: int, fused: bool = False, vector_inputs: bool = False, rows: int = 1
 ) -> tuple[int, int]:
     """Pixels x channel vectors. All of a pixel's channel vectors when they are few (each saves a
     broadcast per tap), else MAX_CHANNEL_BLOCK; then as many pixels as keep the accumulators to
@@ -313,13 +343,18 @@ def choose_blocks(
     spilled three accumulators every reduction step). Where each channel vector multiplies its own
     input vector (`vector_inputs`, a depthwise Conv) nothing is shared across a pixel's channels and
     the compiler loads those inputs ahead as it does broadcasts: fused, with 4 channel vectors, at most
-    VECTOR_INPUT_PIXELS pixels (what avx2's 16 registers give anyway; avx512's 32 would give 6)."""
+    VECTOR_INPUT_PIXELS pixels (what avx2's 16 registers give anyway; avx512's 32 would give 6).
+    Where the pixel loop is shorter than the registers allow and sits in a loop of `rows`, the block
+    takes whole rows, as many as fit: each weight vector then serves the pixels of several rows
+    (resnet18's layer4, 3x3 pixels, avx512: 6x4, two rows, 1.07x faster than 3x4; 9x3 spills)."""
     extent, vectors = shape
     channels = vectors if vectors <= MAX_CHANNEL_BLOCK else MAX_CHANNEL_BLOCK - 1
     fit = (registers - 1) // (channels + 1) if fused else (registers - RESERVED) // channels
     if fused and vector_inputs and channels == MAX_CHANNEL_BLOCK - 1:
         fit = min(fit, VECTOR_INPUT_PIXELS)
     pixels = max(1, min(extent, fit))
+    if pixels == extent and rows > 1 and fit >= 2 * extent:
+        pixels = extent * min(rows, fit // extent)
     return pixels, channels
 
 
@@ -391,12 +426,23 @@ def block_body(body: tuple[Stmt, ...], pixels: int, channels: int, per_nest=None
         pixel = pixel_loop_of(stmt) if isinstance(stmt, Loop) else None
         if pixel is not None and jammable(pixel):
             block = per_nest(pixel) if per_nest else (pixels, channels)
-            out.extend(_replace_loop(stmt, pixel, _block_pixel_loop(pixel, *block)))
+            out.extend(_block_nest(stmt, pixel, *block))
         elif isinstance(stmt, Loop | Let | If):
             out.append(replace(stmt, body=block_body(stmt.body, pixels, channels, per_nest)))
         else:
             out.append(stmt)
     return tuple(out)
+
+
+def _block_nest(stmt: Loop, pixel: Loop, pixels: int, channels: int) -> tuple[Stmt, ...]:
+    """The nest `stmt` with its pixel loop blocked; a block of whole rows (`pixels` at least twice the
+    pixel loop's extent) jams the pixel loop entirely and its row loop by `pixels // extent`."""
+    rows = row_loop_of((stmt,), pixel) if pixels >= 2 * pixel.extent else None
+    if rows is None:
+        return _replace_loop(stmt, pixel, _block_pixel_loop(pixel, pixels, channels))
+    columns = _block_pixel_loop(pixel, pixel.extent, channels)
+    row = replace(rows, body=tuple(s for child in rows.body for s in _replace_loop(child, pixel, columns)))
+    return _replace_loop(stmt, rows, jam_loop(row, pixels // pixel.extent))
 
 
 def _replace_loop(stmt: Stmt, target: Loop, new: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
