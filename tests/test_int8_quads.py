@@ -16,7 +16,15 @@ import onnx
 import onnxruntime.quantization
 import pytest
 from helpers import ROOT, skip_unless_host_runs
-from int8_models import OPSET, compare, onnxruntime_outputs, quantized, random_feeds, residual_model
+from int8_models import (
+    OPSET,
+    compare,
+    onnxruntime_outputs,
+    quantized,
+    random_feeds,
+    residual_model,
+    stacked_conv_model,
+)
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg
@@ -241,3 +249,18 @@ def layer_bodies(source: str) -> list[tuple[str, str]]:
     return [
         (parts[i], parts[i + 2]) for i in range(1, len(parts) - 2, 3) if parts[i + 1] in ("QLinearConv", "QLinearDense")
     ]
+
+
+def test_ssse3_pairs_of_a_quad_share_its_load():
+    """Full-range weights on ssse3 (pmaddwd pairs) reading a channels-last input of 12 channels in two
+    groups of 6: each pair is one half of 4 bytes read at a multiple of 4 (pshufd 0 or 0x55 of one
+    unpack; a pair of the second group shares its bytes with the first's), identical to onnxruntime."""
+    skip_unless_host_runs("ssse3")
+    float_model = stacked_conv_model("grouped")
+    model = quantized(float_model)
+    compiled = nncg.compile(model, target="ssse3", verify_ir=True)
+    quad = "_mm_shuffle_epi32(_mm_unpacklo_epi8(_mm_loadu_si32((const void *)("
+    assert quad in compiled.source and "_mm_setzero_si128()), 85)" in compiled.source
+    assert "_mm_loadu_si16(" not in compiled.source
+    result = compare(model, compiled, random_feeds(float_model, 3, 11))
+    assert result.max_steps == 0 and result.identical == 1.0, result
