@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 import tempfile
 from dataclasses import replace
 from pathlib import Path
@@ -43,24 +42,9 @@ def without_quads(target: str):
         backend.target = saved
 
 
-@contextlib.contextmanager
-def reduce_range():
-    """onnxruntime's quantize_static with reduce_range=True (7-bit weights) inside nncg.quantize."""
-    from onnxruntime import quantization
-
-    saved = quantization.quantize_static
-    quantization.quantize_static = functools.partial(saved, reduce_range=True)
-    try:
-        yield
-    finally:
-        quantization.quantize_static = saved
-
-
 def variants(name: str, target: str) -> dict[str, tuple]:
     """label -> (compiled model, the QDQ model it matches or None for float)."""
-    qdq = quantized_model(name)
-    with reduce_range():
-        qdq7 = quantized_model(name)
+    qdq, qdq7 = quantized_model(name), quantized_model(name, reduce_range=True)
     with without_quads(target):
         pairs, pairs7 = (nncg.compile(m, target=target) for m in (qdq, qdq7))
     return {

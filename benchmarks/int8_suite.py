@@ -3,15 +3,15 @@ onnxruntime running the same QDQ model and against NNCG's own float C, per x86 t
 Cortex-M4 builds, int8 next to float.
 
     python3 -m benchmarks.int8_suite [--models dscnn ...] [--targets ansi-c ssse3 avx2 avx512 avx512vnni] [--cpu 0]
-                                     [--batches 15] [--no-cortex-m4]
+                                     [--batches 15] [--no-cortex-m4] [--reduce-range]
 
-Each model is quantised with nncg.quantize's defaults (uint8 activations, per-channel int8 weights) on seeded
-standard-normal calibration inputs. Per target, the int8 C, the float C and onnxruntime on the QDQ model
-(batch 1, one thread, all graph optimisations) are timed interleaved, medians as benchmarks/suite.py times
-(nncg.bench). Errors are in quantisation steps of each output against that onnxruntime session, on seeded
-inputs. The Cortex-M4 builds (tests/cross_helpers.py: arm-none-eabi-gcc -Os, run in qemu-system-arm) give
-flash and RAM from arm-none-eabi-size and the stack's deepest use. Writes the "int8" section of
-benchmarks/RESULTS.md.
+Each model is quantised with nncg.quantize's defaults (uint8 activations, per-channel int8 weights; 7-bit
+weights with --reduce-range) on seeded standard-normal calibration inputs. Per target, the int8 C, the
+float C and onnxruntime on the QDQ model (batch 1, one thread, all graph optimisations) are timed
+interleaved, medians as benchmarks/suite.py times (nncg.bench). Errors are in quantisation steps of each
+output against that onnxruntime session, on seeded inputs. The Cortex-M4 builds (tests/cross_helpers.py:
+arm-none-eabi-gcc -Os, run in qemu-system-arm) give flash and RAM from arm-none-eabi-size and the stack's
+deepest use. Writes the "int8" section of benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations
@@ -55,12 +55,12 @@ CALIBRATION_SEED = 1234  # not the timed input's seed (0): the error inputs are 
 ERROR_INPUTS = 8  # seeded inputs 1..8 for the error figures
 
 
-def quantized_model(name: str) -> onnx.ModelProto:
+def quantized_model(name: str, reduce_range: bool = False) -> onnx.ModelProto:
     """The QDQ model nncg.quantize writes from the float model and seeded standard-normal calibration inputs."""
     model = onnx.load(model_path(name))
     shape = [d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim]
     samples = np.random.default_rng(CALIBRATION_SEED).standard_normal((CALIBRATION_SAMPLES, *shape), np.float32)
-    return nncg.quantize(model, samples)
+    return nncg.quantize(model, samples, reduce_range=reduce_range)
 
 
 @dataclass(frozen=True)
@@ -246,16 +246,26 @@ def _met(ratios: dict[str, float], target: float) -> str:
 
 
 def section_markdown(
-    rows: list[Int8Row], m4_rows: dict, peaks: dict, cpu: int | None, date: str, command: str, note: str = ""
+    rows: list[Int8Row],
+    m4_rows: dict,
+    peaks: dict,
+    cpu: int | None,
+    date: str,
+    command: str,
+    note: str = "",
+    reduce_range: bool = False,
 ) -> str:
     lines = [
-        "## int8: MLPerf-Tiny-shaped models quantised by nncg.quantize",
+        "## int8: MLPerf-Tiny-shaped models quantised by nncg.quantize"
+        + (" with reduce_range (7-bit weights)" if reduce_range else ""),
         "",
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'}); date: {date}",
         f"- Measured peak (float): {peaks_text(peaks)}",
         f"- Command: `{command}`",
         *([f"- {note}"] if note else []),
-        f"- Models: nncg.quantize's defaults (uint8 activations, per-channel int8 weights) on {CALIBRATION_SAMPLES}",
+        "- Models: nncg.quantize's defaults (uint8 activations, per-channel int8 weights"
+        + (", here 7-bit: reduce_range=True)" if reduce_range else ")")
+        + f" on {CALIBRATION_SAMPLES}",
         f"  standard-normal calibration inputs (seed {CALIBRATION_SEED}). int8 µs: NNCG's int8 C; ORT int8 µs:",
         "  onnxruntime on the same QDQ model (batch 1, one thread, all graph optimisations, IOBinding); float µs:",
         "  NNCG's C of the float model on the same target. The three are timed interleaved, medians of the",
@@ -287,16 +297,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
     parser.add_argument("--no-cortex-m4", action="store_true", help="skip the Cortex-M4 builds and runs")
     parser.add_argument("--note", default="", help="a line for the section, e.g. the machine's load")
+    parser.add_argument(
+        "--reduce-range", action="store_true", help="quantise with 7-bit weights (nncg.quantize reduce_range=True)"
+    )
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)
     peaks = measure_peaks()
-    models = {name: quantized_model(name) for name in args.models}
+    models = {name: quantized_model(name, args.reduce_range) for name in args.models}
     rows = run_int8_suite(models, args.targets, cpu=args.cpu, batches=args.batches)
     helpers = None if args.no_cortex_m4 else cross_helpers()
     m4_rows = cortex_m4_rows(helpers, models) if helpers else {}
     command = shlex.join(["python3", "-m", "benchmarks.int8_suite", *(argv if argv is not None else sys.argv[1:])])
     today = datetime.date.today().isoformat()
-    section = section_markdown(rows, m4_rows, peaks, args.cpu, today, command, args.note)
+    section = section_markdown(rows, m4_rows, peaks, args.cpu, today, command, args.note, args.reduce_range)
     write_section(args.out_dir, SECTION, section)
     print(section)
     return 0

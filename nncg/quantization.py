@@ -5,11 +5,11 @@ A model older than opset 13 is converted to 13 first (per-axis QuantizeLinear/De
 quant_pre_process runs (ONNX and symbolic shape inference, onnxruntime's basic graph optimisations:
 BatchNormalization folded into Conv, constants folded), so that folded layers get one weight scale;
 quantize_static then writes QuantizeLinear/DequantizeLinear pairs around the float operators (QDQ format):
-activations per tensor (uint8 or int8, asymmetric), weights int8, symmetric, per channel on the
-output-channel axis (Conv: 0, ConvTranspose: 1, Gemm: by transB, MatMul: 1), biases int32. The result is
-what nncg.compile takes; the same model and data give the same bytes (onnxruntime's quantiser is
-deterministic; the opset imports its optimiser adds for domains no node uses are dropped). The
-producer stays the float model's, which says the layout of its inputs."""
+activations per tensor (uint8 or int8, asymmetric), weights int8 (-64..64 with reduce_range), symmetric,
+per channel on the output-channel axis (Conv: 0, ConvTranspose: 1, Gemm: by transB, MatMul: 1), biases
+int32. The result is what nncg.compile takes; the same model and data give the same bytes (onnxruntime's
+quantiser is deterministic; the opset imports its optimiser adds for domains no node uses are dropped).
+The producer stays the float model's, which says the layout of its inputs."""
 
 from __future__ import annotations
 
@@ -51,6 +51,7 @@ def quantize(
     per_channel: bool = True,
     calibrate_method: str = "minmax",
     input_shapes: dict[str, tuple[int, ...]] | None = None,
+    reduce_range: bool = False,
 ) -> onnx.ModelProto:
     """The QDQ model of the float ONNX `model` (a file path, bytes or an onnx.ModelProto), its activation
     ranges calibrated by onnxruntime on `calibration` (see nncg/calibration.py: an .npz keyed by input
@@ -58,12 +59,14 @@ def quantize(
     arrays). `activations`: "uint8" (what onnxruntime's x86 kernels prefer) or "int8" (TFLite's choice);
     `per_channel`: one weight scale per output channel; `calibrate_method`: "minmax" (the whole range
     seen) or "percentile" (the 0.001 % of values at either end left out); `input_shapes` fixes dynamic
-    input dims as in nncg.compile (a dynamic batch is 1). Raises NncgError."""
-    _check_arguments(activations, per_channel, calibrate_method, input_shapes)
+    input dims as in nncg.compile (a dynamic batch is 1); `reduce_range`: 7-bit weights (-64..64, as
+    onnxruntime advises on x86 without VNNI), which ssse3 and avx2 multiply four channels per pmaddubsw
+    (full-range weights mostly take pmaddwd pairs there), at half the weight resolution. Raises NncgError."""
+    _check_arguments(activations, per_channel, calibrate_method, input_shapes, reduce_range)
     proto = _at_least_opset_13(load_model(model, input_shapes))
     _check_not_quantized(proto)
     samples = calibration_samples(calibration, real_inputs(proto.graph))
-    quantized = _quantize_static(proto, samples, activations, per_channel, calibrate_method)
+    quantized = _quantize_static(proto, samples, activations, per_channel, calibrate_method, reduce_range)
     _drop_unused_domains(quantized)
     # NNCG reads the inputs' layout from the producer (NHWC for tf2onnx's models, see layout.py), which
     # the quantiser overwrites: the QDQ model keeps the float model's.
@@ -71,11 +74,12 @@ def quantize(
     return quantized
 
 
-def _check_arguments(activations, per_channel, calibrate_method, input_shapes) -> None:
+def _check_arguments(activations, per_channel, calibrate_method, input_shapes, reduce_range) -> None:
     if activations not in ACTIVATIONS:
         raise NncgError(f"activations must be one of {', '.join(ACTIVATIONS)}; got {_shown_value(activations)}")
-    if not isinstance(per_channel, bool):
-        raise NncgError(f"per_channel must be True or False; got {_shown_value(per_channel)}")
+    for name, value in (("per_channel", per_channel), ("reduce_range", reduce_range)):
+        if not isinstance(value, bool):
+            raise NncgError(f"{name} must be True or False; got {_shown_value(value)}")
     if calibrate_method not in CALIBRATE_METHODS:
         raise NncgError(
             f"calibrate_method must be one of {', '.join(CALIBRATE_METHODS)}; got {_shown_value(calibrate_method)}"
@@ -113,7 +117,12 @@ def _check_not_quantized(model: onnx.ModelProto) -> None:
 
 
 def _quantize_static(
-    model: onnx.ModelProto, samples: list[dict[str, np.ndarray]], activations: str, per_channel: bool, method: str
+    model: onnx.ModelProto,
+    samples: list[dict[str, np.ndarray]],
+    activations: str,
+    per_channel: bool,
+    method: str,
+    reduce_range: bool,
 ) -> onnx.ModelProto:
     from onnxruntime import quantization as q
 
@@ -128,6 +137,7 @@ def _quantize_static(
                 _reader(samples),
                 quant_format=q.QuantFormat.QDQ,
                 per_channel=per_channel,
+                reduce_range=reduce_range,
                 activation_type=q.QuantType.QUInt8 if activations == "uint8" else q.QuantType.QInt8,
                 weight_type=q.QuantType.QInt8,
                 calibrate_method=q.CalibrationMethod[ORT_METHODS[method]],

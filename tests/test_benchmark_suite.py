@@ -91,6 +91,19 @@ def test_int8_suite_writes_its_section(tmp_path, capsys):
     assert "int8 µs" in capsys.readouterr().out
 
 
+def test_int8_section_says_reduce_range():
+    """--reduce-range's section says so in its heading and its models' line; the default's does not."""
+    from benchmarks.int8_suite import section_markdown
+
+    default, reduced = (
+        section_markdown([], {}, PEAKS, 0, "2026-01-01", "python3 -m x", reduce_range=r).splitlines()
+        for r in (False, True)
+    )
+    assert default[0] == "## int8: MLPerf-Tiny-shaped models quantised by nncg.quantize"
+    assert reduced[0] == default[0] + " with reduce_range (7-bit weights)"
+    assert [line for line in reduced if "7-bit: reduce_range=True" in line] and "reduce_range" not in "".join(default)
+
+
 def test_memory_suite_rows_set_each_setting_against_speed(tmp_path):
     bad = tmp_path / "broken.onnx"
     bad.write_text("not a model")

@@ -8,13 +8,23 @@ saturated at both ends."""
 
 from __future__ import annotations
 
+import re
 from functools import partial
 
 import numpy as np
+import onnx
 import onnxruntime.quantization
 import pytest
-from helpers import skip_unless_host_runs
-from int8_models import OPSET, compare, onnxruntime_outputs, quantized, random_feeds, residual_model
+from helpers import ROOT, skip_unless_host_runs
+from int8_models import (
+    OPSET,
+    compare,
+    onnxruntime_outputs,
+    quantized,
+    random_feeds,
+    residual_model,
+    stacked_conv_model,
+)
 from onnx import TensorProto, helper, numpy_helper
 
 import nncg
@@ -189,3 +199,68 @@ def test_reduce_range_model_takes_quads_everywhere(target, monkeypatch):
     for kernel in ("QLinearConv */", "QLinearDense */"):
         bodies = [body.split("/* ")[0] for body in compiled.source.split(kernel)[1:]]
         assert bodies and all(MADDUBS[target] in body for body in bodies), kernel
+
+
+MLPERF_TINY = ("resnet8", "dscnn", "mobilenet_v1_025", "autoencoder")
+
+
+@pytest.mark.parametrize("target", TARGETS)
+@pytest.mark.parametrize("name", MLPERF_TINY)
+def test_mlperf_tiny_with_reduce_range_take_quads_in_every_layer(name, target, monkeypatch):
+    """The benchmark's models quantised by nncg.quantize(reduce_range=True): every reduction's weights
+    pass the proof (full-range ones pass in none: README), every layer with pmaddwd pairs also has pmaddubsw
+    quads but for dscnn's first layer (its input keeps a zero point: signed, pairs), and the outputs
+    are identical to onnxruntime's on the same QDQ model."""
+    skip_unless_host_runs(target)
+    path = ROOT / "benchmarks" / "models" / f"{name}.onnx"
+    float_model = onnx.load(path)
+    samples = random_feeds(float_model, 16, 1234)
+    (input_name,) = samples[0]
+    calibration = np.stack([s[input_name] for s in samples])
+    proofs = spy_on_the_proof(monkeypatch)
+    model = nncg.quantize(float_model, calibration, reduce_range=True)
+    compiled = nncg.compile(model, target=target, verify_ir=True)
+    assert proofs and all(proofs)
+    pairs_only = [
+        kernel
+        for kernel, body in layer_bodies(compiled.source)
+        if "_madd_epi16(" in body and MADDUBS[target] not in body
+    ]
+    assert pairs_only == (["stem_conv"] if name == "dscnn" else [])
+    result = compare(model, compiled, random_feeds(float_model, 3, 11))
+    assert result.max_steps == 0 and result.identical == 1.0, result
+
+
+def spy_on_the_proof(monkeypatch) -> list[bool]:
+    """The results of every pair_sums_fit_int16 the dot-product pass asks, in a list."""
+    results: list[bool] = []
+
+    def spy(array):
+        results.append(pair_sums_fit_int16(array))
+        return results[-1]
+
+    monkeypatch.setattr(dot_product, "pair_sums_fit_int16", spy)
+    return results
+
+
+def layer_bodies(source: str) -> list[tuple[str, str]]:
+    """(layer name, C up to the next layer's comment) of each QLinearConv and QLinearDense kernel."""
+    parts = re.split(r"/\* (\w+): (QLinear\w+) \*/", source)
+    return [
+        (parts[i], parts[i + 2]) for i in range(1, len(parts) - 2, 3) if parts[i + 1] in ("QLinearConv", "QLinearDense")
+    ]
+
+
+def test_ssse3_pairs_of_a_quad_share_its_load():
+    """Full-range weights on ssse3 (pmaddwd pairs) reading a channels-last input of 12 channels in two
+    groups of 6: each pair is one half of 4 bytes read at a multiple of 4 (pshufd 0 or 0x55 of one
+    unpack; a pair of the second group shares its bytes with the first's), identical to onnxruntime."""
+    skip_unless_host_runs("ssse3")
+    float_model = stacked_conv_model("grouped")
+    model = quantized(float_model)
+    compiled = nncg.compile(model, target="ssse3", verify_ir=True)
+    quad = "_mm_shuffle_epi32(_mm_unpacklo_epi8(_mm_loadu_si32((const void *)("
+    assert quad in compiled.source and "_mm_setzero_si128()), 85)" in compiled.source
+    assert "_mm_loadu_si16(" not in compiled.source
+    result = compare(model, compiled, random_feeds(float_model, 3, 11))
+    assert result.max_steps == 0 and result.identical == 1.0, result

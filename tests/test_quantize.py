@@ -161,6 +161,26 @@ def test_per_tensor_weights_have_one_scale():
     assert all(values[dequantizers[weight].input[1]].shape == () for weight in LAYER_AXES)
 
 
+def test_reduce_range_weights_are_7_bit(tmp_path, capsys):
+    """reduce_range: weights in -64..64 (full range: -127..127); the command line's --reduce-range writes
+    the API's bytes."""
+    samples = np.random.default_rng(0).standard_normal((8, 1, 2, 4, 4)).astype(np.float32)
+    np.savez(tmp_path / "cal.npz", x=samples)
+    onnx.save(layers_model(), tmp_path / "layers.onnx")
+    full, reduced = (nncg.quantize(tmp_path / "layers.onnx", {"x": samples}, reduce_range=r) for r in (False, True))
+    assert largest_weight(full) == 127 and largest_weight(reduced) == 64
+    out = tmp_path / "layers.qdq.onnx"
+    argv = [tmp_path / "layers.onnx", "--calibration", tmp_path / "cal.npz", "-o", out, "--reduce-range"]
+    assert quantize_cli.main([str(a) for a in argv]) == 0
+    assert capsys.readouterr().err == ""
+    assert out.read_bytes() == reduced.SerializeToString(deterministic=True)
+
+
+def largest_weight(model: onnx.ModelProto) -> int:
+    weights = [initializers(model)[dq.input[0]] for dq in weight_dequantizers(model).values()]
+    return max(int(np.abs(w.astype(int)).max()) for w in weights if w.dtype == np.int8)  # not the int32 biases
+
+
 def test_dense_layer_within_its_rounding_bound():
     """y = x W^T + b in integers, requantised: each error source is at most half a step of its scale, so
     |y_int8 - y| <= s_y/2 + s_x/2 sum_i |W_ji| + s_wj/2 sum_i (|x_i| + s_x/2) + s_x s_wj/2 (input, weight,
@@ -298,6 +318,7 @@ def test_dynamic_batch_is_one(tmp_path):
 API_MISTAKES = {
     "activations": (dict(activations="int4"), "activations must be one of uint8, int8; got str 'int4'"),
     "per_channel": (dict(per_channel="yes"), "per_channel must be True or False"),
+    "reduce_range": (dict(reduce_range=1), "reduce_range must be True or False; got int 1"),
     "method": (dict(calibrate_method="entropy"), "calibrate_method must be one of minmax, percentile; got str"),
     "input_shapes": (dict(input_shapes={"x": (1, -16)}), "input_shapes['x'] must be a tuple of ints"),
 }

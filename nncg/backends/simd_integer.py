@@ -37,8 +37,10 @@ class IntegerVectors:
     """Mixed into SimdPrinter, which has `dtypes`, `expr` and `width`."""
 
     integer_helpers_used: frozenset[tuple[int, str]] = frozenset()  # (lanes, key of the width's int_helpers)
+    buffer_sizes: dict[str, int] = {}  # elements of each buffer, for reads of a whole quad (_quad_half)
 
     def with_integer_helpers(self, program: Program, buffer_dtypes: dict[str, DType]):
+        self.buffer_sizes = {b.name: b.size for b in program.buffers}
         self.integer_helpers_used = frozenset(
             (lanes, key)
             for k in program.kernels
@@ -111,6 +113,10 @@ class IntegerVectors:
             x == Cast(DType.INT32, Load(first.buffer, first.index + j)) for j, x in enumerate(e.x)
         )
         template = f"{'pair' if k == 2 else 'quad'}_{self.dtypes[first.buffer].value}" if first else ""
+        half = self._quad_half(first) if adjacent and k == 2 and f"{template}_of_quad" in ints else None
+        if half is not None:
+            address = f"&{first.buffer}[{c_affine(first.index - 2 * half)}]"
+            return ints[f"{template}_of_quad"].format(address=address, half=half * 0x55)
         if adjacent and template in ints:
             return ints[template].format(address=f"&{first.buffer}[{c_affine(first.index)}]")
         bits, mask = 32 // k, "0xFFFFu" if k == 2 else "0xFFu"
@@ -118,6 +124,16 @@ class IntegerVectors:
             f"(((unsigned){self.expr(x)} & {mask}) << {bits * j})" for j, x in enumerate(e.x) if x != Const.integer(0)
         ]
         return ints["splat"].format(value=f"(int)({' | '.join(parts) or '0u'})")
+
+    def _quad_half(self, first: Load) -> int | None:
+        """0 or 1 where the pair at `first` is the low or the high half of 4 bytes at an index that is a
+        multiple of 4 inside the buffer (every index the loop variables give: their coefficients and
+        the buffer's size multiples of 4), else None. Both pairs of a quad then read the same 4 bytes,
+        which the C compiler loads and unpacks once."""
+        index = first.index
+        if self.buffer_sizes.get(first.buffer, 1) % 4 or any(c % 4 for _, c in index.terms) or index.const % 2:
+            return None
+        return index.const % 4 // 2
 
     def _lane_activations(self, e: Dot, ints: dict[str, str]) -> str:
         """The K activation vectors of a depthwise's taps packed into each lane, tap j in bits

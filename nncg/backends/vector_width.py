@@ -62,6 +62,8 @@ INTEGER_DOTS = {
     "pair_uint8": ("address",),
     "pair_int8": ("address",),
     "quad_uint8": ("address",),
+    # the pair at address + 2 half (half 0 or 0x55) of 4 adjacent uint8 at address, a multiple of 4
+    "pair_uint8_of_quad": ("address", "half"),
     # a depthwise's per-lane taps packed into the lanes (simd_integer._lane_activations): two taps'
     # 8-bit vectors at addresses a and b interleaved into int16 pairs, else widened, shifted and or-ed
     "pair_lanes_uint8": ("a", "b"),

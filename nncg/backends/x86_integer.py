@@ -103,6 +103,8 @@ SSE2 = {
     # 2 adjacent 8-bit activations widened to int16 in every int32 lane (no pmovzxbw, no vpbroadcastd)
     "pair_uint8": f"_mm_shuffle_epi32(_mm_unpacklo_epi8({SSE2_PAIR}, {ZERO}), 0)",
     "pair_int8": f"_mm_shuffle_epi32(_mm_srai_epi16(_mm_unpacklo_epi8({SSE2_PAIR}, {SSE2_PAIR}), 8), 0)",
+    # the low (half 0) or high (0x55) pair of 4 uint8 at address: both pairs share one load and unpack
+    "pair_uint8_of_quad": f"_mm_shuffle_epi32(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {{half}})",
     # a depthwise's two taps (4 channels each) interleaved into int16 pairs: tap a low, tap b high
     "pair_lanes_uint8": f"_mm_unpacklo_epi8({SSE2_TAPS}, {ZERO})",
     "pair_lanes_int8": f"_mm_srai_epi16(_mm_unpacklo_epi8({ZERO}, {SSE2_TAPS}), 8)",
