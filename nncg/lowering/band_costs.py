@@ -19,9 +19,10 @@ between. ansi-c (scalar: Winograd's saving nearer its 2.25x) and neon (the 4-lan
 measured.
 
 An int8 Conv in bands runs in the target's int8 dot products as it does whole (vectorize.py takes a band
-kernel's convolution nests): two int8 3x3 Convs in one group took 1.06-1.07x the instructions of the same
-Convs whole on avx2, line buffers and per-band loops included (callgrind Ir, `python3 -m
-benchmarks.int8_band_costs`; scalar in bands before: 11x); `integer_banded` prices that with a margin."""
+kernel's convolution nests): two int8 3x3 Convs (dense, strided) in one group took 1.00-1.04x the
+instructions of the same Convs whole on ssse3 and 1.05-1.07x on avx2, line buffers and per-band loops
+included (callgrind Ir, `python3 -m benchmarks.int8_band_costs`; scalar in bands before: 4.7-4.8x on
+ssse3, 11x on avx2); `integer_banded` prices that with a margin."""
 
 from __future__ import annotations
 
