@@ -18,10 +18,11 @@ they do not predict microseconds. On avx2 a dense 3x3 Conv loses more in bands t
 between. ansi-c (scalar: Winograd's saving nearer its 2.25x) and neon (the 4-lane figures) are not
 measured.
 
-An int8 Conv in bands stays scalar (vectorize.py vectorises whole int8 layers only), against the
-target's int8 vectors run whole: int8 resnet8 at min, all but its last stage in bands, took 16x
-speed's time on avx2, and int8 robot and resnet8 at min 4-8x on ssse3 (memory suite --int8, a
-loaded machine: they order plans)."""
+An int8 Conv in bands runs in the target's int8 dot products as it does whole (vectorize.py takes a band
+kernel's convolution nests): two int8 3x3 Convs (dense, strided) in one group took 1.00-1.04x the
+instructions of the same Convs whole on ssse3 and 1.05-1.07x on avx2, line buffers and per-band loops
+included (callgrind Ir, `python3 -m benchmarks.int8_band_costs`; scalar in bands before: 4.7-4.8x on
+ssse3, 11x on avx2); `integer_banded` prices that with a margin."""
 
 from __future__ import annotations
 
@@ -39,12 +40,12 @@ class BandCosts:
     banded: float
     per_band: float
     shift: float
-    integer_banded: float  # an int8 Conv in bands against run whole (scalar against the target's int8 vectors)
+    integer_banded: float  # an int8 Conv in a group of bands against run whole, both in the target's dots
 
 
 SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0, integer_banded=1.0)
-VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5, integer_banded=8.0)
-VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=16.0)
+VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5, integer_banded=1.1)
+VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=1.1)
 COSTS = {
     "ansi-c": SCALAR,
     "ssse3": VECTOR4,

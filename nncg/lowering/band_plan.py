@@ -195,8 +195,8 @@ def _band_step(
     banded = costs.banded if j - i > 1 else 1.0  # one layer alone: its direct nest under a band loop
 
     def per_mac(node: Node) -> float:
-        if node.op == "QLinearConv":  # scalar in bands: the int8 vector kernels take whole layers (vectorize.py)
-            return costs.integer_banded
+        if node.op == "QLinearConv":  # in the target's int8 dot products, in bands as whole (vectorize.py)
+            return costs.integer_banded if j - i > 1 else 1.0
         return banded * (costs.winograd if node.name in geo.winograd else 1.0)
 
     work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in graph.nodes[i:j])

@@ -104,7 +104,7 @@ class _Packer:
     def reduction(self, loop: Loop, extents: dict[str, int], target: Target) -> tuple[Stmt, ...] | None:
         """The loop as dot products, or None when it is not `acc += int32(x) * int32(w)` over all the
         input channels of a constant int8 weight array."""
-        match = _multiply_accumulate(loop)
+        match = multiply_accumulate(loop)
         if match is None:
             return None
         acc, x, zero_point, w = match
@@ -204,7 +204,7 @@ def _squeezed(array: np.ndarray) -> np.ndarray:
     return array.reshape(array.shape[:-2] + array.shape[-1:]) if array.ndim > 2 and array.shape[-2] == 1 else array
 
 
-def _multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
+def multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
     """(acc, x load, x zero point, w load) of a loop whose one statement is acc += (int32(x) - zero
     point) * int32(w), the zero point 0 where there is no subtraction."""
     if len(loop.body) != 1 or not isinstance(loop.body[0], Assign):

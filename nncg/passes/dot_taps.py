@@ -16,7 +16,7 @@ from dataclasses import replace
 
 from ..ir.loops import If, Let, Loop, Program, Stmt, walk_stmts
 from ..ir.target import Target
-from .dot_product import _multiply_accumulate
+from .dot_product import multiply_accumulate
 from .substitute import interior, iterations
 
 
@@ -52,6 +52,6 @@ def _guards_taps(loop: Loop) -> bool:
         guard = stmt.body[0]
         if not isinstance(guard, If) or not any(b.expr.coeff(loop.var) for b in guard.bounds):
             continue
-        if _multiply_accumulate(replace(stmt, body=guard.body)) is not None:
+        if multiply_accumulate(replace(stmt, body=guard.body)) is not None:
             return True
     return False

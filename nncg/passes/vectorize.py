@@ -60,7 +60,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from ..ir.target import Target
-from .dot_product import dot_products
+from .dot_product import dot_products, multiply_accumulate
 from .dot_taps import split_tap_borders
 from .substitute import interior, iterations, substitute_body
 
@@ -80,7 +80,10 @@ def vectorize(program: Program, target: Target) -> Program:
         if kernel.name in integer and kernel.name not in vectorizable_integer:
             kernels.append(kernel)
             continue
-        body = mark_vector_loop(kernel.body, widths)
+        if kernel.op == "Band" and kernel.name in integer:
+            body = _mark_conv_stages(kernel.body, widths)
+        else:
+            body = mark_vector_loop(kernel.body, widths)
         overlaps = any(
             isinstance(s, Loop) and s.kind == LoopKind.VECTORIZED and _overlapped_tail_pays(s, widths)
             for s in walk_stmts(body)
@@ -92,7 +95,8 @@ def vectorize(program: Program, target: Target) -> Program:
 
 # the multiply-accumulate kernels, QuantizeLinear (float division, then requantised as they are), the
 # int32 sums of QLinearGlobalAveragePool, the int32 maxima of an int8 MaxPool, and DequantizeLinear
-# (one float32 product of the int32 difference): the same arithmetic in every lane as in scalar C
+# (one float32 product of the int32 difference): the same arithmetic in every lane as in scalar C; of
+# an int8 band kernel (lowering/stream.py), the convolutions' nests (_mark_conv_stages)
 INTEGER_OPS = (
     "QLinearConv",
     "QLinearDense",
@@ -100,6 +104,7 @@ INTEGER_OPS = (
     "QLinearGlobalAveragePool",
     "MaxPool",
     "DequantizeLinear",
+    "Band",
 )
 # onnxruntime computes these in float fused multiply-adds (lowering/quantized_add.py), which vectors of a
 # target with FMA do too, or, without, in double (Target.fma_in_double); the other int8 kernels stay scalar
@@ -179,6 +184,29 @@ def _dot_vectorizable(dot: Dot, var: str) -> bool:
     its own channel's taps)."""
     steps = {e.index.coeff(var) for x in dot.x for e in walk_exprs(x) if isinstance(e, Load)}
     return steps in ({0}, {1}, set()) and dot.w.index.coeff(var) == len(dot.x)
+
+
+def _mark_conv_stages(body: tuple[Stmt, ...], widths: tuple[int, ...]) -> tuple[Stmt, ...]:
+    """An int8 band kernel's body with its convolutions' nests marked: through the band's serial loops
+    (over bands, nested runs, a run's rows) and border checks, each layer's nest (a parallel loop) is
+    marked where it multiply-accumulates; the other layers (table lookups, pooling, the line
+    buffers' shifts: 8-bit loads and stores the integer vectors do not widen) stay scalar."""
+    out: list[Stmt] = []
+    for stmt in body:
+        if isinstance(stmt, If) or (isinstance(stmt, Loop) and not stmt.parallel):
+            stmt = replace(stmt, body=_mark_conv_stages(stmt.body, widths))
+        elif any(_multiply_accumulates(s) for s in walk_stmts((stmt,))):
+            out += mark_vector_loop((stmt,), widths)
+            continue
+        out.append(stmt)
+    return tuple(out)
+
+
+def _multiply_accumulates(stmt: Stmt) -> bool:
+    """acc += dot(...) (dot_product.py), or a loop of acc += int32(x) * int32(w)."""
+    if isinstance(stmt, Loop):
+        return multiply_accumulate(stmt) is not None
+    return isinstance(stmt, Assign) and any(isinstance(e, Dot) for e in walk_exprs(stmt.value))
 
 
 # ---------------------------------------------------------------------------- mechanism
