@@ -169,9 +169,9 @@ def lower(
     ctx = LoweringContext(graph, name, halos, requantize)
     costs = target and target.name
     groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget, costs)}
-    in_place = in_place_layers(graph, memory, budget, costs)
     by_name = {node.name: node for node in graph.nodes}
     banded = {name for group in groups.values() for name in group.nodes}
+    in_place = in_place_layers(graph, memory, budget, costs) - banded  # a banded layer has its line buffer
     # a line buffer has no halo; a group's output neither, as it would only add memory
     unbordered = band_values(graph, tuple(groups.values()))
     ctx.halos = {value: halo for value, halo in ctx.halos.items() if value not in unbordered}
