@@ -11,9 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import onnx
-from onnx import numpy_helper
 
 from .errors import NncgError
+from .frontend.constants import constant_arrays
 from .frontend.io_quantization import MOVING_OPS
 
 # ops whose first output is quantised integers (onnxruntime's contrib QLinear* included)
@@ -58,10 +58,7 @@ class Comparison:
 
 def tensor_steps(model: onnx.ModelProto) -> dict[str, Step]:
     """The quantisation step of every tensor that has one (see the module's docstring)."""
-    consts = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
-    for node in model.graph.node:
-        if node.op_type == "Constant" and node.attribute and node.attribute[0].name == "value":
-            consts[node.output[0]] = numpy_helper.to_array(node.attribute[0].t)
+    consts = constant_arrays(model.graph)
     steps: dict[str, Step] = {}
     for node in model.graph.node:
         step = _step_of(node, consts, steps)

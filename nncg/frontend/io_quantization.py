@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import onnx
-from onnx import numpy_helper
 
+from .constants import constant_arrays
 from .qdq import PASS_THROUGH
 
 Quantization = tuple[float, int]  # (scale, zero point)
@@ -29,12 +29,7 @@ _FLOAT_TYPES = frozenset({onnx.TensorProto.FLOAT, onnx.TensorProto.DOUBLE, onnx.
 def io_quantization(model: onnx.ModelProto) -> dict[str, Quantization]:
     """ONNX name -> (scale, zero point) of the integer graph inputs and outputs that have them."""
     graph = model.graph
-    consts = {t.name: numpy_helper.to_array(t) for t in graph.initializer}
-    consts.update(
-        (n.output[0], numpy_helper.to_array(n.attribute[0].t))
-        for n in graph.node
-        if n.op_type == "Constant" and n.attribute and n.attribute[0].name == "value"
-    )
+    consts = constant_arrays(graph)
     readers: dict[str, list[tuple[onnx.NodeProto, int]]] = {}
     writer: dict[str, onnx.NodeProto] = {}
     for node in graph.node:

@@ -17,6 +17,7 @@ import onnx
 from onnx import helper, numpy_helper
 
 from nncg.errors import NncgError
+from nncg.frontend.constants import constant_tensors
 from nncg.ir.names import fresh_name
 from nncg.safe_text import capped
 
@@ -93,22 +94,13 @@ def _to_nchw(node: onnx.NodeProto, dims: list[int | None], graph: onnx.GraphProt
 
 
 def _single_values(graph: onnx.GraphProto) -> set[str]:
-    """Constants of one element (initializers and Constant nodes)."""
-    found = {t.name for t in graph.initializer if math.prod(t.dims) == 1}
-    for node in graph.node:
-        if node.op_type == "Constant" and node.attribute and node.attribute[0].HasField("t"):
-            found |= {node.output[0]} if math.prod(node.attribute[0].t.dims) == 1 else set()
-    return found
+    """Constants of one element."""
+    return {name for name, tensor in constant_tensors(graph).items() if math.prod(tensor.dims) == 1}
 
 
 def _constant(graph: onnx.GraphProto, name: str) -> list[int] | None:
-    for tensor in graph.initializer:
-        if tensor.name == name:
-            return numpy_helper.to_array(tensor).tolist()
-    for node in graph.node:
-        if node.op_type == "Constant" and node.output[0] == name and node.attribute[0].HasField("t"):
-            return numpy_helper.to_array(node.attribute[0].t).tolist()
-    return None
+    tensor = constant_tensors(graph).get(name)
+    return None if tensor is None else numpy_helper.to_array(tensor).tolist()
 
 
 def image_inputs(model: onnx.ModelProto) -> list[onnx.ValueInfoProto]:
