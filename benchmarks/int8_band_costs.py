@@ -21,6 +21,7 @@ from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantTy
 
 import nncg
 from nncg import lowering
+from nncg.lowering.band_plan import BandPlan
 from nncg.lowering.bands import BandGroup
 from nncg.verify import build_model
 
@@ -70,13 +71,13 @@ def conv_pair(kind: str, workdir: Path):
 
 def instructions(model, target: str, rows: int | None, workdir: Path) -> int:
     """Callgrind's Ir of one run of the model compiled for `target`, whole (rows None) or in one group."""
-    original = lowering.plan_bands
+    original = lowering.plan_layers
     if rows is not None:
-        lowering.plan_bands = lambda graph, *_: (BandGroup(tuple(n.name for n in graph.nodes[:-1]), rows),)
+        lowering.plan_layers = lambda graph, *_: BandPlan((BandGroup(tuple(n.name for n in graph.nodes[:-1]), rows),))
     try:
         compiled = nncg.compile(model, target=target, memory="min" if rows else "speed")
     finally:
-        lowering.plan_bands = original
+        lowering.plan_layers = original
     built = build_model(compiled, workdir)
     out = workdir / "callgrind.out"
     shape = compiled.inputs[0].shape

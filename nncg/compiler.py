@@ -33,7 +33,7 @@ from .ir.c_names import program_name
 from .ir.graph import Graph
 from .ir.loops import Program
 from .limits import check_program_limits
-from .lowering.band_plan import describe_plan, layer_bound_bytes, plan_bands, whole_activation_bytes
+from .lowering.band_plan import describe_plan, layer_bound_bytes, plan_layers, whole_activation_bytes
 from .options import CompileOptions
 from .output_files import write_files
 from .passes import PassManager, parse_pipeline
@@ -223,8 +223,8 @@ def memory_figures(compiled: CompiledModel) -> MemoryFigures | None:
         return None
     lower = next(spec for spec in parse_pipeline(compiled.pipeline) if spec.name == "lower")
     params = dict(lower.params)
-    groups = plan_bands(graph, params.get("memory", "speed"), int(params.get("budget", 0)), compiled.target)
-    return MemoryFigures(layer_bound_bytes(graph), whole_activation_bytes(graph), describe_plan(groups))
+    plan = plan_layers(graph, params.get("memory", "speed"), int(params.get("budget", 0)), compiled.target)
+    return MemoryFigures(layer_bound_bytes(graph), whole_activation_bytes(graph), describe_plan(plan.groups))
 
 
 def onnx_model(model, input_layout: str | None = None, example_inputs=None, exporter: str = DEFAULT_EXPORTER):

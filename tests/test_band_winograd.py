@@ -57,7 +57,7 @@ def compiled_with_plan(monkeypatch, model, target: str, plan) -> nncg.CompiledMo
     groups = tuple(BandGroup(tuple(names[i : j + 1]), rows, winograd=True) for i, j, rows in plan)
     for group in groups:
         assert geometry(graph, group).winograd, group
-    monkeypatch.setattr(nncg.lowering, "plan_bands", lambda *args, **kwargs: groups)
+    monkeypatch.setattr(nncg.lowering, "plan_layers", lambda *args, **kwargs: band_plan.BandPlan(groups))
     return nncg.compile(model, target=target, verify_ir=True)
 
 
@@ -117,7 +117,7 @@ def test_balanced_halves_the_arena_of_winograd_models(model, target):
     compiled = nncg.compile(model, target=target, memory="balanced")
     assert 2 * compiled.arena_bytes <= speed.arena_bytes
     graph = lowered_graph(model, target)
-    assert any(g.winograd for g in band_plan.plan_bands(graph, "balanced", 0, target))
+    assert any(g.winograd for g in band_plan.plan_layers(graph, "balanced", 0, target).groups)
     if target == "avx2":
         check_against_onnxruntime(onnx.load(model), compiled)
 

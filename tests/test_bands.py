@@ -15,7 +15,7 @@ from nncg.backends import BACKENDS, get_target
 from nncg.frontend import import_onnx
 from nncg.lowering import band_plan
 from nncg.lowering.band_costs import COSTS, band_costs
-from nncg.lowering.band_plan import layer_bound_bytes, plan_bands
+from nncg.lowering.band_plan import layer_bound_bytes, plan_layers
 from nncg.lowering.bands import BandGroup, geometry
 from nncg.passes import PassManager, default_pipeline
 from nncg.verify_layers import verify_per_layer
@@ -80,7 +80,7 @@ def test_every_band_height_gives_the_same_outputs(rows, monkeypatch):
     graph = lowered_graph(model, "ansi-c")
     assert geometry(graph, BandGroup(tuple(n.name for n in graph.nodes), rows)) is not None
     monkeypatch.setattr(band_plan, "BAND_ROWS", (rows,))
-    assert {group.rows for group in plan_bands(graph, "min")} == {rows}
+    assert {group.rows for group in plan_layers(graph, "min").groups} == {rows}
     compiled = nncg.compile(model, target="ansi-c", memory="min")
     check_against_onnxruntime(model, compiled, sanitize=rows == 3)
 
@@ -233,7 +233,7 @@ def test_depthwise_runs_in_place_where_the_budget_needs_it(target, kernel, pads)
     speed = nncg.compile(model, target=target)
     compiled = nncg.compile(model, target=target, ram_budget=IN_PLACE_BUDGET)
     graph = lowered_graph(model, target)
-    assert band_plan.in_place_layers(graph, "speed", IN_PLACE_BUDGET, target) == {graph.nodes[1].name}
+    assert band_plan.plan_layers(graph, "speed", IN_PLACE_BUDGET, target).in_place == {graph.nodes[1].name}
     assert band_kernels(compiled) == 0
     assert (speed.arena_bytes, compiled.arena_bytes) == (262_144, 155_648 + 1024 * 4 * (pads[0] - 1))
     check_against_onnxruntime(model, compiled, sanitize=target == "ansi-c")
@@ -257,8 +257,16 @@ def test_in_place_depthwise_reads_back_per_layer_and_is_left_out_where_it_does_n
     report = verify_per_layer(model, "ansi-c", ram_budget=IN_PLACE_BUDGET, sanitize=True)
     assert report.ok, report.format()
     graph = lowered_graph(model, "ssse3")
-    assert not band_plan.in_place_layers(graph, "speed", 300_000, "ssse3")  # fits without it
-    assert not band_plan.in_place_layers(graph, "speed", 0, "ssse3")
+    assert not band_plan.plan_layers(graph, "speed", 300_000, "ssse3").in_place  # fits without it
+    assert not band_plan.plan_layers(graph, "speed", 0, "ssse3").in_place
+
+
+def test_a_plan_runs_no_layer_both_in_bands_and_in_place():
+    graph = lowered_graph(depthwise_peak_model(3, [1, 1, 1, 1]), "ssse3")
+    for memory in band_plan.MEMORY_MODES:
+        for budget in (0, IN_PLACE_BUDGET, 100_000):
+            plan = plan_layers(graph, memory, budget, "ssse3")
+            assert not plan.in_place & {name for group in plan.groups for name in group.nodes}
 
 
 # ---------------------------------------------------------------------------- the planner and options
@@ -266,7 +274,7 @@ def test_in_place_depthwise_reads_back_per_layer_and_is_left_out_where_it_does_n
 
 def test_speed_is_the_default_and_plans_nothing():
     graph = lowered_graph(ROBOT)
-    assert plan_bands(graph) == ()
+    assert plan_layers(graph) == band_plan.BandPlan()
     assert nncg.compile(ROBOT, target="ssse3").source == nncg.compile(ROBOT, target="ssse3", memory="speed").source
 
 
@@ -311,7 +319,7 @@ def test_balanced_halves_the_arena_where_a_plan_is_fast_enough():
 def test_plans_are_priced_for_the_target():
     """ball: bands cost less on scalar C than on avx2, so balanced cuts deeper there; compile hands
     lower its target, and the report names the plan priced for it."""
-    plans = {t: plan_bands(lowered_graph(BALL, t), "balanced", 0, t) for t in ("ansi-c", "avx2")}
+    plans = {t: plan_layers(lowered_graph(BALL, t), "balanced", 0, t).groups for t in ("ansi-c", "avx2")}
     assert plans["ansi-c"] != plans["avx2"]
     for target, groups in plans.items():
         compiled = nncg.compile(BALL, target=target, memory="balanced")

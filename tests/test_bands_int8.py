@@ -18,7 +18,7 @@ from test_cross_targets import require
 import nncg
 from nncg import lowering
 from nncg.compiler import memory_figures
-from nncg.lowering.band_plan import in_place_layers, plan_bands
+from nncg.lowering.band_plan import BandPlan, plan_layers
 from nncg.lowering.bands import BandGroup, geometry
 
 MODELS = {  # the MLPerf-Tiny-shaped classifiers and robot, as tests/test_int8.py quantises them
@@ -109,19 +109,24 @@ def whole_chain(graph, rows: int) -> BandGroup:
     return BandGroup(tuple(n.name for n in graph.nodes[:-1]), rows)
 
 
+def whole_chain_plan(rows: int):
+    """A stand-in for lowering's planner: whole_chain in bands of `rows`, nothing in place."""
+    return lambda graph, *_: BandPlan((whole_chain(graph, rows),))
+
+
 def test_every_int8_kind_streams_in_one_group(chain):
     graph = lowered_graph(chain, "ansi-c")
     kinds = {"QuantizeLinear", "QLinearConv", "QLinearLookup", "MaxPool", "QLinearAdd", "QLinearAveragePool"}
     assert {n.op for n in graph.nodes} >= kinds
     assert geometry(graph, whole_chain(graph, 1)) is not None
-    assert plan_bands(graph, "min")  # the plan takes the head, where the image is largest
+    assert plan_layers(graph, "min").groups  # the plan takes the head, where the image is largest
 
 
 @pytest.mark.parametrize("rows", [1, 2, 3, 8])
 def test_every_band_height_is_bit_identical(chain, rows, monkeypatch):
     """The whole chain in one group at each height (the plan would stop at the pool, where the
     tensors become small)."""
-    monkeypatch.setattr(lowering, "plan_bands", lambda graph, *_: (whole_chain(graph, rows),))
+    monkeypatch.setattr(lowering, "plan_layers", whole_chain_plan(rows))
     compiled = nncg.compile(chain, target="ansi-c", memory="min", verify_ir=True)
     assert band_kernels(compiled) == 1
     check(chain, compiled, sanitize=rows == 3)
@@ -135,7 +140,7 @@ def test_banded_conv_runs_in_dot_products(kind, target, monkeypatch):
     skip_unless_host_runs(target)
     model = conv_pair_model(kind)
     for rows in (1, 2, 3, 8):
-        monkeypatch.setattr(lowering, "plan_bands", lambda graph, *_, rows=rows: (whole_chain(graph, rows),))
+        monkeypatch.setattr(lowering, "plan_layers", whole_chain_plan(rows))
         compiled = nncg.compile(model, target=target, memory="min", verify_ir=True)
         assert band_kernels(compiled) == 1
         assert_banded_dots(compiled, target)
@@ -147,7 +152,7 @@ def test_banded_conv_runs_in_dot_products(kind, target, monkeypatch):
 def test_chain_on_the_x86_targets(chain, target, rows, monkeypatch):
     """Every int8 kind in one group, its convolutions in vectors, the others scalar."""
     skip_unless_host_runs(target)
-    monkeypatch.setattr(lowering, "plan_bands", lambda graph, *_: (whole_chain(graph, rows),))
+    monkeypatch.setattr(lowering, "plan_layers", whole_chain_plan(rows))
     compiled = nncg.compile(chain, target=target, memory="min", verify_ir=True)
     assert band_kernels(compiled) == 1
     assert_banded_dots(compiled, target)
@@ -178,7 +183,7 @@ def test_chain_on_neon(chain, toolchain):
 def test_every_band_height_on_neon(chain, toolchain, rows, monkeypatch):
     tc = TOOLCHAINS[toolchain]
     require(missing_tools(tc))
-    monkeypatch.setattr(lowering, "plan_bands", lambda graph, *_: (whole_chain(graph, rows),))
+    monkeypatch.setattr(lowering, "plan_layers", whole_chain_plan(rows))
     compiled = nncg.compile(chain, target=tc.target, memory="min", verify_ir=True)
     assert_banded_dots(compiled, tc.target)
     check(chain, compiled, cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
@@ -215,7 +220,7 @@ def test_balanced_bands_int8_convs_in_vectors(target):
     stages on x86 too, halving speed's arena, bit-identical and vectorised."""
     skip_unless_host_runs(target)
     qdq = quantized(repository_model(MODELS["resnet8"]))
-    assert plan_bands(lowered_graph(qdq, target), "balanced", target=target)
+    assert plan_layers(lowered_graph(qdq, target), "balanced", target=target).groups
     speed = nncg.compile(qdq, target=target, memory="speed")
     balanced = nncg.compile(qdq, target=target, memory="balanced")
     assert balanced.arena_bytes <= speed.arena_bytes / 2
@@ -255,7 +260,7 @@ def test_int8_depthwise_runs_in_place_where_the_budget_needs_it(depthwise_peak, 
     32 KB tensor): bit-identical with onnxruntime, under the sanitizers on ansi-c."""
     skip_unless_host_runs(target)
     graph = lowered_graph(depthwise_peak, target)
-    assert in_place_layers(graph, "speed", IN_PLACE_BUDGET, target) == {depthwise_layer(graph)}
+    assert plan_layers(graph, "speed", IN_PLACE_BUDGET, target).in_place == {depthwise_layer(graph)}
     compiled = nncg.compile(depthwise_peak, target=target, ram_budget=IN_PLACE_BUDGET, verify_ir=True)
     assert nncg.compile(depthwise_peak, target=target).arena_bytes == 65_536
     assert compiled.arena_bytes <= IN_PLACE_BUDGET
@@ -266,12 +271,12 @@ def test_int8_depthwise_runs_in_place_on_neon(depthwise_peak):
     tc = TOOLCHAINS["aarch64-neon-dotprod"]
     require(missing_tools(tc))
     compiled = nncg.compile(depthwise_peak, target=tc.target, ram_budget=IN_PLACE_BUDGET, verify_ir=True)
-    assert in_place_layers(lowered_graph(depthwise_peak, tc.target), "speed", IN_PLACE_BUDGET, tc.target)
+    assert plan_layers(lowered_graph(depthwise_peak, tc.target), "speed", IN_PLACE_BUDGET, tc.target).in_place
     assert compiled.arena_bytes <= IN_PLACE_BUDGET
     check(depthwise_peak, compiled, cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
 
 
 def test_int8_depthwise_stays_apart_where_it_does_not_pay(depthwise_peak):
     graph = lowered_graph(depthwise_peak, "ssse3")
-    assert not in_place_layers(graph, "speed", 70_000, "ssse3")  # speed fits
-    assert not in_place_layers(graph, "min", 0, "ssse3")  # bands take less
+    assert not plan_layers(graph, "speed", 70_000, "ssse3").in_place  # speed fits
+    assert not plan_layers(graph, "min", 0, "ssse3").in_place  # bands take less

@@ -12,7 +12,7 @@ from ..ir.kinds import ConvAlgorithm
 from ..ir.loops import Program, StoredValue
 from ..ir.ops import REDUCE_OPS
 from ..ir.target import Target
-from .band_plan import in_place_layers, plan_bands
+from .band_plan import plan_layers
 from .bands import BandGroup
 from .concat import lower_concat
 from .context import LoweringContext, TensorRef, row_major
@@ -167,18 +167,17 @@ def lower(
     `fixed` (integers only, see lowering/requantize.py)."""
     name = program_name(function_name or graph.name)
     ctx = LoweringContext(graph, name, halos, requantize)
-    costs = target and target.name
-    groups = {group.nodes[0]: group for group in plan_bands(graph, memory, budget, costs)}
+    plan = plan_layers(graph, memory, budget, target and target.name)
+    groups = {group.nodes[0]: group for group in plan.groups}
     by_name = {node.name: node for node in graph.nodes}
-    banded = {name for group in groups.values() for name in group.nodes}
-    in_place = in_place_layers(graph, memory, budget, costs) - banded  # a banded layer has its line buffer
+    banded = {name for group in plan.groups for name in group.nodes}
     # a line buffer has no halo; a group's output neither, as it would only add memory
-    unbordered = band_values(graph, tuple(groups.values()))
+    unbordered = band_values(graph, plan.groups)
     ctx.halos = {value: halo for value, halo in ctx.halos.items() if value not in unbordered}
     for node in graph.nodes:  # not where halos=true gives a tensor a zero border the plan did not count
-        if node.name in in_place and not {node.inputs[0], node.outputs[0]} & ctx.halos.keys():
+        if node.name in plan.in_place and not {node.inputs[0], node.outputs[0]} & ctx.halos.keys():
             ctx.in_place[node.outputs[0]] = (node.inputs[0], node.attrs.pads_begin[0] + 1)
-    in_place = {name for name in in_place if by_name[name].outputs[0] in ctx.in_place}
+    in_place = {name for name in plan.in_place if by_name[name].outputs[0] in ctx.in_place}
     for value in graph.inputs:
         order = row_major(len(value.shape))
         ctx.refs[value.name] = ctx.add_buffer(

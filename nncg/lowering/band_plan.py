@@ -61,26 +61,31 @@ def parse_memory(text: str) -> str:
     return text
 
 
-def plan_bands(
-    graph: Graph, memory: str = "speed", budget: int = 0, target: str | None = None
-) -> tuple[BandGroup, ...]:
-    """The groups to run in bands; `budget` (bytes, 0: none) takes precedence over `memory`, and
-    `target` (a backend's name) prices the plans. A budget no plan meets gets the `min` plan (the
-    driver then refuses with its arena)."""
-    if memory == "speed" and not budget:
-        return ()
-    return tuple(s.group for s in plan_steps(graph, memory, budget, target) if s.group is not None)
+@dataclass(frozen=True)
+class BandPlan:
+    """How the layers run: the `groups` in bands, the depthwise Convs named in `in_place` whole over
+    their input (in_place.py), every other layer whole. Each layer is in one step of the plan, so
+    none is both banded and in place."""
+
+    groups: tuple[BandGroup, ...] = ()
+    in_place: frozenset[str] = frozenset()
 
 
-def in_place_layers(graph: Graph, memory: str = "speed", budget: int = 0, target: str | None = None) -> set[str]:
-    """The depthwise Convs the plan runs in place (none for `speed`)."""
+def plan_layers(graph: Graph, memory: str = "speed", budget: int = 0, target: str | None = None) -> BandPlan:
+    """The plan for `memory`; `budget` (bytes, 0: none) takes precedence over it, and `target` (a
+    backend's name) prices the plans. A budget no plan meets gets the `min` plan (the driver then
+    refuses with its arena); `speed` without a budget runs every layer whole."""
     if memory == "speed" and not budget:
-        return set()
-    return {graph.nodes[s.start].name for s in plan_steps(graph, memory, budget, target) if s.in_place}
+        return BandPlan()
+    steps = plan_steps(graph, memory, budget, target)
+    return BandPlan(
+        tuple(s.group for s in steps if s.group is not None),
+        frozenset(graph.nodes[s.start].name for s in steps if s.in_place),
+    )
 
 
 def plan_steps(graph: Graph, memory: str, budget: int, target: str | None) -> list[Step]:
-    """The steps of the plan plan_bands chooses (for `speed`: every layer whole). The candidates are
+    """The steps of the plan plan_layers chooses (for `speed`: every layer whole). The candidates are
     the fastest plan under every memory bound, from the steps without in-place depthwise Convs and,
     where a model has some, from the steps with them (their tensors counted with the rows they are
     stored down, wherever they are live: an estimate on the safe side)."""
