@@ -12,7 +12,7 @@ block of pixels then reuses that slice from L1, and the weights come from memory
 the output is read back between reduction blocks and the input is read once per panel.
 
 The cost model (`chosen_blocks`) blocks a layer whose weights exceed the target's L1; the panel is
-the register block's channel vectors (register_block.choose_blocks), the input-channel block the
+the register block's channel vectors (register_block.channel_block), the input-channel block the
 largest divisor of the input channels that fits. A grouped (not depthwise) Conv is always computed
 one group per panel, whatever its size: unblocked, its group loop is the innermost loop around the
 channels, so register-block jams groups, which share neither inputs nor weights (regnet_x_400mf's
@@ -30,7 +30,7 @@ from ..ir.applicability import cache_block_applies, group_panels_apply, panel_pa
 from ..ir.graph import Graph, Node
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
-from .register_block import RESERVED, choose_blocks
+from .register_block import RESERVED, channel_block
 
 OFF = (0, 0)
 FLOAT_BYTES = 4
@@ -111,13 +111,13 @@ def _columns(graph: Graph, node: Node) -> int:
     return graph.shape(node.outputs[0])[-1]
 
 
-def _shape(graph: Graph, node: Node) -> tuple[int, int, int, int]:
-    """(output channels, input channels (of a group), taps, output row length) of a Conv or Gemm/MatMul."""
+def _shape(graph: Graph, node: Node) -> tuple[int, int, int]:
+    """(output channels, input channels (of a group), taps) of a Conv or Gemm/MatMul."""
     if node.op == "Conv":
         c_out, c_in, *kernel = graph.shape(node.inputs[1])
-        return c_out, c_in, math.prod(kernel), graph.shape(node.outputs[0])[-1]
-    out = graph.shape(node.outputs[0])
-    return out[-1], math.prod(graph.shape(node.inputs[1])) // out[-1], 1, out[-2] if len(out) > 1 else 1
+        return c_out, c_in, math.prod(kernel)
+    c_out = graph.shape(node.outputs[0])[-1]
+    return c_out, math.prod(graph.shape(node.inputs[1])) // c_out, 1
 
 
 def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
@@ -126,13 +126,13 @@ def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
     if not target.l1_bytes or not target.vector_widths:
         return OFF
     if group_panels_apply(graph, node):
-        c_out, c_in, taps, _ = _shape(graph, node)
+        c_out, c_in, taps = _shape(graph, node)
         panel = c_out // node.attrs.group
         return panel, input_block(c_in, taps, panel, target)
     conv = cache_block_applies(graph, node)
     if not (conv or panel_packing_applies(graph, node)):
         return OFF
-    c_out, c_in, taps, _ = _shape(graph, node)
+    c_out, c_in, taps = _shape(graph, node)
     if FLOAT_BYTES * c_out * c_in * taps <= target.l1_bytes:
         return OFF
     panel = panel_width(graph, node, target)
@@ -142,8 +142,8 @@ def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
 def panel_width(graph: Graph, node: Node, target: Target) -> int:
     """The output channels one register block holds (all of them when they fit one); a GEMV holds an
     accumulator per reduction stream for each of them, so fewer where the registers would not hold all."""
-    c_out, _, _, row = _shape(graph, node)
-    channels = choose_blocks((row, -(-c_out // target.lanes)), target.registers)[1]
+    c_out = _shape(graph, node)[0]
+    channels = channel_block(-(-c_out // target.lanes))
     if node.op != "Conv":
         streams = reduction_streams(graph, node)
         channels = min(channels, max(1, (target.registers - RESERVED) // streams))
@@ -167,10 +167,10 @@ def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[tuple[int
             out[node.name] = (chosen_blocks(graph, node, target), OFF)
             continue
         applies = cache_block_applies(graph, node) or panel_packing_applies(graph, node)
-        if not applies or 2 * FLOAT_BYTES * math.prod(_shape(graph, node)[:3]) <= target.l1_bytes:
+        if not applies or 2 * FLOAT_BYTES * math.prod(_shape(graph, node)) <= target.l1_bytes:
             continue
         if cache_block_applies(graph, node):
-            c_out, c_in, taps, _ = _shape(graph, node)
+            c_out, c_in, taps = _shape(graph, node)
             panel = panel_width(graph, node, target)
             block = input_block(c_in, taps, panel, target)
             options = [chosen_blocks(graph, node, target), OFF, (panel, block)]

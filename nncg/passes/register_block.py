@@ -20,7 +20,7 @@ overrides it per layer (what `--tune` measured), `jam_loop` does the rewriting."
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from ..ir.analysis import holds_accumulators, is_accumulator
 from ..ir.dtypes import is_integer_kernel
@@ -88,21 +88,8 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
     layers = layers or {}
     check_layer_names(program, layers, "register-block")
     blocks = chosen_blocks(program, target, layers)
-    planar = planar_tensors(program)
-    constants = constant_buffers(program)
     kernels = tuple(
-        replace(
-            k,
-            body=_block_kernel(
-                k,
-                blocks[k.name],
-                k.name not in layers,
-                target.registers,
-                fused_kernel(k, program, target),
-                planar,
-                constants,
-            ),
-        )
+        replace(k, body=_block_kernel(k, blocks[k.name], k.name not in layers, program, target))
         if k.name in blocks
         else k
         for k in program.kernels
@@ -111,17 +98,16 @@ def register_block(program: Program, target: Target, layers: dict[str, tuple[int
 
 
 def _block_kernel(
-    kernel: Kernel, block: tuple[int, int], own: bool, registers: int, fma: bool, planar, constants
+    kernel: Kernel, block: tuple[int, int], own: bool, program: Program, target: Target
 ) -> tuple[Stmt, ...]:
     """A kernel's body blocked by `block`; a band kernel runs several layers' nests, each of which the
     cost model sizes for itself (unless `layers` chose the kernel's block: `own` is False)."""
     if kernel.op != "Band" or not own:
         return block_body(kernel.body, *block)
+    planar = planar_tensors(program)
 
     def per_nest(pixel: Loop) -> tuple[int, int]:
-        shape = (pixel.extent, sum(_vectors(s) for s in pixel.body))
-        vector_inputs = multiplies_vector_inputs(pixel, constants)
-        pixels, channels = choose_blocks(shape, registers, fma, vector_inputs, row_extent(kernel.body, pixel))
+        pixels, channels = nest_facts(kernel, pixel, program, target).choose()
         return (1 if reads_across_planes((pixel,), planar) else pixels), channels
 
     return block_body(kernel.body, *block, per_nest)
@@ -134,22 +120,17 @@ def chosen_blocks(
     (one pixel where the layer reads across planes). Also what --report shows."""
     layers = layers or {}
     blocks = {}
-    constants = constant_buffers(program)
     for kernel in program.kernels:
         # an int8 kernel is blocked once vectorised (int32 vector accumulators), a scalar one is not
         scalar_integer = is_integer_kernel(kernel, program) and not any(
             e.lanes > 1 for s in walk_stmts(kernel.body) for top in stmt_exprs(s) for e in walk_exprs(top)
         )
-        shape = None if scalar_integer else block_shape(kernel.body)
-        if shape is None:
+        facts = None if scalar_integer else kernel_facts(kernel, program, target)
+        if facts is None:
             continue
-        fma = fused_kernel(kernel, program, target)
-        pixel = first_pixel_loop(kernel.body)
-        vector_inputs = multiplies_vector_inputs(pixel, constants)
-        rows = row_extent(kernel.body, pixel)
-        pixels, channels = layers.get(kernel.name) or choose_blocks(shape, target.registers, fma, vector_inputs, rows)
-        if kernel.name not in layers and fma and channels == 1:
-            pixels = one_vector_pixels(kernel, program, target, shape[0], pixels, vector_inputs)
+        pixels, channels = layers.get(kernel.name) or facts.choose()
+        if kernel.name not in layers and facts.fused and channels == 1:
+            pixels = one_vector_pixels(kernel, program, target, facts.shape[0], pixels, facts.vector_inputs)
         if kernel.name not in layers and reads_across_planes(kernel.body, planar_tensors(program)):
             pixels = 1
         blocks[kernel.name] = (pixels, channels)
@@ -279,16 +260,48 @@ def _reads_own_element(load: Load, own: dict, var: str) -> bool:
 
 def tuning_candidates(program: Program, target: Target) -> dict[str, tuple[tuple[int, int], ...]]:
     """For --tune: each blockable layer's block shapes worth timing."""
-    kernels = {k.name: k for k in program.kernels}
-    constants = constant_buffers(program)
     out = {}
-    for name, shape in blockable(program).items():
-        body = kernels[name].body
-        pixel = first_pixel_loop(body)
-        fused = fused_kernel(kernels[name], program, target)
-        vector_inputs = multiplies_vector_inputs(pixel, constants)
-        out[name] = tuple(block_candidates(shape, target.registers, fused, vector_inputs, row_extent(body, pixel)))
+    for kernel in program.kernels:
+        facts = kernel_facts(kernel, program, target)
+        if facts is not None:
+            out[kernel.name] = tuple(facts.candidates())
     return out
+
+
+@dataclass(frozen=True)
+class NestFacts:
+    """What the cost model sizes a nest's block from, read off its kernel for the target (nest_facts),
+    so that blocking, --report and --tune ask it the same question."""
+
+    shape: tuple[int, int]  # (pixel loop extent, channel vectors per pixel)
+    registers: int
+    fused: bool  # fused_kernel
+    vector_inputs: bool  # multiplies_vector_inputs
+    rows: int  # row_extent
+
+    def choose(self) -> tuple[int, int]:
+        return choose_blocks(self.shape, self.registers, self.fused, self.vector_inputs, self.rows)
+
+    def candidates(self) -> list[tuple[int, int]]:
+        return block_candidates(self.shape, self.registers, self.fused, self.vector_inputs, self.rows)
+
+
+def nest_facts(kernel: Kernel, pixel: Loop, program: Program, target: Target) -> NestFacts:
+    """The facts of the nest around `pixel` in `kernel`."""
+    return NestFacts(
+        (pixel.extent, sum(_vectors(s) for s in pixel.body)),
+        target.registers,
+        fused_kernel(kernel, program, target),
+        multiplies_vector_inputs(pixel, constant_buffers(program)),
+        row_extent(kernel.body, pixel),
+    )
+
+
+def kernel_facts(kernel: Kernel, program: Program, target: Target) -> NestFacts | None:
+    """The facts of the kernel's first blockable nest (block_shape's), None when it has none."""
+    pixel = first_pixel_loop(kernel.body)
+    facts = None if pixel is None else nest_facts(kernel, pixel, program, target)
+    return facts if facts is not None and facts.shape[1] else None
 
 
 def blockable(program: Program) -> dict[str, tuple[int, int]]:
@@ -348,7 +361,7 @@ def choose_blocks(
     takes whole rows, as many as fit: each weight vector then serves the pixels of several rows
     (resnet18's layer4, 3x3 pixels, avx512: 6x4, two rows, 1.07x faster than 3x4; 9x3 spills)."""
     extent, vectors = shape
-    channels = vectors if vectors <= MAX_CHANNEL_BLOCK else MAX_CHANNEL_BLOCK - 1
+    channels = channel_block(vectors)
     fit = (registers - 1) // (channels + 1) if fused else (registers - RESERVED) // channels
     if fused and vector_inputs and channels == MAX_CHANNEL_BLOCK - 1:
         fit = min(fit, VECTOR_INPUT_PIXELS)
@@ -356,6 +369,11 @@ def choose_blocks(
     if pixels == extent and rows > 1 and fit >= 2 * extent:
         pixels = extent * min(rows, fit // extent)
     return pixels, channels
+
+
+def channel_block(vectors: int) -> int:
+    """The channel vectors a block jams of a pixel's `vectors` (choose_blocks; cache-block's panels)."""
+    return vectors if vectors <= MAX_CHANNEL_BLOCK else MAX_CHANNEL_BLOCK - 1
 
 
 def constant_buffers(program: Program) -> set[str]:
