@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..errors import NncgError
+from ..ir.arena import arena_regions, typed_arena
 from ..ir.kinds import BufferRole, DType
 from ..ir.loops import Kernel, Let, Loop, Program, Store, read_buffer, stmt_exprs, walk_exprs, walk_stmts
 from ..ir.rename import rename_variables
@@ -31,6 +32,7 @@ PORTABILITY_MACROS = (
     "#endif",
 )
 VALUES_PER_LINE = 8
+FLOAT_BYTES = 4  # the unit of arena offsets
 
 
 def source(printer: ScalarPrinter, program: Program, first_line: str, header_name: str, profile: bool = False) -> str:
@@ -116,7 +118,8 @@ def _run_function(program: Program, calls: list[str], passed: set[str], profile:
     NAME_WEIGHTS_ALIGN-byte aligned) and each internal buffer into the caller's arena, then runs the
     layers. `passed` names the buffers some layer takes; an input no layer reads is cast to void."""
     decls = weights_pointers(program) if external_weights(program) else []
-    decls += [f"{_arena_pointer(b)}; /* {'x'.join(map(str, b.shape))} {b.layout} */" for b in _planned(program)]
+    typed = typed_arena(program)
+    decls += [f"{_arena_pointer(b, typed)}; /* {'x'.join(map(str, b.shape))} {b.layout} */" for b in _planned(program)]
     if profile:
         decls.append("double start = nncg_now(), end;")
         calls = _timed(program, calls)
@@ -127,15 +130,17 @@ def _run_function(program: Program, calls: list[str], passed: set[str], profile:
     return [run_signature(program), "{", *(INDENT + line for line in body), "}", ""]
 
 
-def _arena_pointer(buf) -> str:
-    """The declaration of a buffer's pointer into the float arena. The arena stays float (its offsets
-    count floats, and float code reads it as float): an int8 or uint8 buffer is read and written
-    through a character type, which may access any object. int32 and int16 values never live in the
-    arena (the lowering keeps them in locals), since reading them through a float array breaks C's
-    aliasing rules."""
+def _arena_pointer(buf, typed: bool) -> str:
+    """The declaration of a buffer's pointer into the arena. An arena of float regions only is used as
+    a float array (offsets count floats); an int8 or uint8 buffer is read and written through a
+    character type, which may access any object. An arena with int16 or int32 regions is addressed
+    in bytes, as the struct of typed regions it is (ir/arena.py); the pointer passes through void *,
+    as the offset keeps the element type's alignment."""
+    ctype = c_type(buf.dtype)
+    if typed:
+        return f"{ctype} *const {buf.name} = ({ctype} *)(void *)((char *)arena + {buf.offset * FLOAT_BYTES})"
     if buf.dtype == DType.FLOAT32:
         return f"float *const {buf.name} = (float *)arena + {buf.offset}"
-    ctype = c_type(buf.dtype)
     return f"{ctype} *const {buf.name} = ({ctype} *)((float *)arena + {buf.offset})"
 
 
@@ -144,12 +149,35 @@ def _static_arena_function(program: Program) -> list[str]:
     args = [b.name for b in (*program.role(BufferRole.INPUT), *program.role(BufferRole.OUTPUT))]
     args += ["weights"] if external_weights(program) else []
     lines = []
-    if program.arena.floats:
+    if program.arena.floats and typed_arena(program):
+        lines += _static_typed_arena(program)
+        args.append(f"&{program.name}_arena")
+    elif program.arena.floats:
         lines += [f"static NNCG_ALIGNED float {program.name}_arena[{program.arena.floats}];", ""]
         args.append(f"{program.name}_arena")
     else:
         args.append("(void *)0")
     return lines + [signature(program), "{", f"{INDENT}{program.name}_run({', '.join(args)});", "}"]
+
+
+def _static_typed_arena(program: Program) -> list[str]:
+    """The static arena as a struct of one array per typed region, so each buffer is an object of its
+    own type. The typedef does not compile where the struct has padding (the regions would move) or
+    an element type is not the size the plan counts."""
+    struct = f"struct {program.name}_arena_regions"
+    members = [
+        f"{INDENT}{c_type(r.dtype)} r{i}[{r.floats * FLOAT_BYTES // r.dtype.bytes}];"
+        for i, r in enumerate(arena_regions(program))
+    ]
+    bytes_ = program.arena.floats * FLOAT_BYTES
+    return [
+        f"{struct} {{",
+        *members,
+        "};",
+        f"typedef char {program.name}_arena_unpadded[sizeof({struct}) == {bytes_} ? 1 : -1];",
+        f"static NNCG_ALIGNED {struct} {program.name}_arena;",
+        "",
+    ]
 
 
 def _planned(program: Program) -> tuple:

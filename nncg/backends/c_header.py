@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from ..ir.arena import typed_arena
 from ..ir.kinds import BufferRole, DType
 from ..ir.loops import Buffer, Program, Store, walk_stmts
 from ..safe_text import comment_name
@@ -54,8 +55,7 @@ def header(
     lines += [
         "",
         f"/* Activation memory: one arena of {macro}_ARENA_BYTES (the memory plan reuses space: without",
-        f"   reuse the activations would take {arena.activation_floats * 4} bytes). Any float-aligned block",
-        f"   works; {macro}_ARENA_ALIGN-byte alignment is fastest. */",
+        *_arena_kind(program, f"reuse the activations would take {arena.activation_floats * 4} bytes).", macro),
         f"#define {macro}_ARENA_BYTES {arena.floats * 4}",
         f"#define {macro}_ARENA_ALIGN {arena.align_floats * 4}",
         "",
@@ -79,6 +79,17 @@ def header(
 def signature(program: Program) -> str:
     """NAME: inputs, then outputs (then the weights blob when there is one)."""
     return f"void {program.name}({', '.join(_io_params(program))})"
+
+
+def _arena_kind(program, reuse: str, macro: str) -> list[str]:
+    """The rest of the arena's comment: what memory the caller may pass."""
+    if typed_arena(program):  # int16 or int32 regions besides float ones: no declared array has all those types
+        return [
+            f"   {reuse} It holds float and integer buffers, so pass",
+            f"   allocated memory (malloc), not an array of one type; {macro}_ARENA_ALIGN-byte alignment",
+            "   is fastest. */",
+        ]
+    return [f"   {reuse} Any float-aligned block", f"   works; {macro}_ARENA_ALIGN-byte alignment is fastest. */"]
 
 
 def run_signature(program: Program) -> str:

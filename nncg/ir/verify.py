@@ -31,12 +31,12 @@ from ..ir.loops import (
     walk_exprs,
 )
 from ..ir.ops import IR_OPS
+from .arena import ARENA_DTYPES, sharing_problems
 from .dtypes import buffer_dtypes, expr_dtype
 from .graph_dtypes import OUTPUT_DTYPES, graph_dtype_problems
 from .kinds import BufferRole, DType, LoopKind
 
 FLOAT32, INT32 = DType.FLOAT32, DType.INT32
-ARENA_DTYPES = (DType.FLOAT32, DType.INT8, DType.UINT8)  # what an arena buffer may hold (c_file.py says why)
 VECTOR_WIDTHS = (1, 2, 4, 8, 16)  # lanes a loop or expression may have
 
 
@@ -87,6 +87,7 @@ def verify_program(program: Program) -> list[str]:
         data = program.constants.get(buf.name)
         if data is not None and data.dtype.name != buf.dtype:
             problems.append(f"constant {buf.name} is {buf.dtype} but its data is {data.dtype.name}")
+    problems += sharing_problems(program)
     scope = _Scope(buffers, {}, frozenset(), {}, buffer_dtypes(program))
     for kernel in program.kernels:
         _check_body(kernel.body, scope, problems, kernel.name)

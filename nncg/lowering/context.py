@@ -12,7 +12,6 @@ from ..ir.c_names import Namespace, buffer_name, layer_name
 from ..ir.graph import Graph
 from ..ir.kinds import DType, Layout
 from ..ir.loops import Affine, Buffer, Kernel, Loop, Stmt
-from ..ir.verify import ARENA_DTYPES
 from .halo import conv_halos, zero_halo
 from .slabs import concat_slices
 
@@ -162,12 +161,13 @@ class LoweringContext:
         A graph output is row-major at the function boundary; where the preferred layout differs
         in memory, the node writes an internal buffer and a copy kernel converts it afterwards (unless
         `written_as_is` has it: a banded group's output, where the copy's buffer would be the largest;
-        or the output is int32, ArgMax's indices, which cannot live in the float arena)."""
+        or the output is int32 — ArgMax's indices, ConvInteger's and MatMulInteger's sums — written in
+        the output's order as before the arena held int32: whether a copy pays there is unmeasured)."""
         shape, dtype = self.graph.shape(value), self.graph.dtype(value)
         preferred = TensorRef("", shape, tuple(order))
         if self.graph.is_graph_output(value):
             target = self.refs[value]
-            if same_memory_order(preferred, target) or value in self.written_as_is or dtype not in ARENA_DTYPES:
+            if same_memory_order(preferred, target) or value in self.written_as_is or dtype == DType.INT32:
                 return target
             temp = self.add_buffer("t_" + value, "internal", shape, order, dtype=dtype)
             self.pending_copies.append((value, temp, target))

@@ -4,8 +4,9 @@ Weights stay `static const` arrays in the C file (embed) or move into one binary
 that the caller passes by pointer (bin); auto picks bin above WEIGHTS_FILE_THRESHOLD bytes, where
 the C literals would make the source slow to compile. Either way each array is aligned.
 
-Every internal activation buffer goes into one arena, of floats: an int8 buffer takes a quarter
-of the floats its elements would (Buffer.floats).
+Every internal activation buffer goes into one arena, counted in floats: an int8 buffer takes a
+quarter of the floats its elements would (Buffer.floats). Float32, int16 and int32 buffers never share
+memory, whatever their lifetimes (C's aliasing rule, ir/arena.py); int8 and uint8 ones share any.
 
 A buffer lives from the first kernel that touches it to the last (a Reshape alias shares its
 buffer, so later readers extend the lifetime). Buffers whose lifetimes do not overlap share memory:
@@ -19,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from ..errors import NncgError
+from ..ir.arena import kept_apart
 from ..ir.kinds import BufferRole, DType
 from ..ir.loops import (
     ArenaPlan,
@@ -222,7 +224,7 @@ def _place(program: Program, align: int, reuse: bool) -> tuple[dict[str, int], i
         busy = sorted(
             (start, end)
             for start, end, other in placed
-            if spans[other.name][0] <= last and first <= spans[other.name][1]
+            if spans[other.name][0] <= last and first <= spans[other.name][1] or kept_apart(buf.dtype, other.dtype)
         )
         offset = 0
         for start, end in busy:
