@@ -1,4 +1,4 @@
-"""pmaddubsw quads on ssse3 and avx2 (issue 16): uint8 activations times int8 weights four input channels
+"""pmaddubsw quads on ssse3, avx2 and avx512 (issue 16; avx512's 16 lanes in two 256-bit halves): uint8 activations times int8 weights four input channels
 per lane, exact only where no int16 pair sum saturates. Layers whose weights pass the generation-time
 proof take one pmaddubsw + pmaddwd per quad, the others pmaddwd on int16 pairs; every result is
 identical to onnxruntime's. Hand-written QDQ Convs give the weights exactly: 7-bit weights (proven),
@@ -32,8 +32,8 @@ import nncg.passes.dot_product as dot_product
 from nncg.backends import get_target
 from nncg.passes.dot_product import pair_sums_fit_int16
 
-TARGETS = ("ssse3", "avx2")
-MADDUBS = {"ssse3": "_mm_maddubs_epi16(", "avx2": "_maddubs_epi16("}
+TARGETS = ("ssse3", "avx2", "avx512")
+MADDUBS = {"ssse3": "_mm_maddubs_epi16(", "avx2": "_maddubs_epi16(", "avx512": "_maddubs_epi16("}
 TYPES = {"uint8": np.uint8, "int8": np.int8}
 
 
@@ -227,6 +227,8 @@ def test_mlperf_tiny_with_reduce_range_take_quads_in_every_layer(name, target, m
         if "_madd_epi16(" in body and MADDUBS[target] not in body
     ]
     assert pairs_only == (["stem_conv"] if name == "dscnn" else [])
+    if target == "avx512":  # 16 lanes: two 256-bit pmaddubsw of the same broadcast activations
+        assert "_mm256_maddubs_epi16(_mm512_castsi512_si256(" in compiled.source
     result = compare(model, compiled, random_feeds(float_model, 3, 11))
     assert result.max_steps == 0 and result.identical == 1.0, result
 

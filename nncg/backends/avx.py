@@ -6,8 +6,9 @@ Both also print narrower blocks, so a loop too short for a full vector still run
 (12 channels on avx512: one __m256 and one __m128 block): every AVX-512F CPU has AVX2 and FMA, and
 with -mavx2 -mfma the 4-lane SSE intrinsics are VEX-encoded and have fmadd and blendv too. Both
 vectorise the int8 convolutions and matrix products on int32 lanes, two input channels per pmaddwd
-(x86_integer.py); avx2 takes uint8 activations four channels per vpmaddubsw + vpmaddwd where the
-layer's weights are proven never to saturate the int16 pair sums (x86_quads.py); avx512vnni adds
+(x86_integer.py); avx2 and avx512 take uint8 activations four channels per vpmaddubsw + vpmaddwd where
+the layer's weights are proven never to saturate the int16 pair sums (x86_quads.py; avx512's 512-bit
+ones in 256-bit halves, AVX-512F having no AVX-512BW), and a depthwise's taps as dots; avx512vnni adds
 AVX-512 VNNI's vpdpbusd, four channels per instruction."""
 
 from __future__ import annotations
@@ -19,11 +20,9 @@ from .simd import SimdPrinter
 from .x86 import X86_L1, X86_L2, x86_width
 from .x86_integer import x86_integer
 
-AVX_128 = replace(x86_width("_mm", "__m128", select="blendv", fma=True), **x86_integer(4))
-AVX_256 = replace(x86_width("_mm256", "__m256", select="blendv", fma=True), **x86_integer(8))
-AVX_512 = replace(x86_width("_mm512", "__m512", select="mask", fma=True), **x86_integer(16))
-AVX2_128 = replace(AVX_128, **x86_integer(4, maddubs=True))
-AVX2_256 = replace(AVX_256, **x86_integer(8, maddubs=True))
+AVX_128 = replace(x86_width("_mm", "__m128", select="blendv", fma=True), **x86_integer(4, maddubs=True))
+AVX_256 = replace(x86_width("_mm256", "__m256", select="blendv", fma=True), **x86_integer(8, maddubs=True))
+AVX_512 = replace(x86_width("_mm512", "__m512", select="mask", fma=True), **x86_integer(16, maddubs=True))
 VNNI_128 = replace(AVX_128, **x86_integer(4, bw=True, vnni=True))
 VNNI_256 = replace(AVX_256, **x86_integer(8, bw=True, vnni=True))
 VNNI_512 = replace(AVX_512, **x86_integer(16, bw=True, vnni=True))
@@ -41,14 +40,18 @@ X86 = {
 
 class Avx2(SimdPrinter):
     target = Target("avx2", vector_widths=(8, 4), **X86, dot_uint8_int16=4, tap_dots=True)
-    widths = {8: AVX2_256, 4: AVX2_128}
+    widths = {8: AVX_256, 4: AVX_128}
     cflags = ("-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<immintrin.h>")
 
 
 class Avx512(SimdPrinter):
-    target = Target("avx512", vector_widths=(16, 8, 4), **{**X86, "registers": 32, "broadcast_operands": True})
+    target = Target(
+        "avx512",
+        vector_widths=(16, 8, 4),
+        **{**X86, "registers": 32, "broadcast_operands": True, "dot_uint8_int16": 4, "tap_dots": True},
+    )
     widths = {16: AVX_512, 8: AVX_256, 4: AVX_128}
     cflags = ("-mavx512f", "-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")

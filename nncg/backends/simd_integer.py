@@ -89,16 +89,19 @@ class IntegerVectors:
         return self._integer_cast(e, width)
 
     def _dot(self, e: Dot, width: VectorWidth, accumulator: str | None = None) -> str:
-        """A dot product from the width's template (with the accumulator: `dot4_add`), its activations
-        in every lane (2 int16 or 4 bytes, the lowest channel lowest); lane by lane without one."""
+        """A dot product from the width's template (with the accumulator: `dot4_add`; per-lane
+        activations: `dot<K>_lanes` where the width has it), its activations in every lane (2 int16 or
+        4 bytes, the lowest channel lowest); lane by lane without one."""
         k, ints = len(e.x), width.ints
         address = f"&{e.w.buffer}[{c_affine(e.w.index)}]"
         if f"dot{k}_add" in ints:
             acc = accumulator or ints["splat"].format(value="0")
             return ints[f"dot{k}_add"].format(acc=acc, xs=self._activations(e, ints), address=address)
-        if f"dot{k}" in ints:
-            return ints[f"dot{k}"].format(xs=self._activations(e, ints), address=address)
-        if any(x.lanes > 1 for x in e.x):  # Target.tap_dots promises the templates
+        per_lane = any(x.lanes > 1 for x in e.x)
+        template = f"dot{k}_lanes" if per_lane and f"dot{k}_lanes" in ints else f"dot{k}"
+        if template in ints:
+            return ints[template].format(xs=self._activations(e, ints), address=address)
+        if per_lane:  # Target.tap_dots promises the templates
             raise TypeError(f"no dot{k} template for a depthwise's per-lane taps")
         return ints["vector"].format(values=", ".join(scalar_dot(self, e, lane) for lane in range(e.lanes)))
 

@@ -57,6 +57,10 @@ INTEGER_DOTS = {
     "dot4": ("xs", "address"),  # pmaddubsw + pmaddwd by ones: xs four uint8 in each lane, address 4 int8 per lane
     "dot2_add": ("acc", "xs", "address"),  # acc + dot2 (NEON's vmlal_s16)
     "dot4_add": ("acc", "xs", "address"),  # acc + vpdpbusd: xs four uint8 in each lane, address 4 int8 per lane
+    # dot2, dot4 of per-lane activations (a depthwise's taps) where they differ from the shared ones'
+    # (avx512's halves: the upper half extracted)
+    "dot2_lanes": ("xs", "address"),
+    "dot4_lanes": ("xs", "address"),
     # (sdot, Target.dot_int8_activations: four int8)
     # xs from 2 (4) adjacent 8-bit activations in memory, in every lane; else from a scalar int (splat)
     "pair_uint8": ("address",),

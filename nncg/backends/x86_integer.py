@@ -26,24 +26,30 @@ PAIRS = {
     8: "_mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)({address})))",
     16: "_mm512_cvtepi8_epi16(_mm256_loadu_si256((const __m256i *)({address})))",
 }
-# AVX-512F without BW has no 512-bit pmaddwd: two 256-bit halves (both halves of {xs} are the same)
-DOT2_HALVES = (
-    "_mm512_inserti64x4(_mm512_castsi256_si512(_mm256_madd_epi16(_mm512_castsi512_si256({xs}), "
-    "_mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)({address}))))), _mm256_madd_epi16("
-    "_mm512_castsi512_si256({xs}), _mm256_cvtepi8_epi16(_mm_loadu_si128((const __m128i *)(({address}) + 16)))), 1)"
-)
+
+
+def halves(template: str, weight_bytes: int, per_lane: bool = False) -> str:
+    """A 16-lane dot from the 8-lane `template` for AVX-512F, which has no 512-bit pmaddwd or pmaddubsw
+    (AVX-512BW): each 256-bit half of {xs} times its half of the packed weights, `weight_bytes` further
+    on. Activations shared by all lanes are the same in both halves; `per_lane` ones (a depthwise's
+    taps) take the upper half extracted."""
+    upper = "_mm512_extracti64x4_epi64({xs}, 1)" if per_lane else "_mm512_castsi512_si256({xs})"
+    low = template.format(xs="_mm512_castsi512_si256({xs})", address="{address}")
+    high = template.format(xs=upper, address=f"({{address}}) + {weight_bytes}")
+    return f"_mm512_inserti64x4(_mm512_castsi256_si512({low}), {high}, 1)"
 
 
 def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = False) -> dict[str, str]:
     """The dot-product templates of one x86 width: `dot2` (pmaddwd; 16 lanes in halves without
-    AVX-512BW), with `vnni` (AVX-512 VNNI, and VL below 16 lanes) `dot4_add` (vpdpbusd), with
-    `maddubs` `dot4` (pmaddubsw quads, x86_quads.py), the activations of adjacent channels broadcast
+    AVX-512BW, and `dot2_lanes` for per-lane activations), with `vnni` (AVX-512 VNNI, and VL below 16 lanes) `dot4_add` (vpdpbusd), with
+    `maddubs` `dot4` (pmaddubsw quads, x86_quads.py; halves too), the activations of adjacent channels broadcast
     straight from memory (vpbroadcastd), and the shifts and masks that pack a depthwise's per-lane
     taps."""
     p, _, _, si = SHAPES[lanes]
     bytes_at = "_mm_loadu_si{bits}((const void *)({{address}}))"
+    in_halves = lanes == 16 and not bw
     dots = {
-        "dot2": DOT2_HALVES if lanes == 16 and not bw else f"{p}_madd_epi16({{xs}}, {PAIRS[lanes]})",
+        "dot2": halves(x86_dots(8)["dot2"], 16) if in_halves else f"{p}_madd_epi16({{xs}}, {PAIRS[lanes]})",
         "pair_uint8": f"{p}_broadcastd_epi32(_mm_cvtepu8_epi16({bytes_at.format(bits=16)}))",
         "pair_int8": f"{p}_broadcastd_epi32(_mm_cvtepi8_epi16({bytes_at.format(bits=16)}))",
         "quad_uint8": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",
@@ -52,8 +58,12 @@ def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = F
         "or": f"{p}_or_{si}({{a}}, {{b}})",
         "and": f"{p}_and_{si}({{a}}, {{b}})",
     }
+    if in_halves:  # a depthwise's taps, each lane its own (Dot with vector x)
+        dots["dot2_lanes"] = halves(x86_dots(8)["dot2"], 16, per_lane=True)
     if maddubs:
-        dots["dot4"] = maddubs_dot4(lanes)
+        dots["dot4"] = halves(maddubs_dot4(8), 32) if in_halves else maddubs_dot4(lanes)
+    if maddubs and in_halves:
+        dots["dot4_lanes"] = halves(maddubs_dot4(8), 32, per_lane=True)
     if vnni:
         dots["dot4_add"] = f"{p}_dpbusd_epi32({{acc}}, {{xs}}, {p}_loadu_{si}((const void *)({{address}})))"
     return dots
