@@ -279,3 +279,50 @@ def test_a_pointwise_conv_blocks_pixels_across_rows():
     compiled = nncg.compile(m, target="avx2", pipeline=pipeline(facts, "Conv_0:16x8"))
     assert "oh" not in compiled.source.split("Conv_0")[-1]  # one loop over the 9 pixels
     check_against_onnxruntime(m, compiled)
+
+
+# ------------------------------------------------------------------------------------ prefetch
+
+
+@pytest.mark.parametrize("target_name", TARGETS)
+@pytest.mark.parametrize(
+    "model",
+    [
+        lambda: conv_model((1, 64, 3, 3), 256, (1, 1)),  # 64 KiB on 9 pixels, mobilenet_v2's last stages
+        lambda: gemm_model(1, 320, 100),  # 125 KiB, a classifier
+    ],
+    ids=["pointwise", "gemv"],
+)
+def test_weights_beyond_l1_are_prefetched_ahead_within_their_array(target_name, model):
+    m = model()
+    compiled = nncg.compile(m, target=target_name)
+    prefetches = [line.strip() for line in compiled.source.splitlines() if "_mm_prefetch(" in line]
+    # ansi-c prints no intrinsics; x86 targets prefetch at the top of the reduction loops only
+    assert bool(prefetches) == (target_name != "ansi-c")
+    if prefetches:
+        # the lookahead of the last panel's last iterations would pass the array's end: clamped
+        assert any(" ? " in p for p in prefetches)
+    check_against_onnxruntime(m, compiled, sanitize=target_name == "avx2")
+
+
+def test_prefetch_takes_one_line_per_cache_line_of_a_streamed_load_ahead_of_it():
+    from nncg.backends.prefetch import PREFETCH_BYTES, prefetch_addresses
+
+    ci = Affine.of("ci")
+
+    def load(const: int) -> Load:
+        return Load("w", ci * 64 + const, lanes=8)
+
+    # 8 vectors of 8 floats: 4 cache lines; the small constant `v` and the accumulator-only loop are not streamed
+    reads = [Assign(f"acc_{k}", Binary("*", load(8 * k), Load("v", ci, lanes=8))) for k in range(8)]
+    loop = Loop("ci", 40, tuple(reads))
+    ahead = PREFETCH_BYTES // 4
+    extents = {"ci": 40}
+    lines = prefetch_addresses(loop, {"w": 40 * 64 + ahead + 64}, extents)
+    assert lines == [("w", f"64 * ci + {ahead + 16 * k}") for k in range(4)]
+    assert prefetch_addresses(Loop("ci", 40, tuple(reads), parallel=True), {"w": 10**6}, extents) == []
+    last = 40 * 64 - 1  # no room to look ahead: every address is clamped to the last element
+    clamped = prefetch_addresses(loop, {"w": 40 * 64}, extents)
+    assert [i for _, i in clamped] == [
+        f"64 * ci + {ahead + c} < {last} ? 64 * ci + {ahead + c} : {last}" for c in (0, 16, 32, 48)
+    ]

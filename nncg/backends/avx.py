@@ -17,7 +17,7 @@ from dataclasses import replace
 
 from ..ir.target import Target
 from .simd import SimdPrinter
-from .x86 import X86_L1, X86_L2, x86_width
+from .x86 import X86_L1, X86_L2, X86_PREFETCH, x86_width
 from .x86_integer import x86_integer
 
 AVX_128 = replace(x86_width("_mm", "__m128", select="blendv", fma=True), **x86_integer(4, maddubs=True))
@@ -44,6 +44,7 @@ class Avx2(SimdPrinter):
     cflags = ("-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<immintrin.h>")
+    prefetch = X86_PREFETCH
 
 
 class Avx512(SimdPrinter):
@@ -56,6 +57,7 @@ class Avx512(SimdPrinter):
     cflags = ("-mavx512f", "-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<immintrin.h>")
+    prefetch = X86_PREFETCH
 
 
 class Avx512Vnni(SimdPrinter):
@@ -72,3 +74,4 @@ class Avx512Vnni(SimdPrinter):
     cflags = ("-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512vnni", "-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<immintrin.h>")
+    prefetch = X86_PREFETCH

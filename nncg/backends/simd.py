@@ -6,8 +6,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from ..ir.loops import Affine, Binary, Broadcast, Call, Const, Expr, Fma, Load, LocalRef, Program, Select, Store
+from ..ir.loops import Affine, Binary, Broadcast, Call, Const, Expr, Fma, Load, LocalRef, Loop, Program, Select, Store
 from .c_text import INDENT, c_affine, c_float
+from .prefetch import prefetch_addresses, streamed_constants
 from .scalar import ScalarPrinter
 from .scalar_math import scalar_calls
 from .simd_integer import IntegerVectors
@@ -21,6 +22,8 @@ class SimdPrinter(IntegerVectors, ScalarPrinter):
     width of target.vector_widths); it overrides hooks only where a table cannot say it."""
 
     widths: Mapping[int, VectorWidth] = {}
+    # The statement that prefetches the cache line at `address` into L1 ("" : the target prints none).
+    prefetch = ""
 
     def __init_subclass__(cls, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
@@ -30,6 +33,8 @@ class SimdPrinter(IntegerVectors, ScalarPrinter):
     def __init__(self, needs: Needs | None = None, math_calls: frozenset[str] = frozenset()) -> None:
         super().__init__(math_calls)
         self.needs = needs or Needs()
+        self.streamed: dict[str, int] = {}  # constants that stream from beyond L1 (prefetch.py)
+        self.extents: dict[str, int] = {}  # the loops being printed, var -> extent
 
     def for_program(self, program: Program) -> SimdPrinter:
         """Scalar code here is the scalar tails and the lane-wise helpers of widths without vector
@@ -37,7 +42,18 @@ class SimdPrinter(IntegerVectors, ScalarPrinter):
         needs = collect_needs(program, self.widths)
         lane_wise = {fn for lanes, fn in needs.math if not has_vector_math(self.widths[lanes])}
         printer = type(self)(needs, scalar_calls(program) | lane_wise).typed_for(program)
+        if self.prefetch:
+            printer.streamed = streamed_constants(program, self.target.l1_bytes)
         return printer.with_integer_helpers(program, printer.dtypes)
+
+    def _stmt_Loop(self, loop: Loop, depth: int) -> list[str]:
+        """A reduction loop over weights that stream from beyond L1 prefetches them (prefetch.py)."""
+        self.extents[loop.var] = loop.extent
+        lines = super()._stmt_Loop(loop, depth)
+        pad = INDENT * (depth + 1)
+        ahead = prefetch_addresses(loop, self.streamed, self.extents) if self.streamed else []
+        del self.extents[loop.var]
+        return [lines[0], *(pad + self.prefetch.format(address=f"&{b}[{i}]") for b, i in ahead), *lines[1:]]
 
     # ------------------------------------------------------------------ dispatch, once
 

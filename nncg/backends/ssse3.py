@@ -14,7 +14,7 @@ from dataclasses import replace
 from ..ir.target import Target
 from .simd import SimdPrinter
 from .vector_width import VectorWidth
-from .x86 import X86_L1, X86_L2, x86_width
+from .x86 import X86_L1, X86_L2, X86_PREFETCH, x86_width
 from .x86_integer import sse2_integer
 
 # a * b + c rounded once: each pair of lanes in double (SSE2), where the products and sums of the
@@ -56,3 +56,4 @@ class Ssse3(SimdPrinter):
     cflags = ("-mssse3",)
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<tmmintrin.h>")
+    prefetch = X86_PREFETCH

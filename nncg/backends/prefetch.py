@@ -1,0 +1,59 @@
+"""Backend: software prefetch of weights that stream from beyond L1.
+
+A layer whose constant weights exceed the target's L1 (the cache-blocked convolutions and matrix
+products) reads them once per panel, in one contiguous stream, from L2, L3 or memory; between two
+reads of a stream it does little work (a 1x1 conv on 3x3 pixels: 9 FMAs per weight vector), so the
+hardware prefetcher falls behind. Each reduction loop that reads such a stream by vectors therefore
+prefetches, one line per cache line it reads, the data PREFETCH_BYTES ahead of its loads (mobilenet_v2
+at 96x96 on avx512, 1x1 convs on 3x3 pixels: 20-27 % less time per layer, loaded; 0.5-4 KiB ahead
+measured alike). The address is clamped to the buffer's last element where the lookahead could pass
+its end, so no pointer leaves its array."""
+
+from __future__ import annotations
+
+from ..ir.kinds import BufferRole, DType
+from ..ir.loops import Affine, Assign, Load, Loop, Program, walk_exprs
+from .c_text import c_affine
+
+PREFETCH_BYTES = 2048
+LINE_BYTES = 64
+FLOAT_BYTES = 4
+
+
+def streamed_constants(program: Program, l1_bytes: int) -> dict[str, int]:
+    """The constant float buffers larger than L1, name -> elements."""
+    return {
+        b.name: b.size
+        for b in program.buffers
+        if b.role == BufferRole.CONSTANT and b.dtype == DType.FLOAT32 and b.size * FLOAT_BYTES > l1_bytes
+    }
+
+
+def prefetch_addresses(loop: Loop, streamed: dict[str, int], extents: dict[str, int]) -> list[tuple[str, str]]:
+    """(buffer, C index) of each line to prefetch at the top of `loop`'s body: the vector loads of
+    streamed buffers in its own statements whose address moves with it, PREFETCH_BYTES ahead, one per
+    cache line. `extents`: the loop variables in scope (this loop's included), to bound the index."""
+    if loop.parallel:
+        return []
+    ahead = PREFETCH_BYTES // FLOAT_BYTES
+    line = LINE_BYTES // FLOAT_BYTES
+    lines: dict[tuple, tuple[str, str]] = {}
+    for stmt in loop.body:
+        if not isinstance(stmt, Assign):
+            continue
+        for e in walk_exprs(stmt.value):
+            if not (isinstance(e, Load) and e.lanes > 1 and e.buffer in streamed and e.index.coeff(loop.var)):
+                continue
+            if any(v not in extents for v in e.index.vars):
+                continue
+            index = e.index + ahead
+            key = (e.buffer, index.terms, index.const // line)
+            lines.setdefault(key, (e.buffer, _clamped(index, streamed[e.buffer] - 1, extents)))
+    return list(lines.values())
+
+
+def _clamped(index: Affine, last: int, extents: dict[str, int]) -> str:
+    text = c_affine(index)
+    if index.bounds(extents)[1] <= last:
+        return text
+    return f"{text} < {last} ? {text} : {last}"
