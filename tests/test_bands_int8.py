@@ -142,6 +142,18 @@ def test_banded_conv_runs_in_dot_products(kind, target, monkeypatch):
         check(model, compiled, sanitize=rows == 2 and kind == "depthwise")
 
 
+@pytest.mark.parametrize("target", ["ssse3", "avx2"])
+def test_banded_depthwise_border_columns_run_in_vectors(target, monkeypatch):
+    """A depthwise in bands takes vectors over channels in its border columns (split from the interior's
+    tap dots) as it does run whole: no scalar int32 accumulator is left in the band kernel."""
+    skip_unless_host_runs(target)
+    model = conv_pair_model("depthwise")
+    monkeypatch.setattr(lowering, "plan_bands", lambda graph, *_: (whole_chain(graph, 2),))
+    compiled = nncg.compile(model, target=target, memory="min", verify_ir=True)
+    assert "nncg_int32 acc" not in band_source(compiled)
+    check(model, compiled)
+
+
 @pytest.mark.parametrize("rows", [1, 2, 3, 8])
 @pytest.mark.parametrize("target", X86)
 def test_chain_on_the_x86_targets(chain, target, rows, monkeypatch):
