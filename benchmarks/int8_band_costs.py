@@ -1,7 +1,7 @@
 """What an int8 Conv costs in bands against run whole, per x86 target: the figure BandCosts.integer_banded
 (nncg/lowering/band_costs.py) prices. Instruction counts (callgrind Ir, so a loaded machine does not
-matter), of the same two int8 3x3 Convs (Conv -> QLinearConv of `kind`: dense, strided or depthwise) at --memory speed and in one band
-group of `rows`, the group's line buffers and per-band loops included.
+matter), of the same two int8 3x3 Convs (Conv -> QLinearConv of `kind`: dense, strided or depthwise) at
+--memory speed and in one band group of `rows`, the group's line buffers and per-band loops included.
 
     python3 -m benchmarks.int8_band_costs [--targets ssse3 avx2] [--out-dir /tmp/NAME]
 """

@@ -15,6 +15,7 @@ from nncg.backends.simd import SimdPrinter
 from nncg.backends.simd_needs import collect_needs
 from nncg.backends.ssse3 import Ssse3
 from nncg.backends.vector_width import VectorWidth
+from nncg.ir.kinds import DType
 from nncg.ir.loops import (
     Affine,
     ArenaPlan,
@@ -32,7 +33,6 @@ from nncg.ir.loops import (
     Select,
     Store,
 )
-from nncg.ir.kinds import DType
 from nncg.ir.target import Target
 from nncg.ir.text import expr_to_text
 from nncg.ir.verify import verify_program
