@@ -1,7 +1,7 @@
 """What an int8 Conv costs in bands against run whole, per x86 target: the figure BandCosts.integer_banded
 (nncg/lowering/band_costs.py) prices. Instruction counts (callgrind Ir, so a loaded machine does not
-matter), of the same two int8 3x3 Convs (Conv -> QLinearConv of `kind`) at --memory speed and in one band
-group of `rows`, the group's line buffers and per-band loops included.
+matter), of the same two int8 3x3 Convs (Conv -> QLinearConv of `kind`: dense, strided or depthwise) at
+--memory speed and in one band group of `rows`, the group's line buffers and per-band loops included.
 
     python3 -m benchmarks.int8_band_costs [--targets ssse3 avx2] [--out-dir /tmp/NAME]
 """
@@ -25,9 +25,8 @@ from nncg.lowering.band_plan import BandPlan
 from nncg.lowering.bands import BandGroup
 from nncg.verify import build_model
 
-# kind: (channels in, channels out, group, stride, image side); a depthwise pair is not measured: valgrind
-# stops its program (whole or banded) with SIGILL
-SHAPES = {"dense": (16, 16, 1, 1, 32), "strided": (16, 32, 1, 2, 32)}
+# kind: (channels in, channels out, group, stride, image side)
+SHAPES = {"dense": (16, 16, 1, 1, 32), "strided": (16, 32, 1, 2, 32), "depthwise": (16, 16, 16, 1, 32)}
 
 
 class _Feeds(CalibrationDataReader):

@@ -15,6 +15,7 @@ from nncg.backends.simd import SimdPrinter
 from nncg.backends.simd_needs import collect_needs
 from nncg.backends.ssse3 import Ssse3
 from nncg.backends.vector_width import VectorWidth
+from nncg.ir.kinds import DType
 from nncg.ir.loops import (
     Affine,
     ArenaPlan,
@@ -233,6 +234,18 @@ def test_fma_prints_as_multiply_and_add_where_it_is_not_fused():
     x = Load("x", Affine())
     assert get_backend("ansi-c").printer.expr(Fma(x, x, x)) == "((x[0] * x[0]) + x[0])"
     assert Ssse3().expr(Fma(a, b, c)) == "nncg_fma_pd(_mm_loadu_ps(&a[0]), _mm_loadu_ps(&b[0]), _mm_loadu_ps(&c[0]))"
+
+
+@pytest.mark.parametrize("target, lanes", [("ssse3", 4), ("avx2", 8), ("avx512", 16), ("neon", 4)])
+@pytest.mark.parametrize("dtype", [DType.UINT8, DType.INT8])
+def test_an_unwidened_8bit_vector_copy_is_refused_not_printed_wrong(target, lanes, dtype):
+    """A vector Store(Load) of bytes (a line buffer's shift) has no byte-copy template: the int32 load
+    would read 4 bytes a lane and the 8-bit store pack those as int32 values, so printing refuses."""
+    buffers = (Buffer("x", 32, "input", dtype=dtype), Buffer("y", 32, "output", dtype=dtype))
+    body = (Store("y", Affine(), Load("x", Affine.of(16), lanes)),)
+    program = Program("p", buffers, (Kernel("k", "Test", body),), arena=ArenaPlan(0, 0, 16))
+    with pytest.raises(TypeError, match=f"{lanes}-lane load of {dtype} x not widened to int32"):
+        get_backend(target).source(program, "", "p.h")
 
 
 # ------------------------------------------------------------------------- helpers, collected before printing

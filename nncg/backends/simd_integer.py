@@ -69,7 +69,7 @@ class IntegerVectors:
     def integer_vector(self, e: Expr, width: VectorWidth) -> str:
         ints = width.ints
         if isinstance(e, Load):
-            return ints["load"].format(address=f"&{e.buffer}[{c_affine(e.index)}]")
+            return self._int32_load(e, ints)
         if isinstance(e, LocalRef):
             return e.name
         if isinstance(e, Const):
@@ -87,6 +87,15 @@ class IntegerVectors:
             low, high = (c_float(float(v - e.zero_point)) for v in (e.low, e.high))
             return ints["requantize"].format(value=self.expr(e.value), low=low, high=high, zero_point=e.zero_point)
         return self._integer_cast(e, width)
+
+    def _int32_load(self, e: Load, ints: dict[str, str]) -> str:
+        """A vector of int32 lanes from an int32 buffer. An 8-bit buffer's elements are no int32 lanes:
+        loaded unwidened (a copy of bytes, e.g. a line buffer's shift), they would be read 4 to a lane
+        and stored as int32 values, so that is refused rather than printed wrong."""
+        dtype = self.dtypes[e.buffer]
+        if dtype != DType.INT32:
+            raise TypeError(f"{e.lanes}-lane load of {dtype} {e.buffer} not widened to int32: no byte-copy vectors")
+        return ints["load"].format(address=f"&{e.buffer}[{c_affine(e.index)}]")
 
     def _dot(self, e: Dot, width: VectorWidth, accumulator: str | None = None) -> str:
         """A dot product from the width's template (with the accumulator: `dot4_add`; per-lane

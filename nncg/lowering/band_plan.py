@@ -204,7 +204,10 @@ def _band_step(
             return costs.integer_banded if j - i > 1 else 1.0
         return banded * (costs.winograd if node.name in geo.winograd else 1.0)
 
-    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in graph.nodes[i:j])
+    def per_element(node: Node) -> float:
+        return costs.quantize_banded if node.op == "QuantizeLinear" else 1.0
+
+    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) * per_element(n) for n in graph.nodes[i:j])
     cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.bytes(i, j, geo.internal) + lines, cost, lines)
 

@@ -203,9 +203,13 @@ def _mark_conv_stages(body: tuple[Stmt, ...], widths: tuple[int, ...]) -> tuple[
 
 
 def _multiply_accumulates(stmt: Stmt) -> bool:
-    """acc += dot(...) (dot_product.py), or a loop of acc += int32(x) * int32(w)."""
+    """acc += dot(...) (dot_product.py), or a loop of acc += int32(x) * int32(w), that one statement
+    under a border check too (a depthwise's border columns, split from its dot products by dot_taps.py:
+    vectors over channels there as in the layer run whole)."""
     if isinstance(stmt, Loop):
-        return multiply_accumulate(stmt) is not None
+        guarded = len(stmt.body) == 1 and isinstance(stmt.body[0], If)
+        body = stmt.body[0].body if guarded else stmt.body
+        return multiply_accumulate(replace(stmt, body=body)) is not None
     return isinstance(stmt, Assign) and any(isinstance(e, Dot) for e in walk_exprs(stmt.value))
 
 
