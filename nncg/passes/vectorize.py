@@ -106,9 +106,10 @@ INTEGER_OPS = (
     "DequantizeLinear",
     "Band",
 )
-# onnxruntime computes these in float fused multiply-adds (lowering/quantized_add.py), which vectors of a
-# target with FMA do too, or, without, in double (Target.fma_in_double); the other int8 kernels stay scalar
-FUSED_OPS = ("QLinearAdd",)
+# onnxruntime computes QLinearAdd in float fused multiply-adds (lowering/quantized_add.py), which vectors
+# of a target with FMA do too, or, without, in double (Target.fma_in_double); QLinearMul's float32 sum
+# is an Fma by 1 (_product_then_sum); the other int8 kernels stay scalar
+FUSED_OPS = ("QLinearAdd", "QLinearMul")
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
@@ -294,7 +295,7 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
         per_lane = any(isinstance(n, Load) and n.index.coeff(var) for x in e.x for n in walk_exprs(x))
         xs = tuple(_vector(x, var, lanes, vector_locals) for x in e.x) if per_lane else e.x
         return Dot(xs, Load(e.w.buffer, e.w.index, lanes * len(e.x)))
-    fused = _fused_multiply_add(e)
+    fused = _fused_multiply_add(e) or _product_then_sum(e)
     if fused is not None:
         return _vector(fused, var, lanes, vector_locals)
     if isinstance(e, Fma):
@@ -330,6 +331,35 @@ def _fused_multiply_add(e: Expr) -> Fma | None:
     if ratio.dtype != DType.FLOAT64 or float(np.float32(ratio.values[0])) != ratio.values[0]:
         return None
     return Fma(Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]), addend.value)
+
+
+def _product_then_sum(e: Expr) -> Fma | None:
+    """float32(double(float32(double(x) * r)) + c), QLinearMul's scalar spelling of two float32
+    operations on an integer x of at most 24 bits (lowering/quantized_mul.py), as a vector product and
+    Fma(product, 1, c): the sum rounded once, as scalar C rounds it; a vector multiply feeding a vector
+    add the C compiler would contract into one rounding (GCC does, -ffp-contract=fast), an Fma by 1 it
+    does not. None for anything else."""
+    if not (isinstance(e, Cast) and e.dtype == DType.FLOAT32 and isinstance(e.value, Binary) and e.value.op == "+"):
+        return None
+    rounded, addend = e.value.a, e.value.b
+    if not (isinstance(rounded, Cast) and rounded.dtype == DType.FLOAT64 and _float32_constant(addend)):
+        return None
+    inner = rounded.value
+    if not (isinstance(inner, Cast) and inner.dtype == DType.FLOAT32 and isinstance(inner.value, Binary)):
+        return None
+    x, ratio = inner.value.a, inner.value.b
+    integer = isinstance(x, Cast) and x.dtype == DType.FLOAT64 and any(
+        isinstance(n, Cast) and n.dtype.is_integer for n in walk_exprs(x.value)
+    )
+    if inner.value.op != "*" or not integer or not _float32_constant(ratio):
+        return None
+    product = Binary("*", Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]))
+    return Fma(product, Const.splat(1.0), Const.splat(addend.values[0]))
+
+
+def _float32_constant(e: Expr) -> bool:
+    """A double constant that is a float32 value."""
+    return isinstance(e, Const) and e.dtype == DType.FLOAT64 and float(np.float32(e.values[0])) == e.values[0]
 
 
 def _invariant_integer(e: Expr, var: str, vector_locals: set[str]) -> bool:
