@@ -76,9 +76,12 @@ def test_contrib_ops_match_onnxruntime_to_the_bit(op, activations):
     check(contrib_model(op, activations), op)
 
 
+@pytest.mark.parametrize("activations", ["uint8", "int8"])
+@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512"])
 @pytest.mark.parametrize("op", OPS)
-def test_contrib_ops_on_a_simd_target(op):
-    check(contrib_model(op, "int8"), op, "avx2")
+def test_contrib_ops_on_simd_targets(op, target, activations):
+    """Vectorised over channels (tests/test_int8_vector_steps.py), saturating at both ends."""
+    check(contrib_model(op, activations), op, target)
 
 
 @pytest.mark.parametrize(

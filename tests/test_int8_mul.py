@@ -61,6 +61,9 @@ def test_contrib_qlinear_mul(activations):
     check(contrib_model(activations, "rows"))
 
 
+@pytest.mark.parametrize("second", sorted(SECOND))
+@pytest.mark.parametrize("activations", ["uint8", "int8"])
 @pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512"])
-def test_simd_targets(target):
-    check(qdq_model("int8", "same"), target)
+def test_simd_targets(target, activations, second):
+    """Vectorised (tests/test_int8_vector_steps.py), saturating at both ends, broadcast operands."""
+    check(qdq_model(activations, second), target)

@@ -55,6 +55,7 @@ from ..ir.loops import (
     Stmt,
     Store,
     map_body,
+    map_stmt_exprs,
     stmt_exprs,
     walk_exprs,
     walk_stmts,
@@ -89,14 +90,17 @@ def vectorize(program: Program, target: Target) -> Program:
             for s in walk_stmts(body)
         )
         body = map_body(body, lambda s: materialize(s, widths))
+        if kernel.name in integer and not target.fma:
+            body = map_body(body, lambda s: map_stmt_exprs(s, _sum_of_fma_by_one))
         kernels.append(replace(kernel, body=body, overlapping_stores=kernel.overlapping_stores or overlaps))
     return replace(program, kernels=tuple(kernels))
 
 
 # the multiply-accumulate kernels, QuantizeLinear (float division, then requantised as they are), the
 # int32 sums of QLinearGlobalAveragePool, the int32 maxima of an int8 MaxPool, and DequantizeLinear
-# (one float32 product of the int32 difference): the same arithmetic in every lane as in scalar C; of
-# an int8 band kernel (lowering/stream.py), the convolutions' nests (_mark_conv_stages)
+# (one float32 product of the int32 difference), QLinearAveragePool's float32 sums (_unfused_sum): the
+# same arithmetic in every lane as in scalar C; of an int8 band kernel (lowering/stream.py), the
+# convolutions' nests (_mark_conv_stages)
 INTEGER_OPS = (
     "QLinearConv",
     "QLinearDense",
@@ -104,11 +108,13 @@ INTEGER_OPS = (
     "QLinearGlobalAveragePool",
     "MaxPool",
     "DequantizeLinear",
+    "QLinearAveragePool",
     "Band",
 )
-# onnxruntime computes these in float fused multiply-adds (lowering/quantized_add.py), which vectors of a
-# target with FMA do too, or, without, in double (Target.fma_in_double); the other int8 kernels stay scalar
-FUSED_OPS = ("QLinearAdd",)
+# onnxruntime computes QLinearAdd in float fused multiply-adds (lowering/quantized_add.py), which vectors
+# of a target with FMA do too, or, without, in double (Target.fma_in_double); QLinearMul's float32 sum
+# is an Fma by 1 (_product_then_sum); the other int8 kernels stay scalar
+FUSED_OPS = ("QLinearAdd", "QLinearMul")
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
@@ -298,7 +304,7 @@ def _vector(e: Expr, var: str, lanes: int, vector_locals: set[str]) -> Expr:
         per_lane = any(isinstance(n, Load) and n.index.coeff(var) for x in e.x for n in walk_exprs(x))
         xs = tuple(_vector(x, var, lanes, vector_locals) for x in e.x) if per_lane else e.x
         return Dot(xs, Load(e.w.buffer, e.w.index, lanes * len(e.x)))
-    fused = _fused_multiply_add(e)
+    fused = _fused_multiply_add(e) or _product_then_sum(e) or _unfused_sum(e)
     if fused is not None:
         return _vector(fused, var, lanes, vector_locals)
     if isinstance(e, Fma):
@@ -334,6 +340,59 @@ def _fused_multiply_add(e: Expr) -> Fma | None:
     if ratio.dtype != DType.FLOAT64 or float(np.float32(ratio.values[0])) != ratio.values[0]:
         return None
     return Fma(Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]), addend.value)
+
+
+def _product_then_sum(e: Expr) -> Fma | None:
+    """float32(double(float32(double(x) * r)) + c), QLinearMul's scalar spelling of two float32
+    operations on an integer x of at most 24 bits (lowering/quantized_mul.py), as a vector product and
+    Fma(product, 1, c): the sum rounded once, as scalar C rounds it; a vector multiply feeding a vector
+    add the C compiler would contract into one rounding (GCC does, -ffp-contract=fast), an Fma by 1 it
+    does not. None for anything else."""
+    if not (isinstance(e, Cast) and e.dtype == DType.FLOAT32 and isinstance(e.value, Binary) and e.value.op == "+"):
+        return None
+    rounded, addend = e.value.a, e.value.b
+    if not (isinstance(rounded, Cast) and rounded.dtype == DType.FLOAT64 and _float32_constant(addend)):
+        return None
+    inner = rounded.value
+    if not (isinstance(inner, Cast) and inner.dtype == DType.FLOAT32 and isinstance(inner.value, Binary)):
+        return None
+    x, ratio = inner.value.a, inner.value.b
+    integer = (
+        isinstance(x, Cast)
+        and x.dtype == DType.FLOAT64
+        and any(isinstance(n, Cast) and n.dtype.is_integer for n in walk_exprs(x.value))
+    )
+    if inner.value.op != "*" or not integer or not _float32_constant(ratio):
+        return None
+    product = Binary("*", Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]))
+    return Fma(product, Const.splat(1.0), Const.splat(addend.values[0]))
+
+
+def _unfused_sum(e: Expr) -> Fma | None:
+    """acc + x * y of a float32 product (a Cast to float32 one of its operands; QLinearAveragePool's
+    sum of its dequantised taps, lowering/quantized.py) as Fma(x * y, 1, acc): two roundings, as
+    onnxruntime and scalar C compute it, where a vector multiply feeding a vector add would be
+    contracted into one (passes of integer kernels only: their float sums are onnxruntime's)."""
+    if not (isinstance(e, Binary) and e.op == "+" and isinstance(e.a, LocalRef) and isinstance(e.b, Binary)):
+        return None
+    product = e.b
+    floats = any(isinstance(x, Cast) and x.dtype == DType.FLOAT32 for x in (product.a, product.b))
+    if product.op != "*" or not floats:
+        return None
+    return Fma(product, Const.splat(1.0), e.a)
+
+
+def _sum_of_fma_by_one(e: Expr) -> Expr:
+    """Fma(a, 1, c) as a + c (one rounding either way) where no compiler can fuse a's product into it
+    (a target without FMA): ssse3 adds, not computes in double (Target.fma_in_double)."""
+    if isinstance(e, Fma) and isinstance(e.b, Const) and set(e.b.values) == {1.0}:
+        return Binary("+", e.a, e.c)
+    return e
+
+
+def _float32_constant(e: Expr) -> bool:
+    """A double constant that is a float32 value."""
+    return isinstance(e, Const) and e.dtype == DType.FLOAT64 and float(np.float32(e.values[0])) == e.values[0]
 
 
 def _invariant_integer(e: Expr, var: str, vector_locals: set[str]) -> bool:
