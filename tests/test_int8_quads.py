@@ -1,10 +1,9 @@
-"""pmaddubsw quads on ssse3, avx2 and avx512 (issue 16; avx512's 16 lanes in two 256-bit halves): uint8 activations times int8 weights four input channels
-per lane, exact only where no int16 pair sum saturates. Layers whose weights pass the generation-time
-proof take one pmaddubsw + pmaddwd per quad, the others pmaddwd on int16 pairs; every result is
-identical to onnxruntime's. Hand-written QDQ Convs give the weights exactly: 7-bit weights (proven),
-full-range weights with both extremes side by side (pmaddubsw on them saturates: shown by compiling
-them as quads anyway), channel tails, zero points != 0, uint8 and int8 activations, inputs and outputs
-saturated at both ends."""
+"""pmaddubsw quads on ssse3, avx2 and avx512 (issue 16; avx512's 16 lanes in two 256-bit halves): uint8 activations
+times int8 weights four input channels per lane, exact only where no int16 pair sum saturates. Layers whose weights
+pass the generation-time proof take one pmaddubsw + pmaddwd per quad, the others pmaddwd on int16 pairs; every result
+is identical to onnxruntime's. Hand-written QDQ Convs give the weights exactly: 7-bit weights (proven), full-range
+weights with both extremes side by side (pmaddubsw on them saturates: shown by compiling them as quads anyway),
+channel tails, zero points != 0, uint8 and int8 activations, inputs and outputs saturated at both ends."""
 
 from __future__ import annotations
 

@@ -41,10 +41,10 @@ def halves(template: str, weight_bytes: int, per_lane: bool = False) -> str:
 
 def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = False) -> dict[str, str]:
     """The dot-product templates of one x86 width: `dot2` (pmaddwd; 16 lanes in halves without
-    AVX-512BW, and `dot2_lanes` for per-lane activations), with `vnni` (AVX-512 VNNI, and VL below 16 lanes) `dot4_add` (vpdpbusd), with
-    `maddubs` `dot4` (pmaddubsw quads, x86_quads.py; halves too), the activations of adjacent channels broadcast
-    straight from memory (vpbroadcastd), and the shifts and masks that pack a depthwise's per-lane
-    taps."""
+    AVX-512BW, and `dot2_lanes` for per-lane activations), with `vnni` (AVX-512 VNNI, and VL below 16
+    lanes) `dot4_add` (vpdpbusd), with `maddubs` `dot4` (pmaddubsw quads, x86_quads.py; halves too), the
+    activations of adjacent channels broadcast straight from memory (vpbroadcastd), and the shifts and
+    masks that pack a depthwise's per-lane taps."""
     p, _, _, si = SHAPES[lanes]
     bytes_at = "_mm_loadu_si{bits}((const void *)({{address}}))"
     in_halves = lanes == 16 and not bw
