@@ -30,7 +30,7 @@ from .requantize import Scales
 from .reshape import reshaped_view
 from .window import outside_window_nest, spatial_names, window_nest
 
-INT32, FLOAT32 = DType.INT32, DType.FLOAT32
+INT32, FLOAT32, FLOAT64 = DType.INT32, DType.FLOAT32, DType.FLOAT64
 FOLD_MIN_CHANNELS = 4
 
 
@@ -180,7 +180,9 @@ def lower_qlinear_global_average_pool(ctx: LoweringContext, node: Node) -> None:
 def lower_qlinear_average_pool(ctx: LoweringContext, node: Node) -> None:
     """As onnxruntime's QLinearAveragePool: the float32 sum, in tap order, of x_scale * (x - x_zp)
     over the taps inside the input, divided by the window's count (window_counts), then
-    sum / y_scale + y_zp rounded half to even and saturated."""
+    sum / y_scale + y_zp rounded half to even and saturated. Each product is spelled in double
+    (exact: 24 by 9 bits) and rounded to float32, so no C compiler can contract it into the sum
+    (GCC does in GNU mode, clang by default), which onnxruntime rounds twice."""
     attrs: QAveragePoolAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     rank = len(attrs.pool.kernel)
@@ -193,8 +195,9 @@ def lower_qlinear_average_pool(ctx: LoweringContext, node: Node) -> None:
 
     def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
         def tap(positions: list[Affine], _k: list[Affine]) -> tuple[Stmt, ...]:
-            dequantized = Cast(FLOAT32, widened(x, [env["n"], env["c"], *positions], attrs.x_zero_point))
-            return (accumulate(Binary("*", Const.splat(attrs.x_scale), dequantized)),)
+            difference = Cast(FLOAT64, widened(x, [env["n"], env["c"], *positions], attrs.x_zero_point))
+            product = Binary("*", difference, Const((float(np.float32(attrs.x_scale)),), FLOAT64))
+            return (accumulate(Cast(FLOAT32, product)),)
 
         window = window_nest(attrs.pool, env, dict(out_loops), x.spatial_ranges, tap)
         spatial = [env["o" + s] for s in names]

@@ -369,16 +369,24 @@ def _product_then_sum(e: Expr) -> Fma | None:
 
 
 def _unfused_sum(e: Expr) -> Fma | None:
-    """acc + x * y of a float32 product (a Cast to float32 one of its operands; QLinearAveragePool's
-    sum of its dequantised taps, lowering/quantized.py) as Fma(x * y, 1, acc): two roundings, as
-    onnxruntime and scalar C compute it, where a vector multiply feeding a vector add would be
-    contracted into one (passes of integer kernels only: their float sums are onnxruntime's)."""
-    if not (isinstance(e, Binary) and e.op == "+" and isinstance(e.a, LocalRef) and isinstance(e.b, Binary)):
+    """acc + float32(double(x) * r) of an integer x and a float32 r (QLinearAveragePool's sum of its
+    dequantised taps, lowering/quantized.py; the double product is exact) as Fma(x * r, 1, acc): two
+    roundings, as onnxruntime and scalar C compute it, where a vector multiply feeding a vector add
+    would be contracted into one."""
+    if not (isinstance(e, Binary) and e.op == "+" and isinstance(e.a, LocalRef) and isinstance(e.b, Cast)):
         return None
-    product = e.b
-    floats = any(isinstance(x, Cast) and x.dtype == DType.FLOAT32 for x in (product.a, product.b))
-    if product.op != "*" or not floats:
+    rounded = e.b
+    if rounded.dtype != DType.FLOAT32 or not isinstance(rounded.value, Binary):
         return None
+    x, ratio = rounded.value.a, rounded.value.b
+    integer = (
+        isinstance(x, Cast)
+        and x.dtype == DType.FLOAT64
+        and any(isinstance(n, Cast) and n.dtype.is_integer for n in walk_exprs(x.value))
+    )
+    if rounded.value.op != "*" or not integer or not _float32_constant(ratio):
+        return None
+    product = Binary("*", Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]))
     return Fma(product, Const.splat(1.0), e.a)
 
 
