@@ -217,15 +217,45 @@ def lower_qlinear_average_pool(ctx: LoweringContext, node: Node) -> None:
 def lower_quantize_linear(ctx: LoweringContext, node: Node, order: tuple[int, ...] | None = None) -> None:
     """QuantizeLinear as onnxruntime computes it: x / scale, clamped, rounded half to even, plus the
     zero point (MLAS's MlasQuantizeLinear); the output in `order` (None: the input's)."""
-    attrs: QuantAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
+    elementwise(ctx, node, x.order if order is None else order, lambda idx: _quantized(node.attrs, x, idx))
+
+
+def lower_banded_quantize_linear(ctx: LoweringContext, node: Node) -> None:
+    """QuantizeLinear of a planar (N = 1) image into a line buffer, channels last (lowering/stream.py),
+    a row at a time: quantised along the row into a planar scratch row, contiguous on both sides like
+    the nest of the layer run whole (vectorize.py takes it), then interleaved into the line buffer, a
+    byte copy per element, instead of a quotient and a rounding per element at a stride of C."""
+    attrs: QuantAttrs = node.attrs
+    _, channels, height, width = ctx.graph.shape(node.outputs[0])
+    if channels == 1:  # channels last is planar
+        lower_quantize_linear(ctx, node, channels_last(4))
+        return
+    x = ctx.ref(node.inputs[0])
+    out = ctx.output(node.outputs[0], channels_last(4))
+    row = ctx.add_buffer(f"row_{node.name}", "internal", (channels, width), row_major(2), dtype=attrs.dtype)
+
+    def per_row(env: dict[str, Affine]) -> tuple[Stmt, ...]:
+        def quantized(inner: dict[str, Affine]) -> tuple[Stmt, ...]:
+            c, w = inner["c"], inner["w"]
+            return (Store(row.buffer, row.at([c, w]), _quantized(attrs, x, [Affine(), c, env["h"], w])),)
+
+        def interleaved(inner: dict[str, Affine]) -> tuple[Stmt, ...]:
+            c, w = inner["c"], inner["w"]
+            return (Store(out.buffer, out.at([Affine(), c, env["h"], w]), Load(row.buffer, row.at([c, w]))),)
+
+        planar, last = [("c", channels), ("w", width)], [("w", width), ("c", channels)]
+        return (*nest(planar, quantized, parallel=True), *nest(last, interleaved, parallel=True))
+
+    # the row loop is serial: its iterations share the scratch row
+    ctx.emit(node.name, node.op, (Loop("h", height, per_row({"h": Affine.of("h")})),))
+
+
+def _quantized(attrs: QuantAttrs, x: TensorRef, idx: list[Affine]) -> Expr:
+    """x[idx] / scale, clamped, rounded half to even, plus the zero point."""
     low, high = attrs.dtype.range
-
-    def value(idx: list[Affine]) -> Expr:
-        scaled = Binary("/", Load(x.buffer, x.at(idx)), Const.splat(attrs.scale))
-        return Requantize(scaled, attrs.zero_point, low, high, attrs.dtype)
-
-    elementwise(ctx, node, x.order if order is None else order, value)
+    scaled = Binary("/", Load(x.buffer, x.at(idx)), Const.splat(attrs.scale))
+    return Requantize(scaled, attrs.zero_point, low, high, attrs.dtype)
 
 
 def lower_dequantize_linear(ctx: LoweringContext, node: Node) -> None:

@@ -21,10 +21,10 @@ from ..ir.kinds import ConvAlgorithm, VectorAxis
 from ..ir.loops import Affine, Bound, If, Load, Loop, Stmt, Store, map_body, map_stmt_exprs
 from ..ir.rename import substitute_body
 from .bands import POINTWISE, BandGroup, Geometry, Rows, geometry
-from .context import LoweringContext, channels_last, dim_vars
+from .context import LoweringContext, dim_vars
 from .conv import lower_conv
 from .pool import lower_averagepool
-from .quantized import lower_any_maxpool, lower_qlinear_average_pool, lower_qlinear_conv, lower_quantize_linear
+from .quantized import lower_any_maxpool, lower_banded_quantize_linear, lower_qlinear_average_pool, lower_qlinear_conv
 from .quantized_add import lower_qlinear_add
 from .quantized_lookup import lower_qlinear_lookup
 from .winograd import TILE, lower_winograd_band
@@ -38,7 +38,7 @@ STAGE_LOWERINGS = {
     "QLinearAveragePool": lower_qlinear_average_pool,
     "QLinearLookup": lower_qlinear_lookup,
     "QLinearAdd": lower_qlinear_add,
-    "QuantizeLinear": lambda ctx, node: lower_quantize_linear(ctx, node, channels_last(4)),  # a line buffer's layout
+    "QuantizeLinear": lower_banded_quantize_linear,  # into a line buffer's layout, channels last
 }
 ELEMENTWISE_ROW = dim_vars(4)[2]  # an elementwise nest's row loop (elementwise.py), channels last
 

@@ -82,7 +82,8 @@ def vectorize(program: Program, target: Target) -> Program:
             kernels.append(kernel)
             continue
         if kernel.op == "Band" and kernel.name in integer:
-            body = _mark_conv_stages(kernel.body, widths)
+            floats = {b.name for b in program.buffers if b.dtype == DType.FLOAT32}
+            body = _mark_band_stages(kernel.body, widths, floats)
         else:
             body = mark_vector_loop(kernel.body, widths)
         overlaps = any(
@@ -100,7 +101,7 @@ def vectorize(program: Program, target: Target) -> Program:
 # int32 sums of QLinearGlobalAveragePool, the int32 maxima of an int8 MaxPool, and DequantizeLinear
 # (one float32 product of the int32 difference), QLinearAveragePool's float32 sums (_unfused_sum): the
 # same arithmetic in every lane as in scalar C; of an int8 band kernel (lowering/stream.py), the
-# convolutions' nests (_mark_conv_stages)
+# convolutions' and QuantizeLinear's nests (_mark_band_stages)
 INTEGER_OPS = (
     "QLinearConv",
     "QLinearDense",
@@ -192,20 +193,28 @@ def _dot_vectorizable(dot: Dot, var: str) -> bool:
     return steps in ({0}, {1}, set()) and dot.w.index.coeff(var) == len(dot.x)
 
 
-def _mark_conv_stages(body: tuple[Stmt, ...], widths: tuple[int, ...]) -> tuple[Stmt, ...]:
-    """An int8 band kernel's body with its convolutions' nests marked: through the band's serial loops
-    (over bands, nested runs, a run's rows) and border checks, each layer's nest (a parallel loop) is
-    marked where it multiply-accumulates; the other layers (table lookups, pooling, the line
-    buffers' shifts: 8-bit loads and stores the integer vectors do not widen) stay scalar."""
+def _mark_band_stages(body: tuple[Stmt, ...], widths: tuple[int, ...], floats: set[str]) -> tuple[Stmt, ...]:
+    """An int8 band kernel's body with its convolutions' and QuantizeLinear's nests marked: through the
+    band's serial loops (over bands, nested runs, a run's rows) and border checks, each layer's nest (a
+    parallel loop) is marked where it multiply-accumulates or quantises floats (`floats`: the float
+    buffers); the other layers (table lookups, pooling, the line buffers' shifts and the interleaving
+    of a quantised row: 8-bit loads and stores the integer vectors do not widen) stay scalar."""
     out: list[Stmt] = []
     for stmt in body:
         if isinstance(stmt, If) or (isinstance(stmt, Loop) and not stmt.parallel):
-            stmt = replace(stmt, body=_mark_conv_stages(stmt.body, widths))
-        elif any(_multiply_accumulates(s) for s in walk_stmts((stmt,))):
+            stmt = replace(stmt, body=_mark_band_stages(stmt.body, widths, floats))
+        elif any(_multiply_accumulates(s) for s in walk_stmts((stmt,))) or _quantizes(stmt, floats):
             out += mark_vector_loop((stmt,), widths)
             continue
         out.append(stmt)
     return tuple(out)
+
+
+def _quantizes(stmt: Stmt, floats: set[str]) -> bool:
+    """A nest whose stores are all requantised values of float loads: QuantizeLinear's (lowering/quantized.py)."""
+    stores = [s for s in walk_stmts((stmt,)) if isinstance(s, Store)]
+    loads = [e for s in stores for e in walk_exprs(s.value) if isinstance(e, Load)]
+    return bool(loads) and all(isinstance(s.value, Requantize) for s in stores) and {e.buffer for e in loads} <= floats
 
 
 def _multiply_accumulates(stmt: Stmt) -> bool:
