@@ -25,13 +25,12 @@ included (callgrind Ir, `python3 -m benchmarks.int8_band_costs`; scalar in bands
 ssse3, 11x on avx2); a depthwise pair 1.07x on ssse3, 1.12-1.15x on avx2 (its border columns in vectors over
 channels too; scalar before: 1.17x, 1.26-1.29x). `integer_banded` prices that with a margin.
 
-Only the convolutions of an int8 band kernel take vectors: a QuantizeLinear in bands writes its channels-last
-line buffer from planar floats element by element, a division and a branching round each, where run whole it
-is one vector nest. On mobilenet_v1_025 int8 (96x96x3 input) that alone took balanced's plan from an estimated
-1.03x to a measured 1.43x (ssse3) / 2.07x (avx2) of speed's latency (quiet memory suite), while the same plan
-without the QuantizeLinear in its group ran at 0.92-0.94x of speed (loaded, interleaved): `quantize_banded`,
-per element in whole-Conv MACs (an int8 MAC in dot products is far cheaper than the float MAC the unit is),
-is that difference over the input's elements, rounded (116 on ssse3, 292 on avx2)."""
+A QuantizeLinear in bands (the model input's, into a channels-last line buffer) costs what it costs whole,
+1 per element: it quantises each row in vectors into a planar scratch row, then interleaves that into the line
+buffer byte by byte (lowering/quantized.py). On mobilenet_v1_025 int8 (96x96x3 input), balanced's plan with the
+QuantizeLinear in its group took 1.007x speed's instructions on ssse3 (gcc -O2; clang: 1.019x) and 1.015x on
+avx2 (clang), fewer than the same plan with the QuantizeLinear run whole (callgrind Ir); quantised element by
+element at a stride of C before, it took 1.14x (gcc) / 1.08x (clang), and latency 1.43x (ssse3) / 2.07x (avx2)."""
 
 from __future__ import annotations
 
@@ -50,16 +49,11 @@ class BandCosts:
     per_band: float
     shift: float
     integer_banded: float  # an int8 Conv in a group of bands against run whole, both in the target's dots
-    quantize_banded: float = 1.0  # per element, a QuantizeLinear in a group of bands (scalar there; whole: vectors)
 
 
 SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0, integer_banded=1.0)
-VECTOR4 = BandCosts(
-    winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5, integer_banded=1.1, quantize_banded=100.0
-)
-VECTOR8 = BandCosts(
-    winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=1.1, quantize_banded=250.0
-)
+VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5, integer_banded=1.1)
+VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=1.1)
 COSTS = {
     "ansi-c": SCALAR,
     "ssse3": VECTOR4,

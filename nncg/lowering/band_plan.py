@@ -191,6 +191,7 @@ def _band_step(
     if geo is None or (winograd and (j - i == 1 or not geo.winograd)):
         return None
     scratch = band_scratch_floats(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd]) * FLOAT_BYTES
+    scratch += sum(_quantized_row(graph, n) for n in graph.nodes[i:j])
     lines = sum(geo.rows[v].lines * row_bytes(graph, v) for v in geo.internal) + scratch
     shifted = sum(
         (geo.rows[v].lines - geo.rows[v].step) * row_bytes(graph, v) // FLOAT_BYTES * geo.runs(0, geo.rows[v].level)
@@ -204,12 +205,16 @@ def _band_step(
             return costs.integer_banded if j - i > 1 else 1.0
         return banded * (costs.winograd if node.name in geo.winograd else 1.0)
 
-    def per_element(node: Node) -> float:
-        return costs.quantize_banded if node.op == "QuantizeLinear" else 1.0
-
-    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) * per_element(n) for n in graph.nodes[i:j])
+    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in graph.nodes[i:j])
     cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.bytes(i, j, geo.internal) + lines, cost, lines)
+
+
+def _quantized_row(graph: Graph, node: Node) -> int:
+    """The scratch row a QuantizeLinear in bands quantises into before interleaving its channels
+    (lowering/quantized.py lower_banded_quantize_linear)."""
+    several = node.op == "QuantizeLinear" and graph.shape(node.outputs[0])[1] > 1
+    return row_bytes(graph, node.outputs[0]) if several else 0
 
 
 def _scratch(graph: Graph, node: Node) -> int:
