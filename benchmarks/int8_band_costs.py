@@ -3,7 +3,12 @@
 matter), of the same two int8 3x3 Convs (Conv -> QLinearConv of `kind`: dense, strided or depthwise) at
 --memory speed and in one band group of `rows`, the group's line buffers and per-band loops included.
 
-    python3 -m benchmarks.int8_band_costs [--targets ssse3 avx2] [--out-dir /tmp/NAME]
+    python3 -m benchmarks.int8_band_costs [--targets ssse3 avx2] [--rows 1 4]
+
+With --quantize, what the model input's QuantizeLinear costs in bands (BandCosts has no price of its own for it:
+it costs what it costs whole): mobilenet_v1_025 int8 at --memory speed, at balanced's plan, and at that plan with
+the QuantizeLinear run whole (the first group starting after it). --cc picks the C compiler (valgrind 3.19 cannot
+decode an AVX2 move GCC emits in mobilenet's avx2 build: clang there).
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ import re
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -21,9 +27,11 @@ from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantTy
 
 import nncg
 from nncg import lowering
-from nncg.lowering.band_plan import BandPlan
+from nncg.lowering.band_plan import BandPlan, plan_layers
 from nncg.lowering.bands import BandGroup
 from nncg.verify import build_model
+
+from .int8_suite import quantized_model
 
 # kind: (channels in, channels out, group, stride, image side)
 SHAPES = {"dense": (16, 16, 1, 1, 32), "strided": (16, 32, 1, 2, 32), "depthwise": (16, 16, 16, 1, 32)}
@@ -70,30 +78,73 @@ def conv_pair(kind: str, workdir: Path):
 
 def instructions(model, target: str, rows: int | None, workdir: Path) -> int:
     """Callgrind's Ir of one run of the model compiled for `target`, whole (rows None) or in one group."""
+    if rows is None:
+        return planned_instructions(model, target, None, workdir)
+    return planned_instructions(
+        model, target, lambda graph, *_: BandPlan((BandGroup(tuple(n.name for n in graph.nodes[:-1]), rows),)), workdir
+    )
+
+
+def planned_instructions(model, target: str, planner, workdir: Path, cc: str | None = None) -> int:
+    """Callgrind's Ir of one run of the model compiled for `target` under `planner` (a stand-in for
+    lowering.plan_layers; None: --memory speed), on a seeded standard-normal input."""
     original = lowering.plan_layers
-    if rows is not None:
-        lowering.plan_layers = lambda graph, *_: BandPlan((BandGroup(tuple(n.name for n in graph.nodes[:-1]), rows),))
+    if planner is not None:
+        lowering.plan_layers = planner
     try:
-        compiled = nncg.compile(model, target=target, memory="min" if rows else "speed")
+        compiled = nncg.compile(model, target=target, memory="min" if planner else "speed")
     finally:
         lowering.plan_layers = original
-    built = build_model(compiled, workdir)
+    built = build_model(compiled, workdir, cc=cc)
     out = workdir / "callgrind.out"
     shape = compiled.inputs[0].shape
-    np.zeros(shape, np.float32).tofile(workdir / "input0.bin")
+    np.random.default_rng(0).standard_normal(shape).astype(np.float32).tofile(workdir / "input0.bin")
     command = ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out}", str(built.program), "input0.bin"]
     subprocess.run([*command, "output0.bin"], cwd=workdir, check=True, capture_output=True)
     summary = re.search(r"^summary: (\d+)", out.read_text(), re.M)
     return int(summary.group(1))
 
 
+def quantize_in_bands(targets: list[str], workdir: Path, cc: str | None) -> None:
+    """mobilenet_v1_025 int8's Ir at speed, at balanced's plan and at that plan with its QuantizeLinear whole."""
+    model = quantized_model("mobilenet_v1_025")
+    print("| target | speed Ir | balanced Ir (x speed) | balanced, QuantizeLinear whole: Ir (x speed) |")
+    print("|---|---:|---:|---:|")
+    for target in targets:
+        speed = planned_instructions(model, target, None, workdir, cc)
+        cells = " | ".join(f"{ir} ({ir / speed:.3f})" for ir in _balanced_instructions(model, target, workdir, cc))
+        print(f"| {target} | {speed} | {cells} |", flush=True)
+
+
+def _balanced_instructions(model, target: str, workdir: Path, cc: str | None) -> tuple[int, int]:
+    """Ir at balanced's plan, and at that plan with its first group starting after the QuantizeLinear."""
+    plans = []
+
+    def balanced(graph, _memory, *rest):  # lowering's planner at balanced, its plan kept
+        plans.append((graph, plan_layers(graph, "balanced", *rest)))
+        return plans[-1][1]
+
+    banded = planned_instructions(model, target, balanced, workdir, cc)
+    graph, plan = plans[0]
+    first, *others = plan.groups
+    if len(first.nodes) < 2 or graph.nodes[0].name != first.nodes[0] or graph.nodes[0].op != "QuantizeLinear":
+        raise SystemExit(f"{target}: balanced's first group {first} does not start at the input's QuantizeLinear")
+    whole = BandPlan((replace(first, nodes=first.nodes[1:]), *others))
+    return banded, planned_instructions(model, target, lambda *_: whole, workdir, cc)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--targets", nargs="+", default=["ssse3", "avx2"])
     parser.add_argument("--rows", nargs="+", type=int, default=[1, 4])
+    parser.add_argument("--quantize", action="store_true", help="the input QuantizeLinear in bands (mobilenet)")
+    parser.add_argument("--cc", help="the C compiler (default: the tests')")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="nncg-band-costs-") as tmp:
         workdir = Path(tmp)
+        if args.quantize:
+            quantize_in_bands(args.targets, workdir, args.cc)
+            return 0
         print("| target | conv | whole Ir | " + " | ".join(f"bands of {r}: Ir (x whole)" for r in args.rows) + " |")
         print("|---|---|---:|" + "---:|" * len(args.rows))
         for target in args.targets:

@@ -29,8 +29,9 @@ A QuantizeLinear in bands (the model input's, into a channels-last line buffer) 
 1 per element: it quantises each row in vectors into a planar scratch row, then interleaves that into the line
 buffer byte by byte (lowering/quantized.py). On mobilenet_v1_025 int8 (96x96x3 input), balanced's plan with the
 QuantizeLinear in its group took 1.007x speed's instructions on ssse3 (gcc -O2; clang: 1.019x) and 1.015x on
-avx2 (clang), fewer than the same plan with the QuantizeLinear run whole (callgrind Ir); quantised element by
-element at a stride of C before, it took 1.14x (gcc) / 1.08x (clang), and latency 1.43x (ssse3) / 2.07x (avx2)."""
+avx2 (clang), fewer than the same plan with the QuantizeLinear run whole (1.010x, 1.027x, 1.027x; callgrind Ir,
+`python3 -m benchmarks.int8_band_costs --quantize [--cc clang]`); quantised element by element at a stride of C
+before, it took 1.14x (gcc) / 1.09x (clang), and latency 1.43x (ssse3) / 2.07x (avx2)."""
 
 from __future__ import annotations
 
