@@ -31,7 +31,7 @@ buffer byte by byte (lowering/quantized.py). On mobilenet_v1_025 int8 (96x96x3 i
 QuantizeLinear in its group took 1.007x speed's instructions on ssse3 (gcc -O2; clang: 1.019x) and 1.015x on
 avx2 (clang), fewer than the same plan with the QuantizeLinear run whole (1.010x, 1.027x, 1.027x; callgrind Ir,
 `python3 -m benchmarks.int8_band_costs --quantize [--cc clang]`); quantised element by element at a stride of C
-before, it took 1.14x (gcc) / 1.09x (clang), and latency 1.43x (ssse3) / 2.07x (avx2)."""
+before: 1.14x, 1.08x, 1.09x, and latency 1.43x (ssse3) / 2.07x (avx2)."""
 
 from __future__ import annotations
 
