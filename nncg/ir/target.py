@@ -33,6 +33,9 @@ class Target:
     dot2_int16_weights: the K = 2 dot products read their weights as int16 pairs packed at generation
     time (ssse3: without SSE4.1's pmovsxbw, widening int8 weights per use took three instructions
     per pmaddwd; the weights take twice the bytes).
+    dot2_quad_loads: a K = 2 dot's adjacent 8-bit activations are widened from a 4-byte load whose
+    other pair the next dot takes (ssse3, without vpbroadcastd: one load and unpack serve two pairs),
+    so register-block unrolls those reductions by 2 (passes/register_block.py, unroll_pair_reductions).
     dot_int8_activations: the K = 4 dot multiplies int8 activations (AArch64 sdot: s8 x s8 quads), so
     uint8 activations and zero points the lowering did not fold are offset into int8 and the constant
     difference is added back per output channel (passes/dot_product.py).
@@ -54,6 +57,7 @@ class Target:
     dot_uint8_int16: int = 0
     tap_dots: bool = False
     dot2_int16_weights: bool = False
+    dot2_quad_loads: bool = False
     dot_int8_activations: bool = False
     fma_in_double: bool = False
 
