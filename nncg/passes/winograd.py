@@ -19,10 +19,11 @@ from dataclasses import replace
 
 from ..errors import NncgError
 from ..ir.analysis import vector_instructions
-from ..ir.applicability import winograd_applies
+from ..ir.applicability import integer_winograd_shaped, winograd_applies
 from ..ir.graph import Graph
 from ..ir.kinds import ConvAlgorithm
 from ..ir.target import Target
+from ..lowering.winograd_integer import integer_winograd_fits
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
 
@@ -42,11 +43,16 @@ def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None
     nodes = []
     for node in graph.nodes:
         wanted = layers.get(node.name)
-        if wanted and not winograd_applies(graph, node):
+        if wanted and not applies(graph, node):
             raise NncgError(
-                f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights"
+                f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights "
+                "(or a QLinearConv whose sums the integer transforms cannot hold exactly)"
             )
-        if chosen_by_cost_model(graph, node, target) if wanted is None else wanted:
+        if not (chosen_by_cost_model(graph, node, target) if wanted is None else wanted):
+            pass
+        elif node.op == "QLinearConv":
+            node = replace(node, attrs=replace(node.attrs, algorithm=ConvAlgorithm.WINOGRAD))
+        else:
             c_out = graph.shape(node.inputs[1])[0]
             width = padded_channels(c_out, lanes)
             attrs = replace(node.attrs, algorithm=ConvAlgorithm.WINOGRAD, gemm_channels=width if width != c_out else 0)
@@ -55,7 +61,24 @@ def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None
     return graph.with_nodes(nodes)
 
 
+def applies(graph: Graph, node) -> bool:
+    """A float Conv Winograd applies to, or a QLinearConv integer Winograd does (exactly)."""
+    return winograd_applies(graph, node) or (integer_winograd_shaped(node) and integer_winograd_fits(graph, node))
+
+
 def chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
+    if node.op == "QLinearConv":
+        return integer_chosen_by_cost_model(graph, node, target)
+    return float_chosen_by_cost_model(graph, node, target)
+
+
+def integer_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
+    """Not yet by itself: the integer nests are scalar (lowering/winograd_integer.py), and `layers`
+    forces them."""
+    return False
+
+
+def float_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     """Enough input channels, and either enough 2x2 output tiles to reuse each transformed weight over
     or transformed weights that stay in L2: its 16 GEMMs stream 16/9 the direct weights, each used
     once per tile. resnet18 at 96x96, avx2: layer4 (4 tiles, 16.8 MB) 3550 us against 1400 direct,
@@ -70,7 +93,7 @@ def chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
 
 def winograd_candidates(graph: Graph) -> list[str]:
     """The layers Winograd applies to (what --tune measures both ways)."""
-    return [node.name for node in graph.nodes if winograd_applies(graph, node)]
+    return [node.name for node in graph.nodes if applies(graph, node)]
 
 
 def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[bool, ...]]:
