@@ -116,7 +116,9 @@ class _Packer:
         k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
         array = self.program.constants[w.buffer]
         array = _squeezed(array) if target.tap_dots else array
-        if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
+        int16 = xbuf.dtype == DType.INT16 and array.dtype == np.int16 and not zero_point  # integer Winograd's GEMMs
+        k = 2 if int16 and target.int16_dots else k
+        if not k or array.dtype != (np.int16 if int16 else np.int8) or array.ndim < 2 or array.shape[-2] != loop.extent:
             return None
         if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16 and pair_sums_fit_int16(array):
             k = target.dot_uint8_int16
@@ -126,7 +128,8 @@ class _Packer:
         lead, co = split
         c, cs = array.shape[-2:]
         index = lead * (-(-c // k) * k * cs) + co * k + Affine.of(loop.var) * (k * cs)
-        packed = self.packed_buffer(w.buffer, array, k, np.int16 if k == 2 and target.dot2_int16_weights else np.int8)
+        wide = int16 or (k == 2 and target.dot2_int16_weights)
+        packed = self.packed_buffer(w.buffer, array, k, np.int16 if wide else np.int8)
         channels, groups = loop.extent, loop.extent // k
         offset = 128 * (xbuf.dtype == DType.UINT8) if target.dot_int8_activations and k == 4 else zero_point
 

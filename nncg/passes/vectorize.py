@@ -61,6 +61,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from ..ir.target import Target
+from ..lowering.winograd_integer import WINOGRAD_OP
 from .dot_product import dot_products, multiply_accumulate
 from .dot_taps import split_tap_borders
 from .substitute import interior, iterations, substitute_body
@@ -118,12 +119,14 @@ FUSED_OPS = ("QLinearAdd", "QLinearMul")
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
-    """One of INTEGER_OPS on a target with integer vectors, or a QLinearAdd on one with a fused
-    multiply-add as well, requantised in the float form."""
+    """One of INTEGER_OPS on a target with integer vectors, a QLinearAdd on one with a fused
+    multiply-add as well, or an integer Winograd (int16 scratch) on one with Target.int16_dots,
+    requantised in the float form."""
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
     ops = INTEGER_OPS + (FUSED_OPS if target.fma or target.fma_in_double else ())
+    ops += (WINOGRAD_OP,) if target.int16_dots else ()
     return target.integer_vectors and kernel.op in ops and not fixed
 
 
