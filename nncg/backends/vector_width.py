@@ -81,6 +81,8 @@ INTEGER_DOTS = {
     "pair_int16": ("address",),
     "store_int16": ("address", "value"),
     "store_int32": ("address", "value"),
+    # int16 weights (a weight zero point subtracted) widened to int32 where no dot product takes them
+    "widen_int16": ("address",),
 }
 
 

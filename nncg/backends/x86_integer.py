@@ -20,6 +20,12 @@ SHAPES = {
 }
 
 
+# lanes -> the load of `lanes` int16 values
+INT16_LOADS = {
+    4: "_mm_loadl_epi64((const __m128i *)({address}))",
+    8: "_mm_loadu_si128((const __m128i *)({address}))",
+    16: "_mm256_loadu_si256((const __m256i *)({address}))",
+}
 # lanes -> the int16 pairs of `lanes` output channels' packed weights, sign-extended from int8 (SSE4.1, AVX2, AVX-512BW)
 PAIRS = {
     4: "_mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)({address})))",
@@ -82,6 +88,7 @@ def x86_integer(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool 
         "load": f"{p}_loadu_{si}((const void *)({{address}}))",
         "widen_uint8": f"{p}_cvtepu8_epi32({bytes_load})",
         "widen_int8": f"{p}_cvtepi8_epi32({bytes_load})",
+        "widen_int16": f"{p}_cvtepi16_epi32({INT16_LOADS[lanes]})",
         "splat": f"{p}_set1_epi32({{value}})",
         "vector": f"{p}_setr_epi32({{values}})",
         "+": f"{p}_add_epi32({{a}}, {{b}})",
@@ -112,6 +119,7 @@ SSE2_TAPS = f"_mm_unpacklo_epi8({SSE2_BYTES.format(address='{a}')}, {SSE2_BYTES.
 SSE2 = {
     "widen_uint8": f"_mm_unpacklo_epi16(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {ZERO})",
     "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
+    "widen_int16": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, {INT16_LOADS[4]}), 16)",
     "*": "_mm_madd_epi16({a}, _mm_and_si128({b}, _mm_set1_epi32(0xFFFF)))",
     # no pmaxsd: the int8 kernels take maxima of 8-bit values, which pmaxsw takes in the low int16
     # halves (the high halves, their sign extensions, follow the same lane)
