@@ -9,7 +9,7 @@ The float transforms (winograd.py) have halves in G; with G' = 2G every operand 
   Y' = A^T M A + 4 b = 4 (b + sum (x - x_zero_point) w)   (int32, exactly 4 times the direct sum)
 and Y' is requantised with the multipliers divided by 4: float32(4 s) * (m / 4) is float32(s) * m to
 the bit (scaling by a power of two is exact in float32, short of overflow and subnormals, which
-integer_winograd_applies rules out), and in the fixed-point form m / 4 is the same significand with
+integer_winograd_fits rules out), and in the fixed-point form m / 4 is the same significand with
 the shift 2 larger. V's and M's scratch are int16 and int32 arena buffers (ir/arena.py keeps them
 apart from the float ones). The nests are winograd.py's: tiles, chunks and border loops."""
 

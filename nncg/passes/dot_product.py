@@ -1,7 +1,8 @@
 """Part of the loop pass `vectorize`: the int8 kernels' reduction over input channels as dot products
 of K channels (loops.Dot) on targets that have them (Target.dot_uint8, dot_int8: K = 2, pmaddwd on
 int16 pairs; K = 4, vpdpbusd on u8 x s8 quads), and K = Target.dot_uint8_int16 (pmaddubsw quads) for
-uint8 activations where the layer's weights are proven never to saturate the int16 pair sums; layers
+uint8 activations where the layer's weights are proven never to saturate the int16 pair sums (and, with
+Target.int16_dots, K = 2 of int16 activations and int16 weights: integer Winograd's GEMMs); layers
 that fail the proof keep pmaddwd pairs (splitting their weights in two halves that pass, two pmaddubsw
 per quad, measured no faster than the pairs with twice the weight bytes: benchmarks/int8_dot_forms.py).
 

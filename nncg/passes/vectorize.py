@@ -16,7 +16,8 @@ int32 accumulators over output channels, an invariant integer operand (the input
 whole, requantised per vector; where the target has integer dot products, the reduction over input
 channels first becomes dot products of 2 or 4 channels (dot_product.py), and with Target.tap_dots a
 depthwise's interior columns (split from the borders, dot_taps.py) dot products of 2 or 4 taps whose
-activations are vectors, each lane its own channel's. QuantizeLinear runs as its
+activations are vectors, each lane its own channel's. Integer Winograd (Target.int16_dots) stores its
+transformed inputs as int16 vectors and runs its GEMMs in dots of int16 pairs. QuantizeLinear runs as its
 float quotient requantised per vector, DequantizeLinear as its float product; an int8 MaxPool takes
 int32 maxima and QLinearGlobalAveragePool int32 sums over channels; the lookups (256-entry tables)
 stay scalar gathers; QLinearAdd, on targets with FMA, in vector fused
