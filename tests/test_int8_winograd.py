@@ -76,15 +76,19 @@ def float_model(size: tuple[int, int], seed: int = 1) -> onnx.ModelProto:
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
 
 
-def compiled_for(model: onnx.ModelProto, target: str, winograd: bool | None = None, layers: list[str] | None = None):
-    """The model for `target` by the default pipeline, Winograd forced on or off with `winograd` (on
-    `layers`, by default those it applies to)."""
+def compiled_for(
+    model: onnx.ModelProto, target: str, winograd: bool | None = None, layers: list[str] | None = None, **options
+):
+    """The model for `target` as nncg.compile makes it, or by the default pipeline (of default_pipeline's
+    `options`) with Winograd forced on or off with `winograd` (on `layers`, by default those it applies to)."""
     skip_unless_host_runs(target)
-    if winograd is None:
+    if winograd is None and not options:
         return nncg.compile(model, target, verify_ir=True)
-    flag = "true" if winograd else "false"
-    layers = ";".join(f"{name}:{flag}" for name in layers or winograd_candidates(import_onnx(model)))
-    pipeline = default_pipeline(nncg.get_target(target)).replace(",winograd", f",winograd{{layers={layers}}}")
+    pipeline = default_pipeline(nncg.get_target(target), **options)
+    if winograd is not None:
+        flag = "true" if winograd else "false"
+        choice = ";".join(f"{name}:{flag}" for name in layers or winograd_candidates(import_onnx(model)))
+        pipeline = pipeline.replace(",winograd", f",winograd{{layers={choice}}}")
     return nncg.compile(model, target, verify_ir=True, pipeline=pipeline)
 
 
@@ -168,3 +172,16 @@ def test_direct_kernel_of_int16_weights_on_vectors(target):
     for feed in random_feeds(model, 1, SEED):
         expected = onnxruntime_outputs(model, feed)[0]
         np.testing.assert_array_equal(run_compiled(compiled, [feed["x"]])[0].reshape(expected.shape), expected)
+
+
+def test_fixed_point_form_matches_the_direct_kernel():
+    """--requantize fixed: the multiplier / 4 is the same significand with the shift 2 larger, and
+    4 times the sum is requantised to what the direct kernel's sum is, to the bit."""
+    model = qlinear_model("int8", True, (7, 9))
+    outputs = []
+    for forced in (True, False):
+        compiled = compiled_for(model, "ansi-c", forced, requantize="fixed")
+        assert compiled.source.count(WINOGRAD_KERNEL) == (2 if forced else 0)
+        outputs.append([run_compiled(compiled, [feed["x"] * 3])[0] for feed in random_feeds(model, FEEDS, SEED)])
+    for winograd_output, direct_output in zip(*outputs):
+        np.testing.assert_array_equal(winograd_output, direct_output)
