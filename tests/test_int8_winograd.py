@@ -54,10 +54,10 @@ def qlinear_model(activations: str, per_channel: bool, size: tuple[int, int], se
 
 
 def float_model(size: tuple[int, int], seed: int = 1) -> onnx.ModelProto:
-    """Two padded 3x3 Convs (6 -> 10 -> 9 channels) with a Relu between: quantized to QDQ, QLinearConvs."""
+    """Two padded 3x3 Convs (8 -> 10 -> 9 channels) with a Relu between: quantized to QDQ, QLinearConvs."""
     rng = np.random.default_rng(seed)
     init = {
-        "w1": rng.standard_normal((10, 6, 3, 3)).astype(np.float32) / 7,
+        "w1": rng.standard_normal((10, 8, 3, 3)).astype(np.float32) / 8,
         "b1": rng.standard_normal(10).astype(np.float32) * 0.3,
         "w2": rng.standard_normal((9, 10, 3, 3)).astype(np.float32) / 9,
     }
@@ -69,7 +69,7 @@ def float_model(size: tuple[int, int], seed: int = 1) -> onnx.ModelProto:
     graph = helper.make_graph(
         nodes,
         "winograd_qdq",
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 6, *size])],
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 8, *size])],
         [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
         [onnx.numpy_helper.from_array(a, n) for n, a in init.items()],
     )
