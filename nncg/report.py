@@ -20,7 +20,7 @@ from .bench.harness import ObjectSizes, object_sizes
 from .bench.macs import node_macs
 from .compiler import CompiledModel, CompileRecord, memory_figures
 from .errors import NncgError
-from .ir.graph import ConvAttrs, DenseAttrs, Graph, Node
+from .ir.graph import ConvAttrs, DenseAttrs, Graph, Node, QConvAttrs
 from .ir.kinds import BufferRole, ConvAlgorithm, VectorAxis
 from .ir.loops import Kernel, Loop, Program, Store, walk_stmts
 from .lowering.context import layer_names
@@ -190,6 +190,8 @@ def _graph_choices(attrs) -> list[str]:
             choices.append("vectorised over pixels")
         if attrs.residual:
             choices.append("fused residual add")
+    if isinstance(attrs, QConvAttrs) and attrs.algorithm == ConvAlgorithm.WINOGRAD:
+        choices.append("integer winograd F(2x2,3x3)")
     if isinstance(attrs, DenseAttrs) and attrs.panel:
         choices.append(f"weights packed in panels of {attrs.panel} columns")
     activation = getattr(attrs, "activation", None)

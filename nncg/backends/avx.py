@@ -39,7 +39,7 @@ X86 = {
 
 
 class Avx2(SimdPrinter):
-    target = Target("avx2", vector_widths=(8, 4), **X86, dot_uint8_int16=4, tap_dots=True)
+    target = Target("avx2", vector_widths=(8, 4), **X86, dot_uint8_int16=4, tap_dots=True, int16_dots=True)
     widths = {8: AVX_256, 4: AVX_128}
     cflags = ("-mavx2", "-mfma")
     strict_cflags = ("-Wall", "-Wextra", "-Werror")

@@ -108,6 +108,8 @@ class IntegerVectors:
             return ints[f"dot{k}_add"].format(acc=acc, xs=self._activations(e, ints), address=address)
         per_lane = any(x.lanes > 1 for x in e.x)
         template = f"dot{k}_lanes" if per_lane and f"dot{k}_lanes" in ints else f"dot{k}"
+        if self.dtypes[e.w.buffer] == DType.INT16:  # int16 pairs as they are (Target.int16_dots, dot2_int16_weights)
+            template = "dot2_int16"
         if template in ints:
             return ints[template].format(xs=self._activations(e, ints), address=address)
         if per_lane:  # Target.tap_dots promises the templates

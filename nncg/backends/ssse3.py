@@ -52,6 +52,7 @@ class Ssse3(SimdPrinter):
         dot2_quad_loads=True,
         tap_dots=True,
         fma_in_double=True,
+        int16_dots=True,
     )
     widths = {4: fused_in_double(replace(x86_width("_mm", "__m128", select="bitwise", fma=False), **sse2_integer()))}
     cflags = ("-mssse3",)

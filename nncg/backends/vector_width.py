@@ -75,6 +75,14 @@ INTEGER_DOTS = {
     "shift_left": ("a", "bits"),
     "or": ("a", "b"),
     "and": ("a", "b"),
+    # Target.int16_dots (integer Winograd): pmaddwd of int16 pairs read as they are, 2 adjacent int16
+    # activations in every lane, int32 lanes in int16 range stored as int16
+    "dot2_int16": ("xs", "address"),
+    "pair_int16": ("address",),
+    "store_int16": ("address", "value"),
+    "store_int32": ("address", "value"),
+    # int16 weights (a weight zero point subtracted) widened to int32 where no dot product takes them
+    "widen_int16": ("address",),
 }
 
 

@@ -20,6 +20,12 @@ SHAPES = {
 }
 
 
+# lanes -> the load of `lanes` int16 values
+INT16_LOADS = {
+    4: "_mm_loadl_epi64((const __m128i *)({address}))",
+    8: "_mm_loadu_si128((const __m128i *)({address}))",
+    16: "_mm256_loadu_si256((const __m256i *)({address}))",
+}
 # lanes -> the int16 pairs of `lanes` output channels' packed weights, sign-extended from int8 (SSE4.1, AVX2, AVX-512BW)
 PAIRS = {
     4: "_mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)({address})))",
@@ -48,8 +54,12 @@ def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = F
     p, _, _, si = SHAPES[lanes]
     bytes_at = "_mm_loadu_si{bits}((const void *)({{address}}))"
     in_halves = lanes == 16 and not bw
+    int16_pairs = f"{p}_loadu_{si}((const void *)({{address}}))"
     dots = {
         "dot2": halves(x86_dots(8)["dot2"], 16) if in_halves else f"{p}_madd_epi16({{xs}}, {PAIRS[lanes]})",
+        # weights already int16 pairs (integer Winograd's U', or ssse3's packed int8 weights)
+        "dot2_int16": halves(x86_dots(8)["dot2_int16"], 32) if in_halves else f"{p}_madd_epi16({{xs}}, {int16_pairs})",
+        "pair_int16": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",  # 2 adjacent int16 activations
         "pair_uint8": f"{p}_broadcastd_epi32(_mm_cvtepu8_epi16({bytes_at.format(bits=16)}))",
         "pair_int8": f"{p}_broadcastd_epi32(_mm_cvtepi8_epi16({bytes_at.format(bits=16)}))",
         "quad_uint8": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",
@@ -78,6 +88,7 @@ def x86_integer(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool 
         "load": f"{p}_loadu_{si}((const void *)({{address}}))",
         "widen_uint8": f"{p}_cvtepu8_epi32({bytes_load})",
         "widen_int8": f"{p}_cvtepi8_epi32({bytes_load})",
+        "widen_int16": f"{p}_cvtepi16_epi32({INT16_LOADS[lanes]})",
         "splat": f"{p}_set1_epi32({{value}})",
         "vector": f"{p}_setr_epi32({{values}})",
         "+": f"{p}_add_epi32({{a}}, {{b}})",
@@ -89,6 +100,8 @@ def x86_integer(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool 
         f"{p}_set1_ps({{high}}))), {p}_set1_epi32({{zero_point}}))",
         "store_uint8": f"{name}_uint8({{address}}, {{value}})",
         "store_int8": f"{name}_int8({{address}}, {{value}})",
+        "store_int16": f"{name}_int16({{address}}, {{value}})",
+        "store_int32": f"{p}_storeu_{si}((void *)({{address}}), {{value}})",
         **x86_dots(lanes, bw, vnni, maddubs),
     }
     return {"ints": ints, "int_helpers": _stores(lanes, name, vt)}
@@ -106,6 +119,7 @@ SSE2_TAPS = f"_mm_unpacklo_epi8({SSE2_BYTES.format(address='{a}')}, {SSE2_BYTES.
 SSE2 = {
     "widen_uint8": f"_mm_unpacklo_epi16(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {ZERO})",
     "widen_int8": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, _mm_unpacklo_epi8({ZERO}, {SSE2_BYTES})), 24)",
+    "widen_int16": f"_mm_srai_epi32(_mm_unpacklo_epi16({ZERO}, {INT16_LOADS[4]}), 16)",
     "*": "_mm_madd_epi16({a}, _mm_and_si128({b}, _mm_set1_epi32(0xFFFF)))",
     # no pmaxsd: the int8 kernels take maxima of 8-bit values, which pmaxsw takes in the low int16
     # halves (the high halves, their sign extensions, follow the same lane)
@@ -114,24 +128,26 @@ SSE2 = {
     "pair_uint8": f"_mm_shuffle_epi32(_mm_unpacklo_epi8({SSE2_PAIR}, {ZERO}), 0)",
     "pair_int8": f"_mm_shuffle_epi32(_mm_srai_epi16(_mm_unpacklo_epi8({SSE2_PAIR}, {SSE2_PAIR}), 8), 0)",
     # the low (half 0) or high (0x55) pair of 4 uint8 at address: both pairs share one load and unpack
+    "pair_int16": f"_mm_shuffle_epi32({SSE2_BYTES}, 0)",
     "pair_uint8_of_quad": f"_mm_shuffle_epi32(_mm_unpacklo_epi8({SSE2_BYTES}, {ZERO}), {{half}})",
     # a depthwise's two taps (4 channels each) interleaved into int16 pairs: tap a low, tap b high
     "pair_lanes_uint8": f"_mm_unpacklo_epi8({SSE2_TAPS}, {ZERO})",
     "pair_lanes_int8": f"_mm_srai_epi16(_mm_unpacklo_epi8({ZERO}, {SSE2_TAPS}), 8)",
     # the weights packed as int16 pairs at generation time (Target.dot2_int16_weights): no pmovsxbw
-    "dot2": "_mm_madd_epi16({xs}, _mm_loadu_si128((const __m128i *)({address})))",
+    "dot2_int16": "_mm_madd_epi16({xs}, _mm_loadu_si128((const __m128i *)({address})))",
 }
 
 
 def sse2_integer() -> dict:
     """x86_integer(4) in SSE2 intrinsics and SSSE3's pmaddubsw, for the ssse3 target."""
     fields = x86_integer(4, maddubs=True)
-    return {**fields, "ints": {**fields["ints"], **SSE2, "quad_uint8": SSE2_QUAD}}
+    return {**fields, "ints": {**fields["ints"], **SSE2, "dot2": SSE2["dot2_int16"], "quad_uint8": SSE2_QUAD}}
 
 
 def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:
     """The narrowing stores, by the stored type: the lanes are already in the type's range."""
-    stores = {}
+    stores: dict[str, tuple[str, ...]] = {}
+    stores["int16"] = _int16_store(lanes, name, vt)
     for dtype, pack in (("uint8", "_mm_packus_epi16"), ("int8", "_mm_packs_epi16")):
         head = [f"static void {name}_{dtype}(nncg_{dtype} *p, {vt} v)", "{"]
         if lanes == 4:
@@ -145,3 +161,15 @@ def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:
             body = ["    _mm_storeu_si128((__m128i *)p, _mm512_cvtepi32_epi8(v));"]
         stores[dtype] = (*head, *body, "}")
     return stores
+
+
+def _int16_store(lanes: int, name: str, vt: str) -> tuple[str, ...]:
+    """The narrowing store to int16 (integer Winograd's V): the lanes are already in range."""
+    if lanes == 4:
+        body = "    _mm_storel_epi64((__m128i *)p, _mm_packs_epi32(v, v));"
+    elif lanes == 8:
+        halves_packed = "_mm_packs_epi32(_mm256_castsi256_si128(v), _mm256_extracti128_si256(v, 1))"
+        body = f"    _mm_storeu_si128((__m128i *)p, {halves_packed});"
+    else:  # vpmovdw truncates, exact for lanes in range
+        body = "    _mm256_storeu_si256((__m256i *)p, _mm512_cvtepi32_epi16(v));"
+    return (f"static void {name}_int16(nncg_int16 *p, {vt} v)", "{", body, "}")

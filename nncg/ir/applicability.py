@@ -11,16 +11,22 @@ from .kinds import ConvAlgorithm, VectorAxis
 
 def winograd_applies(graph: Graph, node: Node) -> bool:
     """A 2-D 3x3 Conv, stride 1, no dilation, no groups, with constant weights."""
-    attrs = node.attrs
     return (
         node.op == "Conv"
-        and isinstance(attrs, ConvAttrs)
-        and attrs.kernel == (3, 3)
-        and attrs.strides == (1, 1)
-        and attrs.dilations == (1, 1)
-        and attrs.group == 1
+        and isinstance(node.attrs, ConvAttrs)
+        and _winograd_window(node.attrs)
         and graph.is_constant(node.inputs[1])
     )
+
+
+def integer_winograd_shaped(node: Node) -> bool:
+    """A QLinearConv (its weights are constant) of winograd_applies's window; whether its arithmetic
+    fits the integer transforms is lowering/winograd_integer.py's integer_winograd_fits."""
+    return node.op == "QLinearConv" and _winograd_window(node.attrs)
+
+
+def _winograd_window(attrs) -> bool:
+    return attrs.kernel == (3, 3) and attrs.strides == (1, 1) and attrs.dilations == (1, 1) and attrs.group == 1
 
 
 def _direct_channel_conv(graph: Graph, node: Node) -> bool:

@@ -358,6 +358,10 @@ class QConvAttrs(IntegerWindow):
     point: it adds 0)."""
 
     out: Requantization
+    algorithm: ConvAlgorithm = ConvAlgorithm.DIRECT  # set by the winograd pass
+
+    def __post_init__(self) -> None:
+        coerce(self, algorithm=ConvAlgorithm)
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,9 @@ class Target:
     dot_int8_activations: the K = 4 dot multiplies int8 activations (AArch64 sdot: s8 x s8 quads), so
     uint8 activations and zero points the lowering did not fold are offset into int8 and the constant
     difference is added back per output channel (passes/dot_product.py).
+    int16_dots: its integer widths also store int16 lanes and take K = 2 dot products of int16
+    activations and int16 weights (pmaddwd on both as they are): integer Winograd's nests
+    (lowering/winograd_integer.py) vectorise, its GEMMs in those dots.
     fma_in_double: without FMA, its vectors still compute a fused multiply-add of float32 values
     (loops.Fma) with one rounding, in double as the scalar C does (ssse3), so QLinearAdd's vector form
     matches its scalar one."""
@@ -60,6 +63,7 @@ class Target:
     dot2_quad_loads: bool = False
     dot_int8_activations: bool = False
     fma_in_double: bool = False
+    int16_dots: bool = False
 
     @property
     def lanes(self) -> int:

@@ -58,6 +58,7 @@ from .stream import band_values, lower_band_group
 from .tile import lower_tile
 from .transpose import lower_transpose
 from .winograd import lower_winograd
+from .winograd_integer import lower_integer_winograd
 
 
 def lower_any_conv(ctx: LoweringContext, node: Node) -> None:
@@ -69,6 +70,14 @@ def lower_any_conv(ctx: LoweringContext, node: Node) -> None:
         lower_blocked_conv(ctx, node)
     else:
         lower_conv(ctx, node)
+
+
+def lower_any_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
+    """Direct integer convolution, or integer Winograd where the winograd pass chose it."""
+    if node.attrs.algorithm == ConvAlgorithm.WINOGRAD:
+        lower_integer_winograd(ctx, node)
+    else:
+        lower_qlinear_conv(ctx, node)
 
 
 LOWERINGS = {
@@ -134,7 +143,7 @@ LOWERINGS = {
     "LayerNormalization": lower_normalization,
     "QuantizeLinear": lower_quantize_linear,
     "DequantizeLinear": lower_dequantize_linear,
-    "QLinearConv": lower_qlinear_conv,
+    "QLinearConv": lower_any_qlinear_conv,
     "QLinearDense": lower_qlinear_dense,
     "QLinearAdd": lower_qlinear_add,
     "QLinearGlobalAveragePool": lower_qlinear_global_average_pool,

@@ -19,6 +19,7 @@ stored), so the loops have no border checks. Multiplies per output: 16/4 * C_in 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from itertools import groupby
 
@@ -55,6 +56,8 @@ A_T = ((1, 1, 1, 0), (0, 1, -1, -1))
 CHUNK_TILES = 24  # tiles per chunk (rounded up to whole tile rows): scratch that stays in L1
 BAND_CHUNK_TILES = 8  # tiles per chunk of a layer in bands, along a tile row: a band's scratch
 TILE_ROW = "tr"  # the loop over a band's tile rows
+FLOAT_ZERO = Const.splat(0.0)
+Scratch = Callable[[str, tuple[int, ...]], TensorRef]  # a scratch buffer of a name and shape
 
 
 def transformed_filters(w: np.ndarray) -> np.ndarray:
@@ -65,10 +68,14 @@ def transformed_filters(w: np.ndarray) -> np.ndarray:
 
 
 def lower_winograd(ctx: LoweringContext, node: Node) -> None:
-    layer = _Layer(ctx, node, None)
+    emit_layer(ctx, node, _Layer(ctx, node, None), "Conv")
+
+
+def emit_layer(ctx: LoweringContext, node: Node, layer: WinogradNests, op: str) -> None:
+    """The kernel of a layer run whole: its chunks of tiles, image after image."""
     batch = layer.out.shape[0]
     body = layer.grid.chunks(Affine.of("n") if batch > 1 else Affine(), layer.chunk)
-    ctx.emit(node.name, "Conv", (Loop("n", batch, body),) if batch > 1 else body)  # serial: shared scratch
+    ctx.emit(node.name, op, (Loop("n", batch, body),) if batch > 1 else body)  # serial: shared scratch
 
 
 def lower_winograd_band(
@@ -85,26 +92,35 @@ def lower_winograd_band(
     ctx.emit(node.name, "Conv", (Loop(TILE_ROW, tile_rows, body),) if tile_rows > 1 else body)
 
 
-class _Layer:
-    """One Winograd Conv's operands, scratch and the three nests of a chunk of tiles (the scratch
-    holds `band_tiles` tiles, or the whole layer's chunk when None)."""
+class WinogradNests:
+    """The three nests of a chunk of Winograd tiles, whatever the arithmetic: a subclass gives the
+    scratch's type and fills in the values (input_value, scratch_value, multiply, output_value). The
+    scratch holds `band_tiles` tiles, or the whole layer's chunk when None."""
 
-    def __init__(self, ctx: LoweringContext, node: Node, band_tiles: int | None, shared: dict[str, str] | None = None):
-        self.attrs: ConvAttrs = node.attrs
+    zero: Const = FLOAT_ZERO
+
+    def __init__(self, ctx: LoweringContext, node: Node, width: int, band_tiles: int | None, scratch: Scratch):
+        self.attrs = node.attrs
         self.x = ctx.ref(node.inputs[0])
-        c_out, self.c_in = ctx.graph.shape(node.inputs[1])[:2]
-        self.c_out, self.width = c_out, max(c_out, self.attrs.gemm_channels)
-        filters = transformed_filters(ctx.graph.constants[node.inputs[1]])
-        filters = np.pad(filters, ((0, 0), (0, 0), (0, self.width - c_out)))  # padded channels compute zeros
-        self.u = ctx.add_constant(f"u_{node.name}", filters)
-        bias_name, residual_name = conv_extras(node)
-        self.bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
-        self.residual = ctx.ref(residual_name) if residual_name else None
+        self.c_out, self.c_in = ctx.graph.shape(node.inputs[1])[:2]
+        self.width = width
         self.out = ctx.output(node.outputs[0], channels_last(4))
         self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, band_tiles)
         tiles = self.grid.chunk_tiles
-        self.v = _scratch(ctx, f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in), shared)
-        self.m = _scratch(ctx, f"m_{node.name}", (PATCH * PATCH, tiles, self.width), shared)
+        self.v = scratch(f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in))
+        self.m = scratch(f"m_{node.name}", (PATCH * PATCH, tiles, width))
+
+    def input_value(self, load: Load) -> Expr:
+        """A patch value as the input transform sums it."""
+        return load
+
+    def scratch_value(self, value: Expr) -> Expr:
+        """A transformed input value as V holds it."""
+        return value
+
+    def output_value(self, value: Expr, channel: Affine, index: list[Affine]) -> Expr:
+        """A tile's output (A^T M A) as the output holds it."""
+        raise NotImplementedError
 
     def transform_input(self, at: TileAt, rows, cols) -> tuple[Stmt, ...]:
         x, pads = self.x, self.attrs.pads_begin
@@ -114,13 +130,22 @@ class _Layer:
                 return None
             h = at.row * TILE + (i - pads[0])
             w = at.col * TILE + (j - pads[1])
-            return Load(x.buffer, x.at([at.n, at.channel, h, w]))
+            return self.input_value(Load(x.buffer, x.at([at.n, at.channel, h, w])))
 
         # r = B^T d, row by row, in locals: each patch value is loaded once
-        r = {(a, j): combine(B_T[a], [patch(i, j) for i in range(PATCH)]) for a in range(PATCH) for j in range(PATCH)}
+        zero = self.zero
+        r = {
+            (a, j): combine(B_T[a], [patch(i, j) for i in range(PATCH)], zero)
+            for a in range(PATCH)
+            for j in range(PATCH)
+        }
         v = self.v
         stores = tuple(
-            Store(v.buffer, v.at([a * PATCH + b, at.tile, at.channel]), or_zero(combine(B_T[b], row)))
+            Store(
+                v.buffer,
+                v.at([a * PATCH + b, at.tile, at.channel]),
+                self.scratch_value(or_zero(combine(B_T[b], row, zero), zero)),
+            )
             for a in range(PATCH)
             for b in range(PATCH)
             for row in [[local("r", r, (a, j)) for j in range(PATCH)]]
@@ -131,30 +156,34 @@ class _Layer:
         e, t, co = env["e"], env["t"], env["co"]
         v, u, m = self.v, self.u, self.m
         ci = Affine.of("ci") if self.c_in > 1 else Affine()
-        product = Binary("*", Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, u.at([e, ci, co])))
+        product = self.product(Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, u.at([e, ci, co])))
         update = Assign("acc", Binary("+", LocalRef("acc"), product))
         reduction = (Loop("ci", self.c_in, (update,)),) if self.c_in > 1 else (Assign("acc", product),)
-        return (Let("acc", Const.splat(0.0), (*reduction, Store(m.buffer, m.at([e, t, co]), LocalRef("acc")))),)
+        return (Let("acc", self.zero, (*reduction, Store(m.buffer, m.at([e, t, co]), LocalRef("acc")))),)
+
+    def product(self, v: Load, u: Load) -> Expr:
+        """One term of a GEMM's sum over input channels."""
+        return Binary("*", v, u)
 
     def transform_output(self, at: TileAt, rows, cols) -> tuple[Stmt, ...]:
-        m, out, bias, residual = self.m, self.out, self.bias, self.residual
+        m, out, zero = self.m, self.out, self.zero
 
         def product(a: int, b: int) -> Expr:
             return Load(m.buffer, m.at([a * PATCH + b, at.tile, at.channel]))
 
         # s = A^T M for the rows that are stored, in locals: each product is loaded once
         kept_rows = [i for i in range(TILE) if rows[i]]
-        s = {(i, b): combine(A_T[i], [product(a, b) for a in range(PATCH)]) for i in kept_rows for b in range(PATCH)}
+        s = {
+            (i, b): combine(A_T[i], [product(a, b) for a in range(PATCH)], zero)
+            for i in kept_rows
+            for b in range(PATCH)
+        }
         stores = []
         for i in kept_rows:
             for j in (j for j in range(TILE) if cols[j]):
                 index = [at.n, at.channel, at.row * TILE + i, at.col * TILE + j]
-                value = or_zero(combine(A_T[j], [local("s", s, (i, b)) for b in range(PATCH)]))
-                if bias:
-                    value = Binary("+", value, Load(bias.buffer, bias.at([at.channel])))
-                if residual:
-                    value = Binary("+", value, Load(residual.buffer, residual.at(index)))
-                stores.append(Store(out.buffer, out.at(index), apply_activation(value, self.attrs.activation)))
+                value = or_zero(combine(A_T[j], [local("s", s, (i, b)) for b in range(PATCH)], zero), zero)
+                stores.append(Store(out.buffer, out.at(index), self.output_value(value, at.channel, index)))
         return with_locals("s", s, tuple(stores))
 
     def chunk(self, n: Affine, first_row: Affine, rows: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
@@ -172,6 +201,29 @@ class _Layer:
             *gemms(len(cols), self.width, self.multiply),
             *grid.row_transform(row, kind.writes, first_col, cols, 1, ("co", self.c_out), self.transform_output),
         )
+
+
+class _Layer(WinogradNests):
+    """One float Winograd Conv: transformed filters, bias, residual and activation at the store."""
+
+    def __init__(self, ctx: LoweringContext, node: Node, band_tiles: int | None, shared: dict[str, str] | None = None):
+        attrs: ConvAttrs = node.attrs
+        c_out = ctx.graph.shape(node.inputs[1])[0]
+        width = max(c_out, attrs.gemm_channels)
+        filters = transformed_filters(ctx.graph.constants[node.inputs[1]])
+        filters = np.pad(filters, ((0, 0), (0, 0), (0, width - c_out)))  # padded channels compute zeros
+        self.u = ctx.add_constant(f"u_{node.name}", filters)
+        bias_name, residual_name = conv_extras(node)
+        self.bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
+        self.residual = ctx.ref(residual_name) if residual_name else None
+        super().__init__(ctx, node, width, band_tiles, lambda name, shape: _scratch(ctx, name, shape, shared))
+
+    def output_value(self, value: Expr, channel: Affine, index: list[Affine]) -> Expr:
+        if self.bias:
+            value = Binary("+", value, Load(self.bias.buffer, self.bias.at([channel])))
+        if self.residual:
+            value = Binary("+", value, Load(self.residual.buffer, self.residual.at(index)))
+        return apply_activation(value, self.attrs.activation)
 
 
 def _scratch(ctx: LoweringContext, name: str, shape: tuple[int, ...], shared: dict[str, str] | None) -> TensorRef:
@@ -349,13 +401,14 @@ def runs(count: int, key) -> list[tuple[int, int, object]]:
 # ---------------------------------------------------------------------------- expressions
 
 
-def combine(coeffs: tuple[int, ...], terms: list[Expr | None]) -> Expr | None:
-    """sum(c * term) for coefficients in {-1, 0, 1}; None terms are zeros; None if nothing is left."""
+def combine(coeffs: tuple[int, ...], terms: list[Expr | None], zero: Const = FLOAT_ZERO) -> Expr | None:
+    """sum(c * term) for coefficients in {-1, 0, 1}; None terms are zeros (`zero` in the terms' type);
+    None if nothing is left."""
     plus = [t for c, t in zip(coeffs, terms) if c == 1 and t is not None]
     minus = [t for c, t in zip(coeffs, terms) if c == -1 and t is not None]
     if not plus and not minus:
         return None
-    value = plus[0] if plus else Binary("-", Const.splat(0.0), minus.pop(0))
+    value = plus[0] if plus else Binary("-", zero, minus.pop(0))
     for t in plus[1:]:
         value = Binary("+", value, t)
     for t in minus:
@@ -363,8 +416,8 @@ def combine(coeffs: tuple[int, ...], terms: list[Expr | None]) -> Expr | None:
     return value
 
 
-def or_zero(value: Expr | None) -> Expr:
-    return Const.splat(0.0) if value is None else value
+def or_zero(value: Expr | None, zero: Const = FLOAT_ZERO) -> Expr:
+    return zero if value is None else value
 
 
 def local_name(prefix: str, key: tuple[int, int]) -> str:

@@ -1,7 +1,8 @@
 """Part of the loop pass `vectorize`: the int8 kernels' reduction over input channels as dot products
 of K channels (loops.Dot) on targets that have them (Target.dot_uint8, dot_int8: K = 2, pmaddwd on
 int16 pairs; K = 4, vpdpbusd on u8 x s8 quads), and K = Target.dot_uint8_int16 (pmaddubsw quads) for
-uint8 activations where the layer's weights are proven never to saturate the int16 pair sums; layers
+uint8 activations where the layer's weights are proven never to saturate the int16 pair sums (and, with
+Target.int16_dots, K = 2 of int16 activations and int16 weights: integer Winograd's GEMMs); layers
 that fail the proof keep pmaddwd pairs (splitting their weights in two halves that pass, two pmaddubsw
 per quad, measured no faster than the pairs with twice the weight bytes: benchmarks/int8_dot_forms.py).
 
@@ -116,7 +117,9 @@ class _Packer:
         k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
         array = self.program.constants[w.buffer]
         array = _squeezed(array) if target.tap_dots else array
-        if not k or array.dtype != np.int8 or array.ndim < 2 or array.shape[-2] != loop.extent:
+        int16 = xbuf.dtype == DType.INT16 and array.dtype == np.int16 and not zero_point  # integer Winograd's GEMMs
+        k = 2 if int16 and target.int16_dots else k
+        if not k or array.dtype != (np.int16 if int16 else np.int8) or array.ndim < 2 or array.shape[-2] != loop.extent:
             return None
         if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16 and pair_sums_fit_int16(array):
             k = target.dot_uint8_int16
@@ -126,7 +129,8 @@ class _Packer:
         lead, co = split
         c, cs = array.shape[-2:]
         index = lead * (-(-c // k) * k * cs) + co * k + Affine.of(loop.var) * (k * cs)
-        packed = self.packed_buffer(w.buffer, array, k, np.int16 if k == 2 and target.dot2_int16_weights else np.int8)
+        wide = int16 or (k == 2 and target.dot2_int16_weights)
+        packed = self.packed_buffer(w.buffer, array, k, np.int16 if wide else np.int8)
         channels, groups = loop.extent, loop.extent // k
         offset = 128 * (xbuf.dtype == DType.UINT8) if target.dot_int8_activations and k == 4 else zero_point
 

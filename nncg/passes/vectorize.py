@@ -16,7 +16,8 @@ int32 accumulators over output channels, an invariant integer operand (the input
 whole, requantised per vector; where the target has integer dot products, the reduction over input
 channels first becomes dot products of 2 or 4 channels (dot_product.py), and with Target.tap_dots a
 depthwise's interior columns (split from the borders, dot_taps.py) dot products of 2 or 4 taps whose
-activations are vectors, each lane its own channel's. QuantizeLinear runs as its
+activations are vectors, each lane its own channel's. Integer Winograd (Target.int16_dots) stores its
+transformed inputs as int16 vectors and runs its GEMMs in dots of int16 pairs. QuantizeLinear runs as its
 float quotient requantised per vector, DequantizeLinear as its float product; an int8 MaxPool takes
 int32 maxima and QLinearGlobalAveragePool int32 sums over channels; the lookups (256-entry tables)
 stay scalar gathers; QLinearAdd, on targets with FMA, in vector fused
@@ -61,6 +62,7 @@ from ..ir.loops import (
     walk_stmts,
 )
 from ..ir.target import Target
+from ..lowering.winograd_integer import WINOGRAD_OP
 from .dot_product import dot_products, multiply_accumulate
 from .dot_taps import split_tap_borders
 from .substitute import interior, iterations, substitute_body
@@ -119,12 +121,14 @@ FUSED_OPS = ("QLinearAdd", "QLinearMul")
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
-    """One of INTEGER_OPS on a target with integer vectors, or a QLinearAdd on one with a fused
-    multiply-add as well, requantised in the float form."""
+    """One of INTEGER_OPS on a target with integer vectors, a QLinearAdd on one with a fused
+    multiply-add as well, or an integer Winograd (int16 scratch) on one with Target.int16_dots,
+    requantised in the float form."""
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
     ops = INTEGER_OPS + (FUSED_OPS if target.fma or target.fma_in_double else ())
+    ops += (WINOGRAD_OP,) if target.int16_dots else ()
     return target.integer_vectors and kernel.op in ops and not fixed
 
 

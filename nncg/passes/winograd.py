@@ -7,6 +7,9 @@ stride-1, ungrouped 2-D Conv with at least MIN_INPUT_CHANNELS input channels and
 output tiles or transformed weights that fit L2 (see chosen_by_cost_model); `layers` overrides
 the choice per layer (what `--tune` measured). Layers Winograd does not apply to stay direct.
 
+A QLinearConv of the same window runs the exact integer Winograd (lowering/winograd_integer.py) where
+its sums fit the integer transforms, by its own cost rule (integer_chosen_by_cost_model).
+
 The GEMMs' output channels are internal, so they may be padded with zero filters: with the target's
 vector widths of the target, a count that would take more vector instructions than its padded form (12 on
 16/8/4: an 8- and a 4-lane block, padded to 16: one block) is padded, if the padding stays under a
@@ -19,10 +22,11 @@ from dataclasses import replace
 
 from ..errors import NncgError
 from ..ir.analysis import vector_instructions
-from ..ir.applicability import winograd_applies
+from ..ir.applicability import integer_winograd_shaped, winograd_applies
 from ..ir.graph import Graph
 from ..ir.kinds import ConvAlgorithm
 from ..ir.target import Target
+from ..lowering.winograd_integer import integer_winograd_fits
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
 
@@ -42,20 +46,52 @@ def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None
     nodes = []
     for node in graph.nodes:
         wanted = layers.get(node.name)
-        if wanted and not winograd_applies(graph, node):
+        if wanted and not applies(graph, node):
             raise NncgError(
-                f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights"
+                f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights "
+                "(or a QLinearConv whose sums the integer transforms cannot hold exactly)"
             )
-        if chosen_by_cost_model(graph, node, target) if wanted is None else wanted:
-            c_out = graph.shape(node.inputs[1])[0]
-            width = padded_channels(c_out, lanes)
-            attrs = replace(node.attrs, algorithm=ConvAlgorithm.WINOGRAD, gemm_channels=width if width != c_out else 0)
-            node = replace(node, attrs=attrs)
-        nodes.append(node)
+        chosen = chosen_by_cost_model(graph, node, target) if wanted is None else wanted
+        nodes.append(_as_winograd(graph, node, lanes) if chosen else node)
     return graph.with_nodes(nodes)
 
 
+def _as_winograd(graph: Graph, node, lanes: tuple[int, ...]):
+    """The node marked Winograd; a float one's GEMM channels padded where that pays (padded_channels)."""
+    if node.op == "QLinearConv":
+        return replace(node, attrs=replace(node.attrs, algorithm=ConvAlgorithm.WINOGRAD))
+    c_out = graph.shape(node.inputs[1])[0]
+    width = padded_channels(c_out, lanes)
+    return replace(
+        node, attrs=replace(node.attrs, algorithm=ConvAlgorithm.WINOGRAD, gemm_channels=width if width != c_out else 0)
+    )
+
+
+def applies(graph: Graph, node) -> bool:
+    """A float Conv Winograd applies to, or a QLinearConv integer Winograd does (exactly)."""
+    return winograd_applies(graph, node) or (integer_winograd_shaped(node) and integer_winograd_fits(graph, node))
+
+
 def chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
+    if node.op == "QLinearConv":
+        return integer_chosen_by_cost_model(graph, node, target)
+    return float_chosen_by_cost_model(graph, node, target)
+
+
+def integer_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
+    """None yet. Measured: on a target whose vectors run its nests (Target.int16_dots), resnet8 int8,
+    one inference, callgrind Ir
+    of its five 3x3 convs (3 to 64 input channels, 32x32 to 8x8) 5.67M -> 3.70M on ssse3, 2.68M ->
+    1.55M on avx2, each layer fewer; the stem's 3 channels least (0.75x, 0.71x), left direct as float's.
+    Not on scalar C: 2.6x fewer instructions there, but the scratch (16 x chunk tiles x channels of
+    int16 and int32) took resnet8's arena from 48 to 108 KB, and scalar C is the microcontroller
+    target, where RAM is what int8 is for (`layers` forces it). Other vector targets: unmeasured."""
+    # Not yet by default: its scratch, which the band planner does not count, kept --memory balanced
+    # from halving resnet8's arena (110 KB either way: tests/test_bands_int8.py); `layers` forces it.
+    return False
+
+
+def float_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     """Enough input channels, and either enough 2x2 output tiles to reuse each transformed weight over
     or transformed weights that stay in L2: its 16 GEMMs stream 16/9 the direct weights, each used
     once per tile. resnet18 at 96x96, avx2: layer4 (4 tiles, 16.8 MB) 3550 us against 1400 direct,
@@ -70,7 +106,7 @@ def chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
 
 def winograd_candidates(graph: Graph) -> list[str]:
     """The layers Winograd applies to (what --tune measures both ways)."""
-    return [node.name for node in graph.nodes if winograd_applies(graph, node)]
+    return [node.name for node in graph.nodes if applies(graph, node)]
 
 
 def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[bool, ...]]:
