@@ -45,7 +45,8 @@ def test_node(name: str) -> None:
 
 @needs_cc
 @pytest.mark.zoo
-@pytest.mark.parametrize("name", conformance.ZOO_MODELS)
+# vgg19 (146 s, CI's second-longest test) runs only the operators alexnet and zfnet512 run
+@pytest.mark.parametrize("name", [m for m in conformance.ZOO_MODELS if m != "test_vgg19"])
 def test_zoo_model(name: str, tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     # onnx writes the generated input and expected output under $ONNX_MODELS (default ~/.onnx).
     monkeypatch.setenv("ONNX_MODELS", str(tmp_path_factory.mktemp("onnx_models")))
