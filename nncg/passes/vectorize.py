@@ -369,16 +369,8 @@ def _product_then_sum(e: Expr) -> Fma | None:
     inner = rounded.value
     if not (isinstance(inner, Cast) and inner.dtype == DType.FLOAT32 and isinstance(inner.value, Binary)):
         return None
-    x, ratio = inner.value.a, inner.value.b
-    integer = (
-        isinstance(x, Cast)
-        and x.dtype == DType.FLOAT64
-        and any(isinstance(n, Cast) and n.dtype.is_integer for n in walk_exprs(x.value))
-    )
-    if inner.value.op != "*" or not integer or not _float32_constant(ratio):
-        return None
-    product = Binary("*", Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]))
-    return Fma(product, Const.splat(1.0), Const.splat(addend.values[0]))
+    product = _float32_product(inner.value)
+    return None if product is None else Fma(product, Const.splat(1.0), Const.splat(addend.values[0]))
 
 
 def _unfused_sum(e: Expr) -> Fma | None:
@@ -391,16 +383,22 @@ def _unfused_sum(e: Expr) -> Fma | None:
     rounded = e.b
     if rounded.dtype != DType.FLOAT32 or not isinstance(rounded.value, Binary):
         return None
-    x, ratio = rounded.value.a, rounded.value.b
+    product = _float32_product(rounded.value)
+    return None if product is None else Fma(product, Const.splat(1.0), e.a)
+
+
+def _float32_product(e: Binary) -> Binary | None:
+    """double(x) * r of an integer x (at most 24 bits) and a float32 constant r, exact in double, as
+    the float32 product a vector computes: the same value once rounded to float32; None otherwise."""
+    x, ratio = e.a, e.b
     integer = (
         isinstance(x, Cast)
         and x.dtype == DType.FLOAT64
         and any(isinstance(n, Cast) and n.dtype.is_integer for n in walk_exprs(x.value))
     )
-    if rounded.value.op != "*" or not integer or not _float32_constant(ratio):
+    if e.op != "*" or not integer or not _float32_constant(ratio):
         return None
-    product = Binary("*", Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]))
-    return Fma(product, Const.splat(1.0), e.a)
+    return Binary("*", Cast(DType.FLOAT32, x.value), Const.splat(ratio.values[0]))
 
 
 def _sum_of_fma_by_one(e: Expr) -> Expr:
