@@ -19,6 +19,7 @@ stored), so the loops have no border checks. Multiplies per output: 16/4 * C_in 
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from itertools import groupby
@@ -92,7 +93,7 @@ def lower_winograd_band(
     ctx.emit(node.name, "Conv", (Loop(TILE_ROW, tile_rows, body),) if tile_rows > 1 else body)
 
 
-class WinogradNests:
+class WinogradNests(ABC):
     """The three nests of a chunk of Winograd tiles, whatever the arithmetic: a subclass gives the
     scratch's type and fills in the values (input_value, scratch_value, multiply, output_value). The
     scratch holds `band_tiles` tiles, or the whole layer's chunk when None."""
@@ -118,9 +119,9 @@ class WinogradNests:
         """A transformed input value as V holds it."""
         return value
 
+    @abstractmethod
     def output_value(self, value: Expr, channel: Affine, index: list[Affine]) -> Expr:
         """A tile's output (A^T M A) as the output holds it."""
-        raise NotImplementedError
 
     def transform_input(self, at: TileAt, rows, cols) -> tuple[Stmt, ...]:
         x, pads = self.x, self.attrs.pads_begin
