@@ -25,6 +25,11 @@ included (callgrind Ir, `python3 -m benchmarks.int8_band_costs`; scalar in bands
 ssse3, 11x on avx2); a depthwise pair 1.07x on ssse3, 1.12-1.15x on avx2 (its border columns in vectors over
 channels too; scalar before: 1.17x, 1.26-1.29x). `integer_banded` prices that with a margin.
 
+An int8 3x3 Conv run whole as integer Winograd (lowering/winograd_integer.py) took 0.58-0.66x the
+instructions of the direct one on resnet8's layers of 16 to 64 input channels (0.62-0.66x ssse3,
+0.53-0.58x avx2; callgrind Ir, `python3 -m benchmarks.int8_winograd`): `integer_winograd`. Scalar C:
+2.6x fewer instructions. In bands it runs direct (bands.py keeps float Winograd layers only).
+
 A QuantizeLinear in bands (the model input's, into a channels-last line buffer) costs what it costs whole,
 1 per element: it quantises each row in vectors into a planar scratch row, then interleaves that into the line
 buffer byte by byte (lowering/quantized.py). On mobilenet_v1_025 int8 (96x96x3 input), balanced's plan with the
@@ -50,11 +55,18 @@ class BandCosts:
     per_band: float
     shift: float
     integer_banded: float  # an int8 Conv in a group of bands against run whole, both in the target's dots
+    integer_winograd: float  # an int8 Conv run whole as integer Winograd against direct (in bands: direct)
 
 
-SCALAR = BandCosts(winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0, integer_banded=1.0)
-VECTOR4 = BandCosts(winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5, integer_banded=1.1)
-VECTOR8 = BandCosts(winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=1.1)
+SCALAR = BandCosts(
+    winograd=0.45, blocked=0.9, banded=1.0, per_band=64.0, shift=1.0, integer_banded=1.0, integer_winograd=0.4
+)
+VECTOR4 = BandCosts(
+    winograd=0.5, blocked=0.85, banded=1.05, per_band=128.0, shift=0.5, integer_banded=1.1, integer_winograd=0.65
+)
+VECTOR8 = BandCosts(
+    winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=1.1, integer_winograd=0.55
+)
 COSTS = {
     "ansi-c": SCALAR,
     "ssse3": VECTOR4,

@@ -6,16 +6,16 @@ smallest arena within that latency), and a RAM budget the fastest plan that fits
 The model is cut into steps, consecutive in graph order: a layer run whole, or a group run in bands
 with some band height. A step needs the memory of the whole tensors live across it (its inputs, its
 output, tensors passing over it to later layers) plus its line buffers, and a Winograd layer run
-whole its scratch; a plan needs the largest of its steps. Memory is counted in bytes, each tensor at
-its type's size (an int8 model's activations 1 byte an element). Its latency is estimated per target
-(band_costs.py): a layer run whole keeps the graph passes' choices (Winograd, cache blocking), one in
-bands runs direct or, in a group's variant that keeps Winograd, Winograd over 2-row tiles (its scratch
-a band's, shared by the group's Winograd layers), and every band adds per-layer overhead and
-line-buffer shifts. Dynamic
-programming over the steps gives the fastest plan under a memory bound; `min` is the smallest bound
-any plan meets. The figures are estimates (no alignment, no fragmentation): the driver checks the
-planned arena against a budget. A single layer in bands is a Winograd layer run direct, without its
-scratch buffers."""
+whole its scratch (float32, or integer Winograd's int16 V and int32 M: winograd_integer.py); a plan
+needs the largest of its steps. Memory is counted in bytes, each tensor at its type's size (an int8
+model's activations 1 byte an element). Its latency is estimated per target (band_costs.py): a layer
+run whole keeps the graph passes' choices (Winograd, cache blocking), one in bands runs direct or, in
+a group's variant that keeps Winograd, Winograd over 2-row tiles (its scratch a band's, shared by the
+group's Winograd layers; float Convs only: an int8 Conv in bands runs direct), and every band adds
+per-layer overhead and line-buffer shifts. Dynamic programming over the steps gives the fastest plan
+under a memory bound; `min` is the smallest bound any plan meets. The figures are estimates (no
+alignment, no fragmentation): the driver checks the planned arena against a budget. A single layer
+in bands is a Winograd layer run direct, without its scratch buffers."""
 
 from __future__ import annotations
 
@@ -32,6 +32,7 @@ from .conv import conv_extras
 from .halo import conv_halos
 from .in_place import in_place_lead
 from .winograd import band_scratch_floats, scratch_floats
+from .winograd_integer import integer_scratch_bytes
 
 MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
@@ -218,8 +219,15 @@ def _quantized_row(graph: Graph, node: Node) -> int:
 
 
 def _scratch(graph: Graph, node: Node) -> int:
-    winograd = node.op == "Conv" and node.attrs.algorithm == ConvAlgorithm.WINOGRAD
-    return scratch_floats(graph, node) * FLOAT_BYTES if winograd else 0
+    """The scratch bytes of a Winograd layer run whole: float32 V and M, or int16 V and int32 M."""
+    if _integer_winograd(node):
+        return integer_scratch_bytes(graph, node)
+    return scratch_floats(graph, node) * FLOAT_BYTES if node.runs_winograd else 0
+
+
+def _integer_winograd(node: Node) -> bool:
+    """A QLinearConv the winograd pass made integer Winograd (run whole; in bands it runs direct)."""
+    return node.op == "QLinearConv" and node.attrs.algorithm == ConvAlgorithm.WINOGRAD
 
 
 def _output_copy(graph: Graph, node: Node) -> int:
@@ -234,6 +242,8 @@ def _whole_time(graph: Graph, node: Node, costs: BandCosts) -> float:
     macs = _conv_macs(graph, node)
     if macs and node.runs_winograd:
         macs *= costs.winograd
+    elif macs and _integer_winograd(node):
+        macs *= costs.integer_winograd
     elif macs and (node.cache_blocked or node.vectorises_pixels):
         macs *= costs.blocked
     return macs + _window_work(graph, node)

@@ -99,6 +99,7 @@ class WinogradNests(ABC):
     scratch holds `band_tiles` tiles, or the whole layer's chunk when None."""
 
     zero: Const = FLOAT_ZERO
+    chunk_target = CHUNK_TILES  # tiles per chunk of a layer run whole (chunk_tiles)
 
     def __init__(self, ctx: LoweringContext, node: Node, width: int, band_tiles: int | None, scratch: Scratch):
         self.attrs = node.attrs
@@ -106,7 +107,9 @@ class WinogradNests(ABC):
         self.c_out, self.c_in = ctx.graph.shape(node.inputs[1])[:2]
         self.width = width
         self.out = ctx.output(node.outputs[0], channels_last(4))
-        self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, band_tiles)
+        self.grid = TileGrid(
+            self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, band_tiles, self.chunk_target
+        )
         tiles = self.grid.chunk_tiles
         self.v = scratch(f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in))
         self.m = scratch(f"m_{node.name}", (PATCH * PATCH, tiles, width))
@@ -281,10 +284,10 @@ def scratch_floats(graph: Graph, node: Node) -> int:
     return PATCH * PATCH * tiles * (c_in + max(c_out, node.attrs.gemm_channels))
 
 
-def chunk_tiles(out_hw: tuple[int, int]) -> tuple[int, int]:
-    """Tile rows per chunk and tiles per chunk: at least CHUNK_TILES, in whole tile rows."""
+def chunk_tiles(out_hw: tuple[int, int], target: int = CHUNK_TILES) -> tuple[int, int]:
+    """Tile rows per chunk and tiles per chunk: at least `target`, in whole tile rows."""
     tiles = [-(-size // TILE) for size in out_hw]
-    rows = max(1, min(tiles[0], -(-CHUNK_TILES // tiles[1])))
+    rows = max(1, min(tiles[0], -(-target // tiles[1])))
     return rows, rows * tiles[1]
 
 
@@ -302,17 +305,22 @@ def band_chunk_tiles(out_hw: tuple[int, int]) -> int:
 
 
 class TileGrid:
-    """The output's 2x2 tiles, taken a chunk of CHUNK_TILES (whole tile rows) at a time, so the
+    """The output's 2x2 tiles, taken a chunk of `target` tiles (whole tile rows) at a time, so the
     scratch of the transforms and GEMMs stays small and in cache. Tiles whose patch reaches into the
     padding or whose outputs reach past the output get loops of their own (see RowKind), so no
     loop has a border check."""
 
     def __init__(
-        self, out_hw: tuple[int, int], pads: tuple[int, ...], readable: list[tuple[int, int]], band: int | None = None
+        self,
+        out_hw: tuple[int, int],
+        pads: tuple[int, ...],
+        readable: list[tuple[int, int]],
+        band: int | None = None,
+        target: int = CHUNK_TILES,
     ):
         self.out_hw, self.pads, self.readable = out_hw, pads, readable
         self.tiles = tuple(-(-size // TILE) for size in out_hw)
-        self.rows_per_chunk, self.chunk_tiles = chunk_tiles(out_hw)
+        self.rows_per_chunk, self.chunk_tiles = chunk_tiles(out_hw, target)
         if band is not None:  # chunks along one tile row
             self.rows_per_chunk, self.chunk_tiles = 1, band_chunk_tiles(out_hw)
         self.col_kinds = [self.kind(1, t) for t in range(self.tiles[1])]

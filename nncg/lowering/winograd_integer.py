@@ -23,11 +23,12 @@ from ..ir.loops import Binary, Cast, Const, Expr, Load
 from .context import LoweringContext, row_major
 from .quantized import centred
 from .requantize import Scales
-from .winograd import PATCH, WinogradNests, emit_layer
+from .winograd import PATCH, WinogradNests, chunk_tiles, emit_layer
 
 G2 = np.array(((2, 0, 0), (1, 1, 1), (1, -1, 1), (0, 0, 2)), np.int64)  # 2G: integers
 SCALE = 4  # Y' = SCALE * the direct sum (G' = 2G on both sides)
 INT32_MAX = 2**31 - 1
+CHUNK_TILES = 1  # tiles per chunk: one tile row (chunk_tiles), the scratch a few KB (integer_scratch_bytes)
 WINOGRAD_OP = "QLinearConvWinograd"  # the kernel's op: not one the vectorize pass takes (its scratch is int16)
 
 
@@ -57,10 +58,19 @@ def integer_winograd_fits(graph: Graph, node: Node) -> bool:
     return int(worst.max()) <= INT32_MAX and deviation <= 2**15 - 1 and normal
 
 
+def integer_scratch_bytes(graph: Graph, node: Node) -> int:
+    """The bytes of V (int16) and M (int32) of a layer run whole, as _IntegerLayer allocates them
+    (what the band planner counts)."""
+    c_out, c_in = graph.shape(node.inputs[1])[:2]
+    tiles = chunk_tiles(graph.shape(node.outputs[0])[2:], CHUNK_TILES)[1]
+    return PATCH * PATCH * tiles * (c_in * DType.INT16.bytes + c_out * DType.INT32.bytes)
+
+
 class _IntegerLayer(WinogradNests):
     """One QLinearConv's Winograd nests in integers (the module's docstring)."""
 
     zero = Const.integer(0)
+    chunk_target = CHUNK_TILES
 
     def __init__(self, ctx: LoweringContext, node: Node):
         attrs: QConvAttrs = node.attrs
