@@ -18,7 +18,7 @@ from test_cross_targets import require
 import nncg
 from nncg import lowering
 from nncg.compiler import memory_figures
-from nncg.lowering.band_plan import BandPlan, plan_layers
+from nncg.lowering.band_plan import BandPlan, plan_layers, plan_steps
 from nncg.lowering.bands import BandGroup, geometry
 
 MODELS = {  # the MLPerf-Tiny-shaped classifiers and robot, as tests/test_int8.py quantises them
@@ -38,6 +38,7 @@ DOTS = {
     "neon-dotprod": ("vdotq_s32",),
 }
 X86 = ("ssse3", "avx2", "avx512", "avx512vnni")
+INTEGER_WINOGRAD = "QLinearConvWinograd */"  # the comment above an integer Winograd kernel
 HIGH_RESOLUTION = ("robot", "resnet8", "mobilenet")  # a large first stage: balanced halves the arena
 FRAGMENTED = ("mobilenet",)  # plan-memory's greedy placement leaves a gap above the layer bound at speed
 
@@ -230,12 +231,18 @@ def test_models_at_each_setting(model):
 @pytest.mark.parametrize("target", ["ssse3", "avx2"])
 def test_balanced_bands_int8_convs_in_vectors(target):
     """In bands an int8 Conv runs in the target's dot products as whole: balanced bands resnet8's first
-    stages on x86 too, halving speed's arena, bit-identical and vectorised."""
+    stages on x86 too, halving speed's arena, bit-identical and vectorised. Speed runs the 3x3 layers of
+    16 and more input channels as integer Winograd, its arena the planner's count with their int16 and
+    int32 scratch; balanced keeps them direct, as its bands run them."""
     skip_unless_host_runs(target)
     qdq = quantized(repository_model(MODELS["resnet8"]))
-    assert plan_layers(lowered_graph(qdq, target), "balanced", target=target).groups
+    graph = lowered_graph(qdq, target)
+    assert plan_layers(graph, "balanced", target=target).groups
     speed = nncg.compile(qdq, target=target, memory="speed")
     balanced = nncg.compile(qdq, target=target, memory="balanced")
+    assert speed.source.count(INTEGER_WINOGRAD) == 4 and INTEGER_WINOGRAD not in balanced.source
+    assert speed.arena_bytes == max(step.bytes for step in plan_steps(graph, "speed", 0, target))
+    assert speed.arena_bytes > memory_figures(speed).layer_bound_bytes  # the scratch on top of the activations
     assert balanced.arena_bytes <= speed.arena_bytes / 2
     assert_banded_dots(balanced, target)
     check(qdq, balanced, feeds=1)

@@ -1,7 +1,7 @@
 """Integer Winograd F(2x2, 3x3) of int8 3x3 convolutions (lowering/winograd_integer.py): QLinearConv and
 QDQ Convs, uint8 and int8 activations, per-channel and per-tensor weights, zero points not 0, outputs
 saturating at both ends, odd image sizes (tiles cut at the bottom and right), bit-identical to
-onnxruntime; on ansi-c forced (the pass leaves scalar C direct), on ssse3 and avx2 by the pass, in
+onnxruntime; on ansi-c forced (the pass leaves scalar C direct), on ssse3 and avx2 by the pass by default, in
 vectors there (pmaddwd on int16 pairs). Two stacked convs: the first reads the model's input (channels
 first: its input transform stays scalar), the second a channels-last tensor (vectorised)."""
 
@@ -93,7 +93,7 @@ def compiled_for(
 
 
 def winograd_build(model: onnx.ModelProto, target: str):
-    """Integer Winograd forced (the pass does not choose it by itself yet)."""
+    """Integer Winograd forced (on ansi-c the pass does not choose it by itself)."""
     compiled = compiled_for(model, target, True)
     assert compiled.source.count(WINOGRAD_KERNEL) == 2
     return compiled
@@ -144,11 +144,28 @@ def test_vector_targets_run_the_gemms_as_int16_pair_dots():
     assert "nncg256_store_int16(" in source  # the input transform's int16 vectors
 
 
-def test_cost_rule_leaves_it_to_layers():
+def test_cost_rule_takes_it_on_the_int16_dot_targets():
+    """ssse3 and avx2 (Target.int16_dots) take it by default, not scalar C nor avx512; `integer=false`
+    (the memory settings' pipeline) leaves it direct."""
     graph = import_onnx(qlinear_model("uint8", True, (7, 9)))
-    for target, expected in [("ansi-c", "direct"), ("ssse3", "direct"), ("avx2", "direct"), ("avx512", "direct")]:
+    for target, expected in [("ansi-c", "direct"), ("ssse3", "winograd"), ("avx2", "winograd"), ("avx512", "direct")]:
         chosen = winograd(graph, nncg.get_target(target))
         assert [n.attrs.algorithm for n in chosen.nodes if n.op == "QLinearConv"] == [expected] * 2, target
+    chosen = winograd(graph, nncg.get_target("avx2"), integer=False)
+    assert [n.attrs.algorithm for n in chosen.nodes if n.op == "QLinearConv"] == ["direct"] * 2
+
+
+@pytest.mark.parametrize("target", ["ssse3", "avx2"])
+def test_default_build_runs_it_bit_identical(target):
+    """nncg.compile's default build of an int8 model takes integer Winograd on its 3x3 QLinearConvs of 8
+    and more input channels, bit-identical to onnxruntime; `--memory balanced` keeps them direct."""
+    model = qlinear_model("int8", False, (9, 7))
+    compiled = compiled_for(model, target)
+    assert compiled.source.count(WINOGRAD_KERNEL) == 2
+    for feed in random_feeds(model, FEEDS, SEED):
+        expected = onnxruntime_outputs(model, feed)[0]
+        np.testing.assert_array_equal(run_compiled(compiled, [feed["x"]])[0].reshape(expected.shape), expected)
+    assert WINOGRAD_KERNEL not in nncg.compile(model, target, memory="balanced").source
 
 
 def test_sums_beyond_int32_stay_direct():

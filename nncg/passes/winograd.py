@@ -1,4 +1,4 @@
-"""Graph pass `winograd{layers=conv2:true;conv1:false}`: Winograd F(2x2, 3x3) for 3x3 convs.
+"""Graph pass `winograd{layers=conv2:true;conv1:false,integer=true}`: Winograd F(2x2, 3x3) for 3x3 convs.
 
 Winograd (nncg/lowering/winograd.py) does 2.25x fewer multiplies than direct convolution but adds
 an input and an output transform (adds only) and two scratch buffers. The multiplies it saves grow
@@ -8,7 +8,10 @@ output tiles or transformed weights that fit L2 (see chosen_by_cost_model); `lay
 the choice per layer (what `--tune` measured). Layers Winograd does not apply to stay direct.
 
 A QLinearConv of the same window runs the exact integer Winograd (lowering/winograd_integer.py) where
-its sums fit the integer transforms, by its own cost rule (integer_chosen_by_cost_model).
+its sums fit the integer transforms, on the targets whose vectors run it (integer_chosen_by_cost_model),
+unless `integer=false`: the default pipeline's for `--memory balanced`/`min` and a RAM budget, whose
+bands run int8 Convs direct (band_plan.py), so a whole layer's Winograd would only set a faster speed
+build the memory settings' latency is measured against, and its scratch back into their arena.
 
 The GEMMs' output channels are internal, so they may be padded with zero filters: with the target's
 vector widths of the target, a count that would take more vector instructions than its padded form (12 on
@@ -24,7 +27,7 @@ from ..errors import NncgError
 from ..ir.analysis import vector_instructions
 from ..ir.applicability import integer_winograd_shaped, winograd_applies
 from ..ir.graph import Graph
-from ..ir.kinds import ConvAlgorithm
+from ..ir.kinds import ConvAlgorithm, DType
 from ..ir.target import Target
 from ..lowering.winograd_integer import integer_winograd_fits
 from .per_layer import check_layer_names, parse_layer_map
@@ -32,6 +35,7 @@ from .plan_memory import parse_bool
 
 MIN_INPUT_CHANNELS = 8
 MIN_TILES = 16
+FLOAT_BYTES, INT16_BYTES = DType.FLOAT32.bytes, DType.INT16.bytes  # a transformed weight, float or integer
 
 
 def parse_layers(text: str) -> dict[str, bool]:
@@ -39,7 +43,7 @@ def parse_layers(text: str) -> dict[str, bool]:
     return parse_layer_map(text, parse_bool, "conv2:true;conv1:false")
 
 
-def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None) -> Graph:
+def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None, integer: bool = True) -> Graph:
     lanes = target.vector_widths or (1,)
     layers = layers or {}
     check_layer_names(graph, layers, "winograd")
@@ -51,7 +55,7 @@ def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None
                 f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights "
                 "(or a QLinearConv whose sums the integer transforms cannot hold exactly)"
             )
-        chosen = chosen_by_cost_model(graph, node, target) if wanted is None else wanted
+        chosen = chosen_by_cost_model(graph, node, target, integer) if wanted is None else wanted
         nodes.append(_as_winograd(graph, node, lanes) if chosen else node)
     return graph.with_nodes(nodes)
 
@@ -72,23 +76,26 @@ def applies(graph: Graph, node) -> bool:
     return winograd_applies(graph, node) or (integer_winograd_shaped(node) and integer_winograd_fits(graph, node))
 
 
-def chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
+def chosen_by_cost_model(graph: Graph, node, target: Target, integer: bool = True) -> bool:
     if node.op == "QLinearConv":
-        return integer_chosen_by_cost_model(graph, node, target)
+        return integer and integer_chosen_by_cost_model(graph, node, target)
     return float_chosen_by_cost_model(graph, node, target)
 
 
 def integer_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
-    """None yet. Measured: on a target whose vectors run its nests (Target.int16_dots), resnet8 int8,
-    one inference, callgrind Ir
-    of its five 3x3 convs (3 to 64 input channels, 32x32 to 8x8) 5.67M -> 3.70M on ssse3, 2.68M ->
-    1.55M on avx2, each layer fewer; the stem's 3 channels least (0.75x, 0.71x), left direct as float's.
-    Not on scalar C: 2.6x fewer instructions there, but the scratch (16 x chunk tiles x channels of
-    int16 and int32) took resnet8's arena from 48 to 108 KB, and scalar C is the microcontroller
-    target, where RAM is what int8 is for (`layers` forces it). Other vector targets: unmeasured."""
-    # Not yet by default: its scratch, which the band planner does not count, kept --memory balanced
-    # from halving resnet8's arena (110 KB either way: tests/test_bands_int8.py); `layers` forces it.
-    return False
+    """On a target whose vectors run its nests (Target.int16_dots: ssse3, avx2), a QLinearConv the exact
+    integer transforms hold, of at least MIN_INPUT_CHANNELS input channels and enough tiles or
+    transformed weights (int16) in L2, as float's. Measured on resnet8 int8, one inference, callgrind
+    Ir of each 3x3 layer (`python3 -m benchmarks.int8_winograd`): 16 to 64 input channels 0.63-0.66x
+    the direct kernel's on ssse3, 0.53-0.58x on avx2; the stem's 3 channels least (0.76x, 0.71x),
+    left direct as float's. Its scratch is one tile row (winograd_integer.CHUNK_TILES, no more
+    instructions than 24-tile chunks): speed's arena for resnet8 48 -> 72 KB, which the band planner
+    counts (bands run int8 Convs direct). Not on scalar C: 2.6x fewer instructions, but scalar C is
+    the microcontroller target, where RAM is what int8 is for (`layers` forces it); nor on the AVX-512
+    targets (no int16 templates) or neon: unmeasured."""
+    if not target.int16_dots or not integer_winograd_shaped(node) or not integer_winograd_fits(graph, node):
+        return False
+    return graph.shape(node.inputs[1])[1] >= MIN_INPUT_CHANNELS and _pays(graph, node, target, INT16_BYTES)
 
 
 def float_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
@@ -98,9 +105,14 @@ def float_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     cache-blocked; layer3 (9 tiles) even; pedestrian's conv3 (10 tiles, 131 KB) 24 -> 40 us direct."""
     if not winograd_applies(graph, node) or graph.shape(node.inputs[1])[1] < MIN_INPUT_CHANNELS:
         return False
+    return _pays(graph, node, target, FLOAT_BYTES)
+
+
+def _pays(graph: Graph, node, target: Target, weight_bytes: int) -> bool:
+    """Enough output tiles, or transformed weights of `weight_bytes` an element that fit L2."""
     rows, columns = graph.shape(node.outputs[0])[2:]
     c_out, c_in = graph.shape(node.inputs[1])[:2]
-    fits_l2 = not target.l2_bytes or 16 * c_out * c_in * 4 < target.l2_bytes  # with room for the tiles
+    fits_l2 = not target.l2_bytes or 16 * c_out * c_in * weight_bytes < target.l2_bytes  # with room for the tiles
     return fits_l2 or -(-rows // 2) * -(-columns // 2) >= MIN_TILES
 
 
