@@ -15,8 +15,11 @@ from int8_models import compare, onnxruntime_outputs, quantized, random_feeds
 from onnx import TensorProto, helper
 
 import nncg
+from nncg import lowering
 from nncg.errors import NncgError
 from nncg.frontend import import_onnx
+from nncg.lowering.band_plan import BandPlan
+from nncg.lowering.bands import BandGroup
 from nncg.passes import default_pipeline
 from nncg.passes.winograd import winograd, winograd_candidates
 from nncg.verify import run_compiled
@@ -92,10 +95,10 @@ def compiled_for(
     return nncg.compile(model, target, verify_ir=True, pipeline=pipeline)
 
 
-def winograd_build(model: onnx.ModelProto, target: str):
-    """Integer Winograd forced (on ansi-c the pass does not choose it by itself)."""
+def winograd_build(model: onnx.ModelProto, target: str, kernels: int = 2):
+    """Integer Winograd forced (on ansi-c the pass does not choose it by itself), in `kernels` of its own."""
     compiled = compiled_for(model, target, True)
-    assert compiled.source.count(WINOGRAD_KERNEL) == 2
+    assert compiled.source.count(WINOGRAD_KERNEL) == kernels
     return compiled
 
 
@@ -145,27 +148,47 @@ def test_vector_targets_run_the_gemms_as_int16_pair_dots():
 
 
 def test_cost_rule_takes_it_on_the_int16_dot_targets():
-    """ssse3 and avx2 (Target.int16_dots) take it by default, not scalar C nor avx512; `integer=false`
-    (the memory settings' pipeline) leaves it direct."""
+    """ssse3 and avx2 (Target.int16_dots) take it by default, not scalar C nor avx512."""
     graph = import_onnx(qlinear_model("uint8", True, (7, 9)))
     for target, expected in [("ansi-c", "direct"), ("ssse3", "winograd"), ("avx2", "winograd"), ("avx512", "direct")]:
         chosen = winograd(graph, nncg.get_target(target))
         assert [n.attrs.algorithm for n in chosen.nodes if n.op == "QLinearConv"] == [expected] * 2, target
-    chosen = winograd(graph, nncg.get_target("avx2"), integer=False)
-    assert [n.attrs.algorithm for n in chosen.nodes if n.op == "QLinearConv"] == ["direct"] * 2
 
 
 @pytest.mark.parametrize("target", ["ssse3", "avx2"])
 def test_default_build_runs_it_bit_identical(target):
     """nncg.compile's default build of an int8 model takes integer Winograd on its 3x3 QLinearConvs of 8
-    and more input channels, bit-identical to onnxruntime; `--memory balanced` keeps them direct."""
+    and more input channels, bit-identical to onnxruntime."""
     model = qlinear_model("int8", False, (9, 7))
     compiled = compiled_for(model, target)
     assert compiled.source.count(WINOGRAD_KERNEL) == 2
+    assert_matches_onnxruntime(model, compiled)
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2"])
+def test_kept_in_bands_bit_identical(target, monkeypatch):
+    """Both QLinearConvs and the input's QuantizeLinear in one group of bands, Winograd kept (over 2-row
+    tiles, its int16 and int32 scratch a band's): bit-identical at band heights 2 and 4, under the
+    sanitizers on ansi-c; on x86 the transforms in int16 vectors as run whole."""
+    model = qlinear_model("uint8", True, (9, 7))
+    for rows in (2, 4):
+        monkeypatch.setattr(lowering, "plan_layers", winograd_bands(rows))
+        compiled = winograd_build(model, target, kernels=0)
+        band = compiled.source[compiled.source.index(": Band */") :]
+        assert "v_QLinearConv_1" in band and ("store_int16(" in band) == (target != "ansi-c")
+        assert_matches_onnxruntime(model, compiled, sanitize=target == "ansi-c" and rows == 2)
+
+
+def winograd_bands(rows: int):
+    """A stand-in for lowering's planner: every layer but the DequantizeLinear in one group, Winograd kept."""
+    return lambda graph, *_: BandPlan((BandGroup(tuple(n.name for n in graph.nodes[:-1]), rows, True),))
+
+
+def assert_matches_onnxruntime(model: onnx.ModelProto, compiled, sanitize: bool = False) -> None:
     for feed in random_feeds(model, FEEDS, SEED):
-        expected = onnxruntime_outputs(model, feed)[0]
-        np.testing.assert_array_equal(run_compiled(compiled, [feed["x"]])[0].reshape(expected.shape), expected)
-    assert WINOGRAD_KERNEL not in nncg.compile(model, target, memory="balanced").source
+        expected = onnxruntime_outputs(model, {"x": feed["x"] * 3})[0]
+        ours = run_compiled(compiled, [feed["x"] * 3], sanitize=sanitize)[0].reshape(expected.shape)
+        np.testing.assert_array_equal(ours, expected)
 
 
 def test_sums_beyond_int32_stay_direct():

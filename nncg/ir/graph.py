@@ -493,7 +493,8 @@ class Node:
     # The graph passes' choices for a float Conv (ConvAttrs), read by planners that see every op.
     @property
     def runs_winograd(self) -> bool:
-        return isinstance(self.attrs, ConvAttrs) and self.attrs.algorithm == ConvAlgorithm.WINOGRAD
+        """A Conv, or a QLinearConv (integer Winograd), the winograd pass made Winograd."""
+        return isinstance(self.attrs, ConvAttrs | QConvAttrs) and self.attrs.algorithm == ConvAlgorithm.WINOGRAD
 
     @property
     def vectorises_pixels(self) -> bool:

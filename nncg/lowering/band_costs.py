@@ -25,10 +25,12 @@ included (callgrind Ir, `python3 -m benchmarks.int8_band_costs`; scalar in bands
 ssse3, 11x on avx2); a depthwise pair 1.07x on ssse3, 1.12-1.15x on avx2 (its border columns in vectors over
 channels too; scalar before: 1.17x, 1.26-1.29x). `integer_banded` prices that with a margin.
 
-An int8 3x3 Conv run whole as integer Winograd (lowering/winograd_integer.py) took 0.58-0.66x the
-instructions of the direct one on resnet8's layers of 16 to 64 input channels (0.62-0.66x ssse3,
-0.53-0.58x avx2; callgrind Ir, `python3 -m benchmarks.int8_winograd`): `integer_winograd`. Scalar C:
-2.6x fewer instructions. In bands it runs direct (bands.py keeps float Winograd layers only).
+An int8 3x3 Conv as integer Winograd (lowering/winograd_integer.py) took 0.53-0.66x the instructions
+of the direct one run whole on resnet8's layers of 16 to 64 input channels (0.63-0.66x ssse3,
+0.53-0.58x avx2; callgrind Ir, `python3 -m benchmarks.int8_winograd`): `integer_winograd`, charged
+times `integer_banded` in bands as the direct kernel is (resnet8 at balanced, its first stage in
+bands with Winograd kept: 1.13x speed's Ir on ssse3, 1.24x on avx2). Scalar C: 2.6x fewer
+instructions.
 
 A QuantizeLinear in bands (the model input's, into a channels-last line buffer) costs what it costs whole,
 1 per element: it quantises each row in vectors into a planar scratch row, then interleaves that into the line

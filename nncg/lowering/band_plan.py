@@ -11,8 +11,8 @@ needs the largest of its steps. Memory is counted in bytes, each tensor at its t
 model's activations 1 byte an element). Its latency is estimated per target (band_costs.py): a layer
 run whole keeps the graph passes' choices (Winograd, cache blocking), one in bands runs direct or, in
 a group's variant that keeps Winograd, Winograd over 2-row tiles (its scratch a band's, shared by the
-group's Winograd layers; float Convs only: an int8 Conv in bands runs direct), and every band adds
-per-layer overhead and line-buffer shifts. Dynamic programming over the steps gives the fastest plan
+group's Winograd layers of one arithmetic), and every band adds per-layer overhead and line-buffer
+shifts. Dynamic programming over the steps gives the fastest plan
 under a memory bound; `min` is the smallest bound any plan meets. The figures are estimates (no
 alignment, no fragmentation): the driver checks the planned arena against a budget. A single layer
 in bands is a Winograd layer run direct, without its scratch buffers."""
@@ -23,7 +23,7 @@ import math
 from dataclasses import dataclass, replace
 
 from ..ir.graph import Graph, Node
-from ..ir.kinds import ConvAlgorithm, DType, VectorAxis
+from ..ir.kinds import DType, VectorAxis
 from ..ir.ops import IR_OPS
 from ..safe_text import shown
 from .band_costs import BandCosts, band_costs
@@ -31,15 +31,15 @@ from .bands import POINTWISE, WINDOWED, BandGroup, geometry, row_bytes, streamab
 from .conv import conv_extras
 from .halo import conv_halos
 from .in_place import in_place_lead
-from .winograd import band_scratch_floats, scratch_floats
-from .winograd_integer import integer_scratch_bytes
+from .winograd import CHUNK_TILES, band_scratch_bytes, scratch_bytes
+from .winograd_integer import CHUNK_TILES as INTEGER_CHUNK_TILES
 
 MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
 BALANCED_LATENCY = 1.3  # issue 18: balanced at most 1.3x speed's latency ...
 BALANCED_CUT = 2  # ... with at least 2x less arena
 CONVS = ("Conv", "QLinearConv")  # priced by their MACs (an int8 one as a float one)
-FLOAT_BYTES = DType.FLOAT32.bytes  # a Winograd scratch element; shifts are priced per 4 bytes moved
+FLOAT_BYTES = DType.FLOAT32.bytes  # shifts are priced per 4 bytes moved
 
 
 @dataclass(frozen=True)
@@ -191,7 +191,7 @@ def _band_step(
     geo = geometry(graph, group)
     if geo is None or (winograd and (j - i == 1 or not geo.winograd)):
         return None
-    scratch = band_scratch_floats(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd]) * FLOAT_BYTES
+    scratch = band_scratch_bytes(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd])
     scratch += sum(_quantized_row(graph, n) for n in graph.nodes[i:j])
     lines = sum(geo.rows[v].lines * row_bytes(graph, v) for v in geo.internal) + scratch
     shifted = sum(
@@ -203,7 +203,8 @@ def _band_step(
 
     def per_mac(node: Node) -> float:
         if node.op == "QLinearConv":  # in the target's int8 dot products, in bands as whole (vectorize.py)
-            return costs.integer_banded if j - i > 1 else 1.0
+            kept = costs.integer_winograd if node.name in geo.winograd else 1.0
+            return kept * (costs.integer_banded if j - i > 1 else 1.0)
         return banded * (costs.winograd if node.name in geo.winograd else 1.0)
 
     work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in graph.nodes[i:j])
@@ -219,15 +220,11 @@ def _quantized_row(graph: Graph, node: Node) -> int:
 
 
 def _scratch(graph: Graph, node: Node) -> int:
-    """The scratch bytes of a Winograd layer run whole: float32 V and M, or int16 V and int32 M."""
-    if _integer_winograd(node):
-        return integer_scratch_bytes(graph, node)
-    return scratch_floats(graph, node) * FLOAT_BYTES if node.runs_winograd else 0
-
-
-def _integer_winograd(node: Node) -> bool:
-    """A QLinearConv the winograd pass made integer Winograd (run whole; in bands it runs direct)."""
-    return node.op == "QLinearConv" and node.attrs.algorithm == ConvAlgorithm.WINOGRAD
+    """The scratch bytes of a Winograd layer run whole: float32 V and M, or int16 V and int32 M in
+    chunks of their own size."""
+    if not node.runs_winograd:
+        return 0
+    return scratch_bytes(graph, node, INTEGER_CHUNK_TILES if node.op == "QLinearConv" else CHUNK_TILES)
 
 
 def _output_copy(graph: Graph, node: Node) -> int:
@@ -241,9 +238,7 @@ def _whole_time(graph: Graph, node: Node, costs: BandCosts) -> float:
     """A layer run whole: a Conv at the speed of what the graph passes chose for it."""
     macs = _conv_macs(graph, node)
     if macs and node.runs_winograd:
-        macs *= costs.winograd
-    elif macs and _integer_winograd(node):
-        macs *= costs.integer_winograd
+        macs *= costs.integer_winograd if node.op == "QLinearConv" else costs.winograd
     elif macs and (node.cache_blocked or node.vectorises_pixels):
         macs *= costs.blocked
     return macs + _window_work(graph, node)

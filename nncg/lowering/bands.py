@@ -36,8 +36,8 @@ STREAMABLE = WINDOWED + POINTWISE
 @dataclass(frozen=True)
 class BandGroup:
     """Layers (node names, consecutive in graph order) run together, `rows` output rows per band;
-    with `winograd`, the Convs the graph passes made Winograd stay Winograd where their rows advance
-    in whole 2-row tiles (else every Conv runs direct)."""
+    with `winograd`, the Convs (float or int8) the graph passes made Winograd stay Winograd where their
+    rows advance in whole 2-row tiles (else every Conv runs direct)."""
 
     nodes: tuple[str, ...]
     rows: int

@@ -2,9 +2,9 @@
 layer's own loop nest over the rows that band computes.
 
 A Winograd layer the group keeps (bands.py) is lowered over the band's 2-row tiles directly
-(winograd.py lower_winograd_band); every other layer is lowered as usual (direct convolution,
-channels last) and then rebanded: its output-row
-loop becomes the band's rows of it (row = step * band + first, skipped outside the tensor), and every
+(winograd.py lower_winograd_band, winograd_integer.py lower_integer_winograd_band); every other layer
+is lowered as usual (direct convolution, channels last) and then rebanded: its output-row loop
+becomes the band's rows of it (row = step * band + first, skipped outside the tensor), and every
 access to a line buffer is moved by the buffer's origin, so the indices stay affine in the loop
 variables: a line buffer's rows are shifted up by `step` before its producer writes the new ones
 (an ascending copy; nothing when the readers need only the new rows, as a stride-2 pool's input),
@@ -28,6 +28,7 @@ from .quantized import lower_any_maxpool, lower_banded_quantize_linear, lower_ql
 from .quantized_add import lower_qlinear_add
 from .quantized_lookup import lower_qlinear_lookup
 from .winograd import TILE, lower_winograd_band
+from .winograd_integer import lower_integer_winograd_band
 
 BAND, SUB, ROW, SHIFT = "band", "sub", "row", "shift"
 STAGE_LOWERINGS = {
@@ -57,7 +58,8 @@ def lower_band_group(ctx: LoweringContext, group: BandGroup) -> None:
         start = len(ctx.kernels)
         if name in geo.winograd:
             rows = geo.rows[y]
-            lower_winograd_band(ctx, node, _first_tile_row(geo, rows), rows.step // TILE, scratch)
+            lower_band = lower_integer_winograd_band if node.op == "QLinearConv" else lower_winograd_band
+            lower_band(ctx, node, _first_tile_row(geo, rows), rows.step // TILE, scratch)
         else:
             STAGE_LOWERINGS[node.op](ctx, _direct(node))
         *helpers_now, stage = ctx.kernels[start:]

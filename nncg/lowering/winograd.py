@@ -27,6 +27,7 @@ from itertools import groupby
 import numpy as np
 
 from ..ir.graph import ConvAttrs, Graph, Node
+from ..ir.kinds import DType
 from ..ir.loops import (
     Affine,
     Assign,
@@ -57,6 +58,7 @@ A_T = ((1, 1, 1, 0), (0, 1, -1, -1))
 CHUNK_TILES = 24  # tiles per chunk (rounded up to whole tile rows): scratch that stays in L1
 BAND_CHUNK_TILES = 8  # tiles per chunk of a layer in bands, along a tile row: a band's scratch
 TILE_ROW = "tr"  # the loop over a band's tile rows
+SCRATCH_DTYPES = {"Conv": (DType.FLOAT32,) * 2, "QLinearConv": (DType.INT16, DType.INT32)}  # V's and M's
 FLOAT_ZERO = Const.splat(0.0)
 Scratch = Callable[[str, tuple[int, ...]], TensorRef]  # a scratch buffer of a name and shape
 
@@ -87,7 +89,11 @@ def lower_winograd_band(
     BAND_CHUNK_TILES tiles along it, so its scratch is a band's, not the whole layer's. The layers of
     one group run one after the other and share their scratch: `scratch` names its buffers (filled in
     by the first)."""
-    layer = _Layer(ctx, node, BAND_CHUNK_TILES, scratch)
+    emit_band(ctx, node, _Layer(ctx, node, BAND_CHUNK_TILES, scratch), first_tile_row, tile_rows)
+
+
+def emit_band(ctx: LoweringContext, node: Node, layer: WinogradNests, first_tile_row: Affine, tile_rows: int) -> None:
+    """The kernel of a layer in a group of bands (lower_winograd_band), whatever its arithmetic."""
     row = first_tile_row + Affine.of(TILE_ROW) if tile_rows > 1 else first_tile_row
     body = layer.grid.band_row(row, layer.band_chunk)
     ctx.emit(node.name, "Conv", (Loop(TILE_ROW, tile_rows, body),) if tile_rows > 1 else body)
@@ -220,7 +226,7 @@ class _Layer(WinogradNests):
         bias_name, residual_name = conv_extras(node)
         self.bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
         self.residual = ctx.ref(residual_name) if residual_name else None
-        super().__init__(ctx, node, width, band_tiles, lambda name, shape: _scratch(ctx, name, shape, shared))
+        super().__init__(ctx, node, width, band_tiles, lambda name, shape: scratch_buffer(ctx, name, shape, shared))
 
     def output_value(self, value: Expr, channel: Affine, index: list[Affine]) -> Expr:
         if self.bias:
@@ -230,12 +236,18 @@ class _Layer(WinogradNests):
         return apply_activation(value, self.attrs.activation)
 
 
-def _scratch(ctx: LoweringContext, name: str, shape: tuple[int, ...], shared: dict[str, str] | None) -> TensorRef:
-    """A scratch buffer of `shape`; with `shared`, the one its first user named (by the name's prefix),
-    grown to the largest shape."""
-    kind = name[:2]
+def scratch_buffer(
+    ctx: LoweringContext,
+    name: str,
+    shape: tuple[int, ...],
+    shared: dict[str, str] | None,
+    dtype: DType = DType.FLOAT32,
+) -> TensorRef:
+    """A scratch buffer of `shape` and `dtype`; with `shared`, the one its first user of that dtype named
+    (by the name's prefix), grown to the largest shape."""
+    kind = f"{name[:2]}{dtype}"
     if shared is None or kind not in shared:
-        ref = ctx.add_buffer(name, "internal", shape, row_major(len(shape)))
+        ref = ctx.add_buffer(name, "internal", shape, row_major(len(shape)), dtype=dtype)
         if shared is not None:
             shared[kind] = ref.buffer
         return ref
@@ -277,11 +289,18 @@ class TileAt:
     channel: Affine
 
 
-def scratch_floats(graph: Graph, node: Node) -> int:
-    """The floats of a Winograd layer's two scratch buffers (what the band planner counts)."""
+def scratch_bytes(graph: Graph, node: Node, target: int = CHUNK_TILES) -> int:
+    """The bytes of a Winograd layer's two scratch buffers run whole in chunks of `target` tiles (what
+    the band planner counts)."""
+    return sum(_scratch_sizes(graph, node, chunk_tiles(graph.shape(node.outputs[0])[2:], target)[1]))
+
+
+def _scratch_sizes(graph: Graph, node: Node, tiles: int) -> tuple[int, int]:
+    """The bytes of V and M for `tiles` tiles, each in its SCRATCH_DTYPES type."""
     c_out, c_in = graph.shape(node.inputs[1])[:2]
-    tiles = chunk_tiles(graph.shape(node.outputs[0])[2:])[1]
-    return PATCH * PATCH * tiles * (c_in + max(c_out, node.attrs.gemm_channels))
+    width = max(c_out, node.attrs.gemm_channels) if isinstance(node.attrs, ConvAttrs) else c_out
+    v, m = SCRATCH_DTYPES[node.op]
+    return PATCH * PATCH * tiles * c_in * v.bytes, PATCH * PATCH * tiles * width * m.bytes
 
 
 def chunk_tiles(out_hw: tuple[int, int], target: int = CHUNK_TILES) -> tuple[int, int]:
@@ -291,12 +310,15 @@ def chunk_tiles(out_hw: tuple[int, int], target: int = CHUNK_TILES) -> tuple[int
     return rows, rows * tiles[1]
 
 
-def band_scratch_floats(graph: Graph, nodes: list[Node]) -> int:
-    """The floats of the scratch the Winograd layers of one band group share."""
-    tiles = [band_chunk_tiles(graph.shape(n.outputs[0])[2:]) for n in nodes]
-    v = max((PATCH * PATCH * t * graph.shape(n.inputs[1])[1] for n, t in zip(nodes, tiles)), default=0)
-    width = [max(graph.shape(n.inputs[1])[0], n.attrs.gemm_channels) for n in nodes]
-    return v + max((PATCH * PATCH * t * w for w, t in zip(width, tiles)), default=0)
+def band_scratch_bytes(graph: Graph, nodes: list[Node]) -> int:
+    """The bytes of the scratch the Winograd layers of one band group share: of each buffer and type
+    (a float layer's and an integer one's are apart: scratch_buffer), the largest."""
+    largest: dict[tuple[int, DType], int] = {}
+    for node in nodes:
+        sizes = _scratch_sizes(graph, node, band_chunk_tiles(graph.shape(node.outputs[0])[2:]))
+        for key, size in zip(enumerate(SCRATCH_DTYPES[node.op]), sizes):
+            largest[key] = max(largest.get(key, 0), size)
+    return sum(largest.values())
 
 
 def band_chunk_tiles(out_hw: tuple[int, int]) -> int:

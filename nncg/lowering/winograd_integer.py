@@ -19,16 +19,24 @@ import numpy as np
 
 from ..ir.graph import Graph, Node, QConvAttrs
 from ..ir.kinds import DType
-from ..ir.loops import Binary, Cast, Const, Expr, Load
-from .context import LoweringContext, row_major
+from ..ir.loops import Affine, Binary, Cast, Const, Expr, Load
+from .context import LoweringContext
 from .quantized import centred
 from .requantize import Scales
-from .winograd import PATCH, WinogradNests, chunk_tiles, emit_layer
+from .winograd import (
+    BAND_CHUNK_TILES,
+    PATCH,
+    SCRATCH_DTYPES,
+    WinogradNests,
+    emit_band,
+    emit_layer,
+    scratch_buffer,
+)
 
 G2 = np.array(((2, 0, 0), (1, 1, 1), (1, -1, 1), (0, 0, 2)), np.int64)  # 2G: integers
 SCALE = 4  # Y' = SCALE * the direct sum (G' = 2G on both sides)
 INT32_MAX = 2**31 - 1
-CHUNK_TILES = 1  # tiles per chunk: one tile row (chunk_tiles), the scratch a few KB (integer_scratch_bytes)
+CHUNK_TILES = 1  # tiles per chunk of a layer run whole: one tile row (chunk_tiles), the scratch a few KB
 WINOGRAD_OP = "QLinearConvWinograd"  # the kernel's op: not one the vectorize pass takes (its scratch is int16)
 
 
@@ -58,21 +66,13 @@ def integer_winograd_fits(graph: Graph, node: Node) -> bool:
     return int(worst.max()) <= INT32_MAX and deviation <= 2**15 - 1 and normal
 
 
-def integer_scratch_bytes(graph: Graph, node: Node) -> int:
-    """The bytes of V (int16) and M (int32) of a layer run whole, as _IntegerLayer allocates them
-    (what the band planner counts)."""
-    c_out, c_in = graph.shape(node.inputs[1])[:2]
-    tiles = chunk_tiles(graph.shape(node.outputs[0])[2:], CHUNK_TILES)[1]
-    return PATCH * PATCH * tiles * (c_in * DType.INT16.bytes + c_out * DType.INT32.bytes)
-
-
 class _IntegerLayer(WinogradNests):
     """One QLinearConv's Winograd nests in integers (the module's docstring)."""
 
     zero = Const.integer(0)
     chunk_target = CHUNK_TILES
 
-    def __init__(self, ctx: LoweringContext, node: Node):
+    def __init__(self, ctx: LoweringContext, node: Node, band_tiles: int | None = None, shared: dict | None = None):
         attrs: QConvAttrs = node.attrs
         c_out = ctx.graph.shape(node.inputs[1])[0]
         self.u = ctx.add_constant(f"u_{node.name}", integer_filters(ctx.graph.constants[node.inputs[1]]))
@@ -80,12 +80,12 @@ class _IntegerLayer(WinogradNests):
         self.bias = ctx.add_constant(f"b_{node.name}", bias.astype(np.int32))
         multipliers = np.asarray(ctx.graph.constants[node.inputs[3]], np.float32) / np.float32(SCALE)
         self.scales = Scales(ctx, node.name, multipliers)
-        dtypes = {"v": DType.INT16, "m": DType.INT32}
+        dtypes = dict(zip("vm", SCRATCH_DTYPES[node.op]))
 
         def scratch(name: str, shape: tuple[int, ...]):
-            return ctx.add_buffer(name, "internal", shape, row_major(len(shape)), dtype=dtypes[name[0]])
+            return scratch_buffer(ctx, name, shape, shared, dtypes[name[0]])
 
-        super().__init__(ctx, node, c_out, None, scratch)
+        super().__init__(ctx, node, c_out, band_tiles, scratch)
         self.zero_point = attrs.x_zero_point
 
     def input_value(self, load: Load) -> Expr:
@@ -104,3 +104,11 @@ class _IntegerLayer(WinogradNests):
 
 def lower_integer_winograd(ctx: LoweringContext, node: Node) -> None:
     emit_layer(ctx, node, _IntegerLayer(ctx, node), WINOGRAD_OP)
+
+
+def lower_integer_winograd_band(
+    ctx: LoweringContext, node: Node, first_tile_row: Affine, tile_rows: int, scratch: dict[str, str]
+) -> None:
+    """As winograd.lower_winograd_band: the layer over a band's tile rows, its scratch the group's
+    (int16 V and int32 M, apart from a float layer's)."""
+    emit_band(ctx, node, _IntegerLayer(ctx, node, BAND_CHUNK_TILES, scratch), first_tile_row, tile_rows)

@@ -76,7 +76,6 @@ register(
     target=True,
     tunable=Tunable(winograd_choices, format_bool),
     layers=parse_winograd_layers,
-    integer=parse_bool,
 )
 register(
     "vectorize-pixels", "graph", vectorize_pixels, target=True,
@@ -133,9 +132,7 @@ def default_pipeline(
     if unroll_level == "auto" and not budget:
         cap = f",budget={nest}"
     vectors = bool(target.vector_widths)
-    whole = memory == "speed" and not ram_budget  # else int8 Convs stay direct, as bands run them (winograd.py)
-    graph = f"{GRAPH_PIPELINE},winograd{'' if whole else '{integer=false}'}"
-    graph += ",vectorize-pixels,cache-block" if vectors else ""
+    graph = f"{GRAPH_PIPELINE},winograd" + (",vectorize-pixels,cache-block" if vectors else "")
     loops = ",vectorize" if vectors else ""
     loops += f",register-block,unroll{{level={unroll_level}{cap}}},inline-constants,{plan}"
     lower_params = [f"budget={ram_budget}" if ram_budget else "" if memory == "speed" else f"memory={memory}"]

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..ir.analysis import is_accumulator, vector_instructions
 from ..ir.dtypes import is_integer_kernel
-from ..ir.kinds import DType, LoopKind
+from ..ir.kinds import BufferRole, DType, LoopKind
 from ..ir.loops import (
     Affine,
     Assign,
@@ -85,7 +85,8 @@ def vectorize(program: Program, target: Target) -> Program:
             continue
         if kernel.op == "Band" and kernel.name in integer:
             floats = {b.name for b in program.buffers if b.dtype == DType.FLOAT32}
-            body = _mark_band_stages(kernel.body, widths, floats)
+            scratch = {b.name for b in program.role(BufferRole.INTERNAL) if b.dtype in (DType.INT16, DType.INT32)}
+            body = _mark_band_stages(kernel.body, widths, floats, scratch if target.int16_dots else set())
         else:
             body = mark_vector_loop(kernel.body, widths)
         overlaps = any(
@@ -197,21 +198,36 @@ def _dot_vectorizable(dot: Dot, var: str) -> bool:
     return steps in ({0}, {1}, set()) and dot.w.index.coeff(var) == len(dot.x)
 
 
-def _mark_band_stages(body: tuple[Stmt, ...], widths: tuple[int, ...], floats: set[str]) -> tuple[Stmt, ...]:
+def _mark_band_stages(
+    body: tuple[Stmt, ...], widths: tuple[int, ...], floats: set[str], scratch: set[str]
+) -> tuple[Stmt, ...]:
     """An int8 band kernel's body with its convolutions' and QuantizeLinear's nests marked: through the
     band's serial loops (over bands, nested runs, a run's rows) and border checks, each layer's nest (a
-    parallel loop) is marked where it multiply-accumulates or quantises floats (`floats`: the float
-    buffers); the other layers (table lookups, pooling, the line buffers' shifts and the interleaving
-    of a quantised row: 8-bit loads and stores the integer vectors do not widen) stay scalar."""
+    parallel loop) is marked where it multiply-accumulates, quantises floats (`floats`: the float
+    buffers) or is an integer Winograd transform (it stores or loads `scratch`: V's int16 and M's int32
+    buffers, on a target with Target.int16_dots), as run whole; the other layers (table lookups,
+    pooling, the line buffers' shifts and the interleaving of a quantised row: 8-bit loads and stores
+    the integer vectors do not widen) stay scalar."""
     out: list[Stmt] = []
     for stmt in body:
         if isinstance(stmt, If) or (isinstance(stmt, Loop) and not stmt.parallel):
-            stmt = replace(stmt, body=_mark_band_stages(stmt.body, widths, floats))
-        elif any(_multiply_accumulates(s) for s in walk_stmts((stmt,))) or _quantizes(stmt, floats):
+            stmt = replace(stmt, body=_mark_band_stages(stmt.body, widths, floats, scratch))
+        elif (
+            any(_multiply_accumulates(s) for s in walk_stmts((stmt,)))
+            or _quantizes(stmt, floats)
+            or _uses(stmt, scratch)
+        ):
             out += mark_vector_loop((stmt,), widths)
             continue
         out.append(stmt)
     return tuple(out)
+
+
+def _uses(stmt: Stmt, buffers: set[str]) -> bool:
+    """Whether the nest stores into or loads from one of `buffers`."""
+    stores = {s.buffer for s in walk_stmts((stmt,)) if isinstance(s, Store)}
+    loads = {e.buffer for s in walk_stmts((stmt,)) for t in stmt_exprs(s) for e in walk_exprs(t) if isinstance(e, Load)}
+    return bool((stores | loads) & buffers)
 
 
 def _quantizes(stmt: Stmt, floats: set[str]) -> bool:

@@ -1,4 +1,4 @@
-"""Graph pass `winograd{layers=conv2:true;conv1:false,integer=true}`: Winograd F(2x2, 3x3) for 3x3 convs.
+"""Graph pass `winograd{layers=conv2:true;conv1:false}`: Winograd F(2x2, 3x3) for 3x3 convs.
 
 Winograd (nncg/lowering/winograd.py) does 2.25x fewer multiplies than direct convolution but adds
 an input and an output transform (adds only) and two scratch buffers. The multiplies it saves grow
@@ -8,10 +8,7 @@ output tiles or transformed weights that fit L2 (see chosen_by_cost_model); `lay
 the choice per layer (what `--tune` measured). Layers Winograd does not apply to stay direct.
 
 A QLinearConv of the same window runs the exact integer Winograd (lowering/winograd_integer.py) where
-its sums fit the integer transforms, on the targets whose vectors run it (integer_chosen_by_cost_model),
-unless `integer=false`: the default pipeline's for `--memory balanced`/`min` and a RAM budget, whose
-bands run int8 Convs direct (band_plan.py), so a whole layer's Winograd would only set a faster speed
-build the memory settings' latency is measured against, and its scratch back into their arena.
+its sums fit the integer transforms, on the targets whose vectors run it (integer_chosen_by_cost_model).
 
 The GEMMs' output channels are internal, so they may be padded with zero filters: with the target's
 vector widths of the target, a count that would take more vector instructions than its padded form (12 on
@@ -43,7 +40,7 @@ def parse_layers(text: str) -> dict[str, bool]:
     return parse_layer_map(text, parse_bool, "conv2:true;conv1:false")
 
 
-def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None, integer: bool = True) -> Graph:
+def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None) -> Graph:
     lanes = target.vector_widths or (1,)
     layers = layers or {}
     check_layer_names(graph, layers, "winograd")
@@ -55,7 +52,7 @@ def winograd(graph: Graph, target: Target, layers: dict[str, bool] | None = None
                 f"winograd: layer {node.name} is not a 3x3, stride-1, ungrouped 2-D Conv with constant weights "
                 "(or a QLinearConv whose sums the integer transforms cannot hold exactly)"
             )
-        chosen = chosen_by_cost_model(graph, node, target, integer) if wanted is None else wanted
+        chosen = chosen_by_cost_model(graph, node, target) if wanted is None else wanted
         nodes.append(_as_winograd(graph, node, lanes) if chosen else node)
     return graph.with_nodes(nodes)
 
@@ -76,9 +73,9 @@ def applies(graph: Graph, node) -> bool:
     return winograd_applies(graph, node) or (integer_winograd_shaped(node) and integer_winograd_fits(graph, node))
 
 
-def chosen_by_cost_model(graph: Graph, node, target: Target, integer: bool = True) -> bool:
+def chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     if node.op == "QLinearConv":
-        return integer and integer_chosen_by_cost_model(graph, node, target)
+        return integer_chosen_by_cost_model(graph, node, target)
     return float_chosen_by_cost_model(graph, node, target)
 
 
@@ -87,12 +84,13 @@ def integer_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     integer transforms hold, of at least MIN_INPUT_CHANNELS input channels and enough tiles or
     transformed weights (int16) in L2, as float's. Measured on resnet8 int8, one inference, callgrind
     Ir of each 3x3 layer (`python3 -m benchmarks.int8_winograd`): 16 to 64 input channels 0.63-0.66x
-    the direct kernel's on ssse3, 0.53-0.58x on avx2; the stem's 3 channels least (0.76x, 0.71x),
-    left direct as float's. Its scratch is one tile row (winograd_integer.CHUNK_TILES, no more
-    instructions than 24-tile chunks): speed's arena for resnet8 48 -> 72 KB, which the band planner
-    counts (bands run int8 Convs direct). Not on scalar C: 2.6x fewer instructions, but scalar C is
-    the microcontroller target, where RAM is what int8 is for (`layers` forces it); nor on the AVX-512
-    targets (no int16 templates) or neon: unmeasured."""
+    the direct kernel's on ssse3, 0.53-0.58x on avx2; the stem's 3 channels least (0.76x, 0.71x), left
+    direct as float's. The whole model at speed 0.74x on ssse3 (7.34M -> 5.46M), 0.69x on avx2; its
+    scratch, a tile row (winograd_integer.CHUNK_TILES, as few instructions as 24-tile chunks), took
+    speed's arena from 48 to 72 KB, which the band planner counts; balanced keeps it in bands (36 KB,
+    half of speed's, 1.13x speed's Ir on ssse3, 1.24x on avx2). Not on scalar C: 2.6x fewer
+    instructions, but scalar C is the microcontroller target, where RAM is what int8 is for (`layers`
+    forces it); nor on the AVX-512 targets (no int16 templates) or neon: unmeasured."""
     if not target.int16_dots or not integer_winograd_shaped(node) or not integer_winograd_fits(graph, node):
         return False
     return graph.shape(node.inputs[1])[1] >= MIN_INPUT_CHANNELS and _pays(graph, node, target, INT16_BYTES)
