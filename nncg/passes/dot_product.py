@@ -2,7 +2,9 @@
 of K channels (loops.Dot) on targets that have them (Target.dot_uint8, dot_int8: K = 2, pmaddwd on
 int16 pairs; K = 4, vpdpbusd on u8 x s8 quads), and K = Target.dot_uint8_int16 (pmaddubsw quads) for
 uint8 activations where the layer's weights are proven never to saturate the int16 pair sums (and, with
-Target.int16_dots, K = 2 of int16 activations and int16 weights: integer Winograd's GEMMs); layers
+Target.int16_dots, K = 2 of int16 activations and int16 weights: integer Winograd's GEMMs; with
+Target.centred_weight_dots, K = 2 of 8-bit activations and the int16 weights minus their zero points
+that ConvInteger, MatMulInteger and QLinear ops with weight zero points or uint8 weights have); layers
 that fail the proof keep pmaddwd pairs (splitting their weights in two halves that pass, two pmaddubsw
 per quad, measured no faster than the pairs with twice the weight bytes: benchmarks/int8_dot_forms.py).
 
@@ -117,19 +119,35 @@ class _Packer:
         k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
         array = self.program.constants[w.buffer]
         array = _squeezed(array) if target.tap_dots else array
-        int16 = xbuf.dtype == DType.INT16 and array.dtype == np.int16 and not zero_point  # integer Winograd's GEMMs
-        k = 2 if int16 and target.int16_dots else k
-        if not k or array.dtype != (np.int16 if int16 else np.int8) or array.ndim < 2 or array.shape[-2] != loop.extent:
+        # int16 pairs: integer Winograd's GEMMs (int16 activations), or 8-bit activations times the
+        # weights minus their zero points (int16, in [-255, 255]: the lowering's where those are not 0)
+        int16 = xbuf.dtype == DType.INT16 and not zero_point and target.int16_dots
+        centred = xbuf.dtype != DType.INT16 and array.dtype == np.int16 and target.centred_weight_dots and bool(k)
+        wide_weights = centred or (int16 and array.dtype == np.int16)
+        k = 2 if wide_weights else k
+        if (
+            not k
+            or array.dtype != (np.int16 if wide_weights else np.int8)
+            or array.ndim < 2
+            or array.shape[-2] != loop.extent
+        ):
             return None
-        if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16 and pair_sums_fit_int16(array):
+        if (
+            not (signed or wide_weights)
+            and xbuf.dtype == DType.UINT8
+            and target.dot_uint8_int16
+            and pair_sums_fit_int16(array)
+        ):
             k = target.dot_uint8_int16
         split = _split_index(w.index, loop.var, array.shape, extents)
-        if split is None or (_per_lane(x, w, loop.var) and not target.tap_dots):
+        # a depthwise's per-lane taps take int8 weights only (the int16 templates share x in every lane)
+        per_lane = _per_lane(x, w, loop.var)
+        if split is None or (per_lane and (not target.tap_dots or centred)):
             return None
         lead, co = split
         c, cs = array.shape[-2:]
         index = lead * (-(-c // k) * k * cs) + co * k + Affine.of(loop.var) * (k * cs)
-        wide = int16 or (k == 2 and target.dot2_int16_weights)
+        wide = wide_weights or (k == 2 and target.dot2_int16_weights)
         packed = self.packed_buffer(w.buffer, array, k, np.int16 if wide else np.int8)
         channels, groups = loop.extent, loop.extent // k
         offset = 128 * (xbuf.dtype == DType.UINT8) if target.dot_int8_activations and k == 4 else zero_point
