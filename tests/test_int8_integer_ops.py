@@ -24,7 +24,7 @@ import nncg
 from nncg.errors import NncgError
 from nncg.verify import run_compiled
 
-CHANNELS = 6
+CHANNELS = 20  # avx512: a 16-lane block and a 4-lane one
 X_SHAPE = {"ConvInteger": (1, 4, 7, 7), "MatMulInteger": (3, 8)}
 W_SHAPE = {"ConvInteger": (CHANNELS, 4, 3, 3), "MatMulInteger": (8, CHANNELS)}
 # the shape of a per-channel scale or bias: NumPy-broadcast over the result's channels
@@ -259,5 +259,5 @@ def test_weights_with_a_batch_are_refused():
     model = raw_model("matrix")
     w = next(t for t in model.graph.initializer if t.name == "w")
     w.CopyFrom(onnx.numpy_helper.from_array(np.ones((2, 8, CHANNELS), np.int8), "w"))
-    with pytest.raises(NncgError, match=r"MatMulInteger .* weights of shape \[2, 8, 6\]; NNCG"):
+    with pytest.raises(NncgError, match=rf"MatMulInteger .* weights of shape \[2, 8, {CHANNELS}\]; NNCG"):
         nncg.compile(model)
