@@ -16,7 +16,9 @@ and, when K does not divide C, one more dot of the last channels, the missing on
 On targets with Target.tap_dots the same rewrite takes the taps of a convolution of one input channel
 per group (the loop over kernel columns): a first layer's (one input channel, the taps' activations
 shared by all lanes) and a depthwise's (x depends on the channel too: the dots' activations are then
-vectors, each lane its own channel's K taps). passes/dot_taps.py splits off the border columns first.
+vectors, each lane its own channel's K taps). passes/dot_taps.py splits off the border columns first,
+each its own code: there the taps outside the image are read as 0 (x - zero point is 0 on the padding,
+so the products are the loop's) and the groups of K taps all outside are left out.
 
 The weights [lead..., C, Cs] are repacked at generation time as wK [lead..., C / K (rounded up), Cs, K]
 (the missing channels' weights 0; pairs as int16 where Target.dot2_int16_weights): the K weights of
@@ -107,6 +109,9 @@ class _Packer:
     def reduction(self, loop: Loop, extents: dict[str, int], target: Target) -> tuple[Stmt, ...] | None:
         """The loop as dot products, or None when it is not `acc += int32(x) * int32(w)` over all the
         input channels of a constant int8 weight array."""
+        inside = None  # the taps inside the image of a border column (passes/dot_taps.py), None: all
+        if target.tap_dots and multiply_accumulate(loop) is None:
+            loop, inside = _guarded_taps(loop)
         match = multiply_accumulate(loop)
         if match is None:
             return None
@@ -151,15 +156,24 @@ class _Packer:
         packed = self.packed_buffer(w.buffer, array, k, np.int16 if wide else np.int8)
         channels, groups = loop.extent, loop.extent // k
         offset = 128 * (xbuf.dtype == DType.UINT8) if target.dot_int8_activations and k == 4 else zero_point
+        if inside is not None and offset != zero_point:
+            return None  # the offset's correction sums every tap's weights, the outside ones too
 
-        def dot(group: Affine, count: int) -> Stmt:
-            """acc += the dot of channels K group .. K group + count - 1 (the rest read as 0)."""
+        def dot(group: Affine, count: int, taps: range | frozenset = range(channels)) -> Stmt:
+            """acc += the dot of channels K group .. K group + count - 1 (the rest, and those not in
+            `taps` where the group is a constant, read as 0)."""
             xs = tuple(
-                _at_channel(x, offset, loop.var, group * k + j) if j < count else Const.integer(0) for j in range(k)
+                _at_channel(x, offset, loop.var, group * k + j)
+                if j < count and (not group.is_const or group.const * k + j in taps)
+                else Const.integer(0)
+                for j in range(k)
             )
             weights = Load(packed, index.substitute({loop.var: group}), k)
             return Assign(acc, Binary("+", LocalRef(acc), Dot(xs, weights)))
 
+        if inside is not None:  # a border column: the groups holding a tap inside, the others skipped
+            touched = sorted({tap // k for tap in inside})
+            return (Loop(loop.var, 1, tuple(dot(Affine.of(g), min(k, channels - g * k), inside) for g in touched)),)
         # the groups stay a loop even of one iteration: register-block finds accumulators by their loops
         stmts: list[Stmt] = [Loop(loop.var, groups, (dot(Affine.of(loop.var), k),))] if groups else []
         if channels % k:
@@ -245,6 +259,20 @@ def multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
     if None in loads or not all(loop.var in load.index.vars for load in loads):
         return None
     return stmt.name, loads[0], zero_point, loads[1]
+
+
+def _guarded_taps(loop: Loop) -> tuple[Loop, frozenset[int] | None]:
+    """A border column's `for kw: if (check on kw alone) acc += ...` as the loop without the check and
+    the taps kw for which it holds; the loop as it is, and None, for any other loop (or no tap inside)."""
+    guard = loop.body[0] if len(loop.body) == 1 else None
+    if not isinstance(guard, If) or any(set(b.expr.vars) - {loop.var} for b in guard.bounds):
+        return loop, None
+    inside = frozenset(
+        tap
+        for tap in range(loop.extent)
+        if all(replace(b, expr=b.expr.substitute({loop.var: Affine.of(tap)})).holds() for b in guard.bounds)
+    )
+    return (replace(loop, body=guard.body), inside) if inside else (loop, None)
 
 
 def _widened_load(e: Expr) -> Load | None:
