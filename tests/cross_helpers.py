@@ -93,6 +93,8 @@ CLANG_NEON_FLAGS = {
     "armhf-vfpv3": ("--target=arm-linux-gnueabihf", "-mfpu=neon", "-mfloat-abi=hard"),
 }
 CORTEX_M4_MODELS = ("ball", "pedestrian", "robot")
+# issue 18's models at --memory min, float: the two MLPerf-Tiny-shaped ones with its arena targets too
+CORTEX_M4_MIN_MODELS = (*CORTEX_M4_MODELS, "resnet8", "mobilenet_v1_025")
 CORTEX_M4_INT8_MODELS = tuple(MLPERF_TINY)  # quantised as tests/test_int8.py quantises the repository's models
 CORTEX_M4_MIN_INT8_MODELS = ("ball", "pedestrian", "robot", "resnet8", "mobilenet_v1_025", "dscnn")
 

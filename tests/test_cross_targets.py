@@ -19,6 +19,7 @@ from cross_helpers import (
     CLANG_NEON_FLAGS,
     CORTEX_M4_INT8_MODELS,
     CORTEX_M4_MIN_INT8_MODELS,
+    CORTEX_M4_MIN_MODELS,
     CORTEX_M4_MODELS,
     CORTEX_M4_TOOLS,
     MODELS,
@@ -105,7 +106,7 @@ def only_the_ram(measured) -> dict[str, int]:
     return {"ram": measured.image_sizes["data"] + measured.image_sizes["bss"] + stack + RAM_MARGIN, "stack": stack}
 
 
-@pytest.mark.parametrize("model", CORTEX_M4_MODELS)
+@pytest.mark.parametrize("model", CORTEX_M4_MIN_MODELS)
 def test_min_memory_model_runs_in_only_the_ram_its_plan_needs(model, tmp_path):
     """At --memory min, linked with only_the_ram after a first run, and run again."""
     require([tool for tool in CORTEX_M4_TOOLS if shutil.which(tool) is None])

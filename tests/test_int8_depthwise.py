@@ -20,12 +20,21 @@ import nncg
 TARGETS = ("ssse3", "avx2", "avx512", "avx512vnni")
 
 
-def depthwise_model(channels: int, kernel: int, stride: int, multiplier: int = 1, relu: bool = True, seed: int = 8):
+def depthwise_model(
+    channels: int,
+    kernel: int,
+    stride: int,
+    multiplier: int = 1,
+    relu: bool = True,
+    seed: int = 8,
+    pads: list[int] | None = None,
+    size: tuple[int, int] = (11, 13),
+):
     """A 1x1 Conv to `channels` (so the depthwise reads a channels-last input; with `relu` its
     activations' zero point is 0, else not), then a padded depthwise Conv of `kernel` x `kernel` at
-    `stride`, `multiplier` outputs per channel."""
+    `stride` (`pads` as ONNX's, default kernel // 2 all round), `multiplier` outputs per channel, of
+    an input of `size` (height, width)."""
     rng = np.random.default_rng(seed)
-    pad = kernel // 2
     init = {
         "w1": _weights(rng, channels, 3, 1, 1),
         "b1": rng.standard_normal(channels) * 0.3,
@@ -35,9 +44,11 @@ def depthwise_model(channels: int, kernel: int, stride: int, multiplier: int = 1
     nodes = [
         helper.make_node("Conv", ["x", "w1", "b1"], ["c"]),
         helper.make_node("Relu" if relu else "Identity", ["c"], ["p"]),
-        helper.make_node("Conv", ["p", "w", "b"], ["y"], group=channels, pads=[pad] * 4, strides=[stride, stride]),
+        helper.make_node(
+            "Conv", ["p", "w", "b"], ["y"], group=channels, pads=pads or [kernel // 2] * 4, strides=[stride, stride]
+        ),
     ]
-    return _model(nodes, [1, 3, 11, 13], init)
+    return _model(nodes, [1, 3, *size], init)
 
 
 def check(float_model, target: str, activations: str, scale: float = 1.0) -> str:
@@ -77,6 +88,31 @@ def test_saturation_and_zero_points(activations, target):
         assert "_mm256_madd_epi16(_mm256_or_si256(_mm256_and_si256(" in conv
     if target == "ssse3":
         assert "_mm_madd_epi16(_mm_or_si128(_mm_and_si128(" in conv
+
+
+# per-tap products (the border columns' before they took dots): ssse3's pmaddwd of masked lanes, pmulld
+TAP_PRODUCTS = {"ssse3": "_mm_set1_epi32(0xFFFF)", "avx2": "_mm256_mullo_epi32("}
+
+
+@pytest.mark.parametrize("target", ("ansi-c", "ssse3", "avx2", "avx512vnni"))
+@pytest.mark.parametrize(
+    "channels, kernel, stride, pads, size, relu",
+    [
+        (11, 3, 1, [1, 2, 2, 1], (9, 11), False),  # padding 1 and 2 on either side, a zero point != 0
+        (13, 5, 2, [2, 2, 2, 2], (10, 15), True),  # 5x5 strided, padding 2: two border columns each side
+        (6, 5, 1, [2, 1, 0, 2], (7, 9), False),  # 5x5, padding 1 and 2, stride 1
+        (9, 5, 1, [2, 2, 2, 2], (6, 3), True),  # no interior column: every column a border one
+    ],
+)
+def test_border_columns(channels, kernel, stride, pads, size, relu, target):
+    """The border columns take their inside taps as dots too (dot_taps.py), the outside ones read as 0:
+    identical to onnxruntime at both edges, odd widths, channel counts no multiple of the lanes; and
+    with an interior column no tap is a product of its own."""
+    activations = "uint8" if relu else "int8"
+    model = depthwise_model(channels, kernel, stride, relu=relu, pads=pads, size=size)
+    conv = check(model, target, activations, scale=2.0)
+    if target in TAP_PRODUCTS and size[1] > kernel:
+        assert TAP_PRODUCTS[target] not in conv
 
 
 @pytest.mark.parametrize("target", TARGETS)

@@ -3,7 +3,8 @@ and possibly an Add of a bias dequantise (the three fused into the integer kerne
 quantised by a QuantizeLinear (uint8 and int8, zero points other than 0), uint8 and int8 weights with
 zero points per tensor, or per column for MatMulInteger (onnxruntime's ConvInteger takes one),
 scales per tensor and per channel; compared with onnxruntime on every element, to the bit, on
-ansi-c, the x86 targets and NEON under qemu. The int32 result also as the graph output itself, or
+ansi-c, the x86 targets and NEON under qemu, whose vector kernels reduce in the int8 dot products
+of QLinearConv and QLinearMatMul. The int32 result also as the graph output itself, or
 read by a lone Cast to float32 (then any float op), and MatMulInteger beyond 2-D (batched, a 1-D
 operand, weights with batch dims of 1), as NumPy's matmul. A node reading the int32 result, weights
 with a batch and a scale that varies along another axis are refused in one line."""
@@ -23,7 +24,7 @@ import nncg
 from nncg.errors import NncgError
 from nncg.verify import run_compiled
 
-CHANNELS = 6
+CHANNELS = 20  # avx512: a 16-lane block and a 4-lane one
 X_SHAPE = {"ConvInteger": (1, 4, 7, 7), "MatMulInteger": (3, 8)}
 W_SHAPE = {"ConvInteger": (CHANNELS, 4, 3, 3), "MatMulInteger": (8, CHANNELS)}
 # the shape of a per-channel scale or bias: NumPy-broadcast over the result's channels
@@ -36,12 +37,19 @@ def _range(dtype) -> tuple[int, int]:
 
 
 def integer_model(
-    op: str, x_type=np.uint8, w_type=np.int8, per_channel: bool = False, bias: bool = True, seed: int = 0
+    op: str,
+    x_type=np.uint8,
+    w_type=np.int8,
+    per_channel: bool = False,
+    bias: bool = True,
+    seed: int = 0,
+    weight_zero_points: bool = True,
 ) -> onnx.ModelProto:
-    """x -> QuantizeLinear -> op (constant weights, zero points) -> Cast -> Mul by scale [-> Add bias]."""
+    """x -> QuantizeLinear -> op (constant weights, zero points: the weights' 0 without
+    weight_zero_points) -> Cast -> Mul by scale [-> Add bias]."""
     rng = np.random.default_rng(seed)
     w_zero_shape = (CHANNELS,) if per_channel and op == "MatMulInteger" else ()
-    w_zero = rng.integers(-5, 6, w_zero_shape) + (128 if w_type == np.uint8 else 0)
+    w_zero = rng.integers(-5, 6, w_zero_shape) * weight_zero_points + (128 if w_type == np.uint8 else 0)
     scale_shape = PER_CHANNEL[op] if per_channel else ()
     init = {
         "s": np.float32(0.05),
@@ -64,7 +72,8 @@ def integer_model(
     return onnx_model(nodes, inputs={"x": X_SHAPE[op]}, initializers=init)
 
 
-def check(model: onnx.ModelProto, target: str = "ansi-c", **run) -> None:
+def check(model: onnx.ModelProto, target: str = "ansi-c", **run) -> str:
+    """Equal to onnxruntime to the bit on inputs quantised past both ends; the C."""
     if not run:
         skip_unless_host_runs(target)
     compiled = nncg.compile(model, target=target, verify_ir=True)
@@ -77,6 +86,7 @@ def check(model: onnx.ModelProto, target: str = "ansi-c", **run) -> None:
         expected = onnxruntime_outputs(model, {"x": x})[0]
         ours = run_compiled(compiled, [x], **run)[0].reshape(expected.shape)
         np.testing.assert_array_equal(ours, expected)
+    return compiled.source
 
 
 @pytest.mark.parametrize("op", sorted(X_SHAPE))
@@ -92,17 +102,30 @@ def test_without_a_bias(op):
     check(integer_model(op, per_channel=True, bias=False))
 
 
-@pytest.mark.parametrize("target", ["ssse3", "avx2", "avx512", "avx512vnni"])
+# the dot products of input channels in the vector kernels QLinearConv and QLinearDense share: weights
+# minus nonzero zero points (int16) in pmaddwd pairs on every x86 target; int8 weights of zero point 0
+# times uint8 activations in vpdpbusd quads on avx512vnni (pmaddwd pairs or pmaddubsw quads elsewhere)
+PAIRS = "_madd_epi16("
+DOTS = {"ssse3": "_mm_madd_epi16(", "avx2": "_madd_epi16(", "avx512": "_madd_epi16(", "avx512vnni": "_dpbusd_epi32("}
+
+
+@pytest.mark.parametrize("target", sorted(DOTS))
 @pytest.mark.parametrize("op", sorted(X_SHAPE))
 def test_x86_targets(op, target):
-    check(integer_model(op, np.int8, np.int8, per_channel=True), target)
+    assert PAIRS in check(integer_model(op, np.int8, np.int8, per_channel=True), target)
+    model = integer_model(op, np.uint8, np.int8, per_channel=True, weight_zero_points=False)
+    source = check(model, target)
+    assert DOTS[target] in source and "nncg_int32 acc" not in source
 
 
 @pytest.mark.parametrize("op", sorted(X_SHAPE))
 def test_neon_under_qemu(op):
+    """vmlal_s16 pairs (nncg_vdot2q_s32) of int8 weights; weights minus zero points are int16 (widened)."""
     tc = TOOLCHAINS["aarch64-neon"]
     require(missing_tools(tc))
-    check(integer_model(op, per_channel=True), "neon", cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
+    model = integer_model(op, per_channel=True, weight_zero_points=False)
+    source = check(model, "neon", cc=tc.cc, extra_cflags=tc.flags, runner=runner(tc))
+    assert "nncg_vdot2q_s32(" in source and "nncg_int32 acc" not in source
 
 
 def test_a_scale_along_another_axis_is_refused():
@@ -236,5 +259,5 @@ def test_weights_with_a_batch_are_refused():
     model = raw_model("matrix")
     w = next(t for t in model.graph.initializer if t.name == "w")
     w.CopyFrom(onnx.numpy_helper.from_array(np.ones((2, 8, CHANNELS), np.int8), "w"))
-    with pytest.raises(NncgError, match=r"MatMulInteger .* weights of shape \[2, 8, 6\]; NNCG"):
+    with pytest.raises(NncgError, match=rf"MatMulInteger .* weights of shape \[2, 8, {CHANNELS}\]; NNCG"):
         nncg.compile(model)

@@ -56,9 +56,9 @@ def test_int8_activations(target):
 
 
 def test_tails_are_vectors():
-    """12 depthwise channels on avx2: an 8-lane and a 4-lane block, no scalar tail."""
+    """12 depthwise channels on avx2: an 8-lane and a 4-lane block of dots, no scalar tail."""
     compiled = check(stacked_conv_model("depthwise"), "avx2")
-    assert "_mm_mullo_epi32(" in compiled.source and "_mm256_mullo_epi32(" in compiled.source
+    assert "_mm_madd_epi16(" in compiled.source and "_mm256_madd_epi16(" in compiled.source
     assert "nncg_int32 acc" not in compiled.source
 
 

@@ -18,6 +18,7 @@ from test_int8_concat import contrib_model as concat_contrib_model
 from test_int8_integer_ops import integer_model, raw_model
 from test_int8_lookup import contrib_model as lookup_contrib_model
 from test_int8_lookup import qdq_model as lookup_qdq_model
+from test_int8_matmul_ranks import K, qlinear_matmul_model
 from test_int8_mul import contrib_model as mul_contrib_model
 
 import nncg.onnx_backend
@@ -162,6 +163,7 @@ def _int8_models() -> Iterator[onnx.ModelProto]:
     for op in ("ConvInteger", "MatMulInteger"):
         yield integer_model(op)
     yield raw_model("batched")  # a batched MatMulInteger: its A a Reshape of the rows
+    yield qlinear_matmul_model((2, 3, K))  # and a batched QLinearMatMul
 
 
 def _model(nodes: list[onnx.NodeProto], initializers: list[onnx.TensorProto], opset: int) -> onnx.ModelProto:

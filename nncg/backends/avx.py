@@ -35,6 +35,7 @@ X86 = {
     "memory_operands": True,
     "dot_uint8": 2,
     "dot_int8": 2,
+    "centred_weight_dots": True,
 }
 
 

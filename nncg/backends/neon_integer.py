@@ -116,6 +116,8 @@ def neon_integer() -> dict:
         "requantize": "nncg_vrequantizeq_s32({value}, {low}, {high}, {zero_point})",
         "store_uint8": "nncg_vstoreq_uint8({address}, {value})",
         "store_int8": "nncg_vstoreq_int8({address}, {value})",
+        "store_int32": "vst1q_s32((int32_t *)({address}), {value})",
+        "widen_int16": "vmovl_s16(vld1_s16((const int16_t *)({address})))",
         "dot2_add": "nncg_vdot2q_s32({acc}, {xs}, {address})",
     }
     helpers = {

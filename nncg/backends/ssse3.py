@@ -49,6 +49,7 @@ class Ssse3(SimdPrinter):
         dot_int8=2,
         dot_uint8_int16=4,
         dot2_int16_weights=True,
+        centred_weight_dots=True,
         dot2_quad_loads=True,
         tap_dots=True,
         fma_in_double=True,

@@ -34,14 +34,14 @@ PAIRS = {
 }
 
 
-def halves(template: str, weight_bytes: int, per_lane: bool = False) -> str:
+def halves(template: str, weights: int, per_lane: bool = False) -> str:
     """A 16-lane dot from the 8-lane `template` for AVX-512F, which has no 512-bit pmaddwd or pmaddubsw
-    (AVX-512BW): each 256-bit half of {xs} times its half of the packed weights, `weight_bytes` further
+    (AVX-512BW): each 256-bit half of {xs} times its half of the packed weights, `weights` elements further
     on. Activations shared by all lanes are the same in both halves; `per_lane` ones (a depthwise's
     taps) take the upper half extracted."""
     upper = "_mm512_extracti64x4_epi64({xs}, 1)" if per_lane else "_mm512_castsi512_si256({xs})"
     low = template.format(xs="_mm512_castsi512_si256({xs})", address="{address}")
-    high = template.format(xs=upper, address=f"({{address}}) + {weight_bytes}")
+    high = template.format(xs=upper, address=f"({{address}}) + {weights}")
     return f"_mm512_inserti64x4(_mm512_castsi256_si512({low}), {high}, 1)"
 
 
@@ -58,7 +58,7 @@ def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = F
     dots = {
         "dot2": halves(x86_dots(8)["dot2"], 16) if in_halves else f"{p}_madd_epi16({{xs}}, {PAIRS[lanes]})",
         # weights already int16 pairs (integer Winograd's U', or ssse3's packed int8 weights)
-        "dot2_int16": halves(x86_dots(8)["dot2_int16"], 32) if in_halves else f"{p}_madd_epi16({{xs}}, {int16_pairs})",
+        "dot2_int16": halves(x86_dots(8)["dot2_int16"], 16) if in_halves else f"{p}_madd_epi16({{xs}}, {int16_pairs})",
         "pair_int16": f"{p}_broadcastd_epi32({bytes_at.format(bits=32)})",  # 2 adjacent int16 activations
         "pair_uint8": f"{p}_broadcastd_epi32(_mm_cvtepu8_epi16({bytes_at.format(bits=16)}))",
         "pair_int8": f"{p}_broadcastd_epi32(_mm_cvtepi8_epi16({bytes_at.format(bits=16)}))",

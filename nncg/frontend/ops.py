@@ -192,7 +192,7 @@ ONNX_OPS: dict[str, ConvertedOp] = {
     "ConvInteger": ConvertedOp(convert_conv_integer, ("ConvInteger",), (2, 3)),
     "MatMulInteger": ConvertedOp(convert_matmul_integer, ("MatMulInteger", "Reshape"), (2, 3)),
     "QLinearConv": ConvertedOp(convert_qlinear_conv, ("QLinearConv",), (1, 2, 4, 5, 6, 7)),
-    "QLinearMatMul": ConvertedOp(convert_qlinear_matmul, ("QLinearDense",), (1, 2, 4, 5, 6, 7)),
+    "QLinearMatMul": ConvertedOp(convert_qlinear_matmul, ("QLinearDense", "Reshape"), (1, 2, 4, 5, 6, 7)),
     "QGemm": ConvertedOp(convert_qgemm, ("QLinearDense",), (1, 2, 4, 5, 7, 8)),
     "QLinearAdd": ConvertedOp(convert_qlinear_add, ("QLinearAdd",), (1, 2, 4, 5, 6, 7)),
     "QLinearAveragePool": ConvertedOp(

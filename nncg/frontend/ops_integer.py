@@ -7,15 +7,13 @@ node reading it: INT32_RESULT, since no int32 tensor lives in the arena)."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_nn import conv_geometry
-from nncg.frontend.ops_quantized import QUANTIZATION_HINT, centred_weights
+from nncg.frontend.ops_quantized import QUANTIZATION_HINT, centred_weights, matrix_rows, product_shape
 from nncg.frontend.qdq import NNCG_DOMAIN
-from nncg.ir.graph import IntegerConvAttrs, IntegerDenseAttrs, Node, ReshapeAttrs
+from nncg.ir.graph import IntegerConvAttrs, IntegerDenseAttrs, Node
 
 # Why the importer refuses a ConvInteger or MatMulInteger whose int32 result a node reads.
 INT32_RESULT = (
@@ -81,11 +79,10 @@ def convert_conv_integer(op: OnnxOp, ctx: Context) -> Node:
     return op.ir_node("ConvInteger", [x, *_constants(op, ctx, w, w_shape[0], len(ctx.shape(x)), 1)], attrs)
 
 
-def convert_matmul_integer(op: OnnxOp, ctx: Context) -> Node | tuple[Node, ...]:
+def convert_matmul_integer(op: OnnxOp, ctx: Context) -> tuple[Node, ...]:
     """MatMulInteger: A [..., M, K] or [K], B [K, N] or [K] (constant; batch dims of 1 only),
     a_zero_point, b_zero_point (per tensor or per column), then qdq.py's scale and bias. NumPy's
-    matmul: A's rows, all batches together (a Reshape, a view, makes A [rows, K]), times B; the
-    node writes the rows in the result's shape."""
+    matmul: A's rows, all batches together (matrix_rows), times B."""
     x = op.input(0)
     x_shape, w_shape = ctx.shape(x), ctx.shape(op.input(1))
     if any(n != 1 for n in w_shape[:-2]):
@@ -95,22 +92,9 @@ def convert_matmul_integer(op: OnnxOp, ctx: Context) -> Node | tuple[Node, ...]:
     k, n = (w_shape[0], 1) if len(w_shape) == 1 else w_shape[-2:]
     if x_shape[-1] != k:
         raise op.error(f"multiplies shapes {list(x_shape)} and {list(w_shape)}, whose inner dims differ")
-    shape = _product_shape(x_shape, w_shape)
+    shape = product_shape(x_shape, w_shape)
     w = centred_weights(op, ctx, 1, 3, n, max(len(w_shape) - 1, 0)).reshape(k, n)
     attrs = IntegerDenseAttrs(_x_zero_point(op, ctx), bool(op.input(5)), _dequantized(op))
     constants = _constants(op, ctx, w, n, len(shape), len(shape) - 1)
-    if len(x_shape) == 2:
-        return op.ir_node("MatMulInteger", [x, *constants], attrs)
-    rows_shape = (math.prod(x_shape[:-1]), k)
-    rows = ctx.intermediate(op, "rows", rows_shape)
-    return (
-        op.ir_step("Reshape", "rows", [x], rows, ReshapeAttrs(rows_shape)),
-        op.ir_node("MatMulInteger", [rows, *constants], attrs),
-    )
-
-
-def _product_shape(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
-    """The shape of NumPy's matmul of a and b: a 1-D operand gains a dim of 1 to multiply, which the
-    product loses."""
-    batch = np.broadcast_shapes(a[:-2], b[:-2])
-    return (*(int(d) for d in batch), *a[-2:-1], *(b[-1:] if len(b) > 1 else ()))
+    steps, rows = matrix_rows(op, ctx, x)
+    return (*steps, op.ir_node("MatMulInteger", [rows, *constants], attrs))

@@ -5,6 +5,8 @@ channel, computed as onnxruntime computes it (x_scale * w_scale / y_scale, in fl
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from nncg.frontend.context import Context, OnnxOp
@@ -18,6 +20,7 @@ from nncg.ir.graph import (
     QPoolAttrs,
     QuantAttrs,
     Requantization,
+    ReshapeAttrs,
 )
 from nncg.ir.kinds import DType
 from nncg.safe_text import shown
@@ -155,11 +158,12 @@ def _parameters(op, ctx: Context, w: np.ndarray, bias: np.ndarray, x_scale, w_sc
     ]
 
 
-def _dense(op: OnnxOp, ctx: Context, w_slot: int, trans_w: bool, bias_slot: int | None, y_slot: int) -> Node:
-    """QLinearMatMul or QGemm of a 2-D x and constant weights [K, N] ([N, K] with trans_w)."""
+def _dense(
+    op: OnnxOp, ctx: Context, w_slot: int, trans_w: bool, bias_slot: int | None, y_slot: int
+) -> tuple[Node, ...]:
+    """QLinearMatMul or QGemm of x [..., K] (NumPy's matmul: the rows of all batches together,
+    matrix_rows) and constant weights [K, N] ([N, K] with trans_w)."""
     x = op.input(0)
-    if len(ctx.shape(x)) != 2:
-        raise op.error(f"multiplies a {len(ctx.shape(x))}-D input; NNCG's integer matrix product takes 2-D inputs")
     x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
     y_scale, y_zero, y_dtype = quantization(op, ctx, y_slot, "output")
     w_shape = ctx.shape(op.input(w_slot))
@@ -168,18 +172,41 @@ def _dense(op: OnnxOp, ctx: Context, w_slot: int, trans_w: bool, bias_slot: int 
     channels = w_shape[0] if trans_w else w_shape[1]
     w, w_scales = integer_weights(op, ctx, w_slot, channels, 0 if trans_w else 1)
     w = np.ascontiguousarray(w.T if trans_w else w)
+    if ctx.shape(x)[-1] != w.shape[0]:
+        raise op.error(f"multiplies shapes {list(ctx.shape(x))} and {list(w_shape)}, whose inner dims differ")
     bias = int32_bias(op, ctx, bias_slot, channels) if bias_slot is not None else np.zeros(channels, np.int32)
-    ctx.set_shape(op, op.node.output[0], (ctx.shape(x)[0], channels))
+    ctx.set_shape(op, op.node.output[0], product_shape(ctx.shape(x), w.shape))
     attrs = QDenseAttrs(x_zero, requantization(op, ctx, y_scale, y_zero, y_dtype))
-    return op.ir_node("QLinearDense", [x, *_parameters(op, ctx, w, bias, x_scale, w_scales, y_scale)], attrs)
+    steps, rows = matrix_rows(op, ctx, x)
+    parameters = _parameters(op, ctx, w, bias, x_scale, w_scales, y_scale)
+    return (*steps, op.ir_node("QLinearDense", [rows, *parameters], attrs))
 
 
-def convert_qlinear_matmul(op: OnnxOp, ctx: Context) -> Node:
+def matrix_rows(op: OnnxOp, ctx: Context, x: str) -> tuple[tuple[Node, ...], str]:
+    """x [..., K] as the matrix [rows, K] an integer matrix product reads: x where it is one, else a
+    Reshape (a view) of all its leading dims (none for a 1-D x) into the rows; the product node writes
+    the rows in its result's shape."""
+    shape = ctx.shape(x)
+    if len(shape) == 2:
+        return (), x
+    rows_shape = (math.prod(shape[:-1]), shape[-1])
+    rows = ctx.intermediate(op, "rows", rows_shape)
+    return (op.ir_step("Reshape", "rows", [x], rows, ReshapeAttrs(rows_shape)),), rows
+
+
+def product_shape(a: tuple[int, ...], b: tuple[int, ...]) -> tuple[int, ...]:
+    """The shape of NumPy's matmul of a and b: a 1-D operand gains a dim of 1 to multiply, which the
+    product loses."""
+    batch = np.broadcast_shapes(a[:-2], b[:-2])
+    return (*(int(d) for d in batch), *a[-2:-1], *(b[-1:] if len(b) > 1 else ()))
+
+
+def convert_qlinear_matmul(op: OnnxOp, ctx: Context) -> tuple[Node, ...]:
     """QLinearMatMul: a, a_scale, a_zero_point, b, b_scale, b_zero_point, y_scale, y_zero_point."""
     return _dense(op, ctx, 3, False, None, 6)
 
 
-def convert_qgemm(op: OnnxOp, ctx: Context) -> Node:
+def convert_qgemm(op: OnnxOp, ctx: Context) -> tuple[Node, ...]:
     """onnxruntime's QGemm: A, a_scale, a_zero_point, B, b_scale, b_zero_point, C, y_scale,
     y_zero_point; transA 0 and alpha 1 (what qdq.py writes)."""
     if op.attr("transA", 0) or op.attr("alpha", 1.0) != 1.0 or not op.input(7):

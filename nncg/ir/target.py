@@ -39,6 +39,8 @@ class Target:
     dot_int8_activations: the K = 4 dot multiplies int8 activations (AArch64 sdot: s8 x s8 quads), so
     uint8 activations and zero points the lowering did not fold are offset into int8 and the constant
     difference is added back per output channel (passes/dot_product.py).
+    centred_weight_dots: its K = 2 dot products also take int16 weights (pmaddwd), the int8 or uint8
+    weights minus their zero points that the lowering keeps where those are not all 0 (or are uint8).
     int16_dots: its integer widths also store int16 lanes and take K = 2 dot products of int16
     activations and int16 weights (pmaddwd on both as they are): integer Winograd's nests
     (lowering/winograd_integer.py) vectorise, its GEMMs in those dots.
@@ -60,6 +62,7 @@ class Target:
     dot_uint8_int16: int = 0
     tap_dots: bool = False
     dot2_int16_weights: bool = False
+    centred_weight_dots: bool = False
     dot2_quad_loads: bool = False
     dot_int8_activations: bool = False
     fma_in_double: bool = False

@@ -7,7 +7,8 @@ the float32 product; the sum likewise, unless its terms are more than 2^29 apart
 rounding could differ in the last bit at a tie). Where a sum can exceed 2^24 in magnitude (so
 float32(sum) rounds), a C compiler contracting float expressions (GCC in its default GNU mode with
 -mfma) may fuse the product and the addition: the result can then differ from onnxruntime's in the
-last bit; strict C89 does not."""
+last bit; strict C89 does not. Vectors compute the steps as float32 operations, each rounded once
+(passes/dequantized_vectors.py)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,9 @@
 of K channels (loops.Dot) on targets that have them (Target.dot_uint8, dot_int8: K = 2, pmaddwd on
 int16 pairs; K = 4, vpdpbusd on u8 x s8 quads), and K = Target.dot_uint8_int16 (pmaddubsw quads) for
 uint8 activations where the layer's weights are proven never to saturate the int16 pair sums (and, with
-Target.int16_dots, K = 2 of int16 activations and int16 weights: integer Winograd's GEMMs); layers
+Target.int16_dots, K = 2 of int16 activations and int16 weights: integer Winograd's GEMMs; with
+Target.centred_weight_dots, K = 2 of 8-bit activations and the int16 weights minus their zero points
+that ConvInteger, MatMulInteger and QLinear ops with weight zero points or uint8 weights have); layers
 that fail the proof keep pmaddwd pairs (splitting their weights in two halves that pass, two pmaddubsw
 per quad, measured no faster than the pairs with twice the weight bytes: benchmarks/int8_dot_forms.py).
 
@@ -14,7 +16,9 @@ and, when K does not divide C, one more dot of the last channels, the missing on
 On targets with Target.tap_dots the same rewrite takes the taps of a convolution of one input channel
 per group (the loop over kernel columns): a first layer's (one input channel, the taps' activations
 shared by all lanes) and a depthwise's (x depends on the channel too: the dots' activations are then
-vectors, each lane its own channel's K taps). passes/dot_taps.py splits off the border columns first.
+vectors, each lane its own channel's K taps). passes/dot_taps.py splits off the border columns first,
+each its own code: there the taps outside the image are read as 0 (x - zero point is 0 on the padding,
+so the products are the loop's) and the groups of K taps all outside are left out.
 
 The weights [lead..., C, Cs] are repacked at generation time as wK [lead..., C / K (rounded up), Cs, K]
 (the missing channels' weights 0; pairs as int16 where Target.dot2_int16_weights): the K weights of
@@ -105,6 +109,9 @@ class _Packer:
     def reduction(self, loop: Loop, extents: dict[str, int], target: Target) -> tuple[Stmt, ...] | None:
         """The loop as dot products, or None when it is not `acc += int32(x) * int32(w)` over all the
         input channels of a constant int8 weight array."""
+        inside = None  # the taps inside the image of a border column (passes/dot_taps.py), None: all
+        if target.tap_dots and multiply_accumulate(loop) is None:
+            loop, inside = _guarded_taps(loop)
         match = multiply_accumulate(loop)
         if match is None:
             return None
@@ -117,31 +124,56 @@ class _Packer:
         k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
         array = self.program.constants[w.buffer]
         array = _squeezed(array) if target.tap_dots else array
-        int16 = xbuf.dtype == DType.INT16 and array.dtype == np.int16 and not zero_point  # integer Winograd's GEMMs
-        k = 2 if int16 and target.int16_dots else k
-        if not k or array.dtype != (np.int16 if int16 else np.int8) or array.ndim < 2 or array.shape[-2] != loop.extent:
+        # int16 pairs: integer Winograd's GEMMs (int16 activations), or 8-bit activations times the
+        # weights minus their zero points (int16, in [-255, 255]: the lowering's where those are not 0)
+        int16 = xbuf.dtype == DType.INT16 and not zero_point and target.int16_dots
+        centred = xbuf.dtype != DType.INT16 and array.dtype == np.int16 and target.centred_weight_dots and bool(k)
+        wide_weights = centred or (int16 and array.dtype == np.int16)
+        k = 2 if wide_weights else k
+        if (
+            not k
+            or array.dtype != (np.int16 if wide_weights else np.int8)
+            or array.ndim < 2
+            or array.shape[-2] != loop.extent
+        ):
             return None
-        if not signed and xbuf.dtype == DType.UINT8 and target.dot_uint8_int16 and pair_sums_fit_int16(array):
+        if (
+            not (signed or wide_weights)
+            and xbuf.dtype == DType.UINT8
+            and target.dot_uint8_int16
+            and pair_sums_fit_int16(array)
+        ):
             k = target.dot_uint8_int16
         split = _split_index(w.index, loop.var, array.shape, extents)
-        if split is None or (_per_lane(x, w, loop.var) and not target.tap_dots):
+        # a depthwise's per-lane taps take int8 weights only (the int16 templates share x in every lane)
+        per_lane = _per_lane(x, w, loop.var)
+        if split is None or (per_lane and (not target.tap_dots or centred)):
             return None
         lead, co = split
         c, cs = array.shape[-2:]
         index = lead * (-(-c // k) * k * cs) + co * k + Affine.of(loop.var) * (k * cs)
-        wide = int16 or (k == 2 and target.dot2_int16_weights)
+        wide = wide_weights or (k == 2 and target.dot2_int16_weights)
         packed = self.packed_buffer(w.buffer, array, k, np.int16 if wide else np.int8)
         channels, groups = loop.extent, loop.extent // k
         offset = 128 * (xbuf.dtype == DType.UINT8) if target.dot_int8_activations and k == 4 else zero_point
+        if inside is not None and offset != zero_point:
+            return None  # the offset's correction sums every tap's weights, the outside ones too
 
-        def dot(group: Affine, count: int) -> Stmt:
-            """acc += the dot of channels K group .. K group + count - 1 (the rest read as 0)."""
+        def dot(group: Affine, count: int, taps: range | frozenset = range(channels)) -> Stmt:
+            """acc += the dot of channels K group .. K group + count - 1 (the rest, and those not in
+            `taps` where the group is a constant, read as 0)."""
             xs = tuple(
-                _at_channel(x, offset, loop.var, group * k + j) if j < count else Const.integer(0) for j in range(k)
+                _at_channel(x, offset, loop.var, group * k + j)
+                if j < count and (not group.is_const or group.const * k + j in taps)
+                else Const.integer(0)
+                for j in range(k)
             )
             weights = Load(packed, index.substitute({loop.var: group}), k)
             return Assign(acc, Binary("+", LocalRef(acc), Dot(xs, weights)))
 
+        if inside is not None:  # a border column: the groups holding a tap inside, the others skipped
+            touched = sorted({tap // k for tap in inside})
+            return (Loop(loop.var, 1, tuple(dot(Affine.of(g), min(k, channels - g * k), inside) for g in touched)),)
         # the groups stay a loop even of one iteration: register-block finds accumulators by their loops
         stmts: list[Stmt] = [Loop(loop.var, groups, (dot(Affine.of(loop.var), k),))] if groups else []
         if channels % k:
@@ -227,6 +259,20 @@ def multiply_accumulate(loop: Loop) -> tuple[str, Load, int, Load] | None:
     if None in loads or not all(loop.var in load.index.vars for load in loads):
         return None
     return stmt.name, loads[0], zero_point, loads[1]
+
+
+def _guarded_taps(loop: Loop) -> tuple[Loop, frozenset[int] | None]:
+    """A border column's `for kw: if (check on kw alone) acc += ...` as the loop without the check and
+    the taps kw for which it holds; the loop as it is, and None, for any other loop (or no tap inside)."""
+    guard = loop.body[0] if len(loop.body) == 1 else None
+    if not isinstance(guard, If) or any(set(b.expr.vars) - {loop.var} for b in guard.bounds):
+        return loop, None
+    inside = frozenset(
+        tap
+        for tap in range(loop.extent)
+        if all(replace(b, expr=b.expr.substitute({loop.var: Affine.of(tap)})).holds() for b in guard.bounds)
+    )
+    return (replace(loop, body=guard.body), inside) if inside else (loop, None)
 
 
 def _widened_load(e: Expr) -> Load | None:

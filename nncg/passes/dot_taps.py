@@ -5,10 +5,12 @@ multiply-accumulate the dot-product rewrite recognises:
 
     for ow < W: ... for kw < KW: if 0 <= ow + kw - p < Wi: acc += int32(x) * int32(w)
 becomes
-    ow in [0, first): as before;  ow in [first, last): for kw < KW: acc += ...;  ow in [last, W): as before
+    ow = 0, ..., first - 1: as before, ow a constant;  ow in [first, last): for kw < KW: acc += ...;
+    ow = last, ..., W - 1: as before, ow a constant
 
-Only loops guarding such a reduction are split (nothing changes for other kernels or targets); the
-border columns keep their checks and multiply tap by tap."""
+Only loops guarding such a reduction are split (nothing changes for other kernels or targets). Each
+border column is its own straight-line code, so that its check depends on kw alone: dot_product.py
+then knows which taps lie outside and takes the column's taps as dots too, those taps read as 0."""
 
 from __future__ import annotations
 
@@ -34,13 +36,19 @@ def _split(body: tuple[Stmt, ...]) -> tuple[Stmt, ...]:
         if isinstance(stmt, Loop) and stmt.parallel and _guards_taps(stmt):
             first, last = interior(stmt)
             if last > first:
-                out += (*iterations(stmt, 0, first), *iterations(stmt, first, last, prune=True))
-                out += iterations(stmt, last, stmt.extent)
+                out += _columns(stmt, 0, first)
+                out += iterations(stmt, first, last, prune=True)
+                out += _columns(stmt, last, stmt.extent)
                 continue
         if isinstance(stmt, Loop | Let | If):
             stmt = replace(stmt, body=_split(stmt.body))
         out.append(stmt)
     return tuple(out)
+
+
+def _columns(loop: Loop, start: int, stop: int) -> tuple[Stmt, ...]:
+    """Iterations [start, stop) of `loop`, each its own straight-line code (the border columns: few)."""
+    return tuple(s for i in range(start, stop) for s in iterations(loop, i, i + 1))
 
 
 def _guards_taps(loop: Loop) -> bool:

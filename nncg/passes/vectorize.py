@@ -21,7 +21,9 @@ transformed inputs as int16 vectors and runs its GEMMs in dots of int16 pairs. Q
 float quotient requantised per vector, DequantizeLinear as its float product; an int8 MaxPool takes
 int32 maxima and QLinearGlobalAveragePool int32 sums over channels; the lookups (256-entry tables)
 stay scalar gathers; QLinearAdd, on targets with FMA, in vector fused
-multiply-adds as onnxruntime computes it. A kernel in the fixed-point form stays scalar."""
+multiply-adds as onnxruntime computes it. ConvInteger and MatMulInteger run as QLinearConv and
+QLinearDense do, their int32 sums stored as they are or dequantised in float32 vectors
+(dequantized_vectors.py). A kernel in the fixed-point form stays scalar."""
 
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..ir.analysis import is_accumulator, vector_instructions
-from ..ir.dtypes import is_integer_kernel
+from ..ir.dtypes import buffer_dtypes, is_integer_kernel
 from ..ir.kinds import BufferRole, DType, LoopKind
 from ..ir.loops import (
     Affine,
@@ -63,6 +65,7 @@ from ..ir.loops import (
 )
 from ..ir.target import Target
 from ..lowering.winograd_integer import WINOGRAD_OP
+from .dequantized_vectors import DEQUANTIZING_OPS, dequantized_vectors
 from .dot_product import dot_products, multiply_accumulate
 from .dot_taps import split_tap_borders
 from .substitute import interior, iterations, substitute_body
@@ -94,6 +97,8 @@ def vectorize(program: Program, target: Target) -> Program:
             for s in walk_stmts(body)
         )
         body = map_body(body, lambda s: materialize(s, widths))
+        if kernel.op in DEQUANTIZING_OPS:
+            body = dequantized_vectors(body, buffer_dtypes(program))
         if kernel.name in integer and not target.fma:
             body = map_body(body, lambda s: map_stmt_exprs(s, _sum_of_fma_by_one))
         kernels.append(replace(kernel, body=body, overlapping_stores=kernel.overlapping_stores or overlaps))
@@ -108,6 +113,7 @@ def vectorize(program: Program, target: Target) -> Program:
 INTEGER_OPS = (
     "QLinearConv",
     "QLinearDense",
+    *DEQUANTIZING_OPS,
     "QuantizeLinear",
     "QLinearGlobalAveragePool",
     "MaxPool",
