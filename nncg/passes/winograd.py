@@ -32,6 +32,7 @@ from .plan_memory import parse_bool
 
 MIN_INPUT_CHANNELS = 8
 MIN_TILES = 16
+MIN_INTEGER_TILES = 4  # integer Winograd's transforms and scratch on fewer tiles buy nothing (below)
 FLOAT_BYTES, INT16_BYTES = DType.FLOAT32.bytes, DType.INT16.bytes  # a transformed weight, float or integer
 
 
@@ -90,10 +91,16 @@ def integer_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     speed's arena from 48 to 72 KB, which the band planner counts; balanced keeps it in bands (36 KB,
     half of speed's, 1.13x speed's Ir on ssse3, 1.24x on avx2). Not on scalar C: 2.6x fewer
     instructions, but scalar C is the microcontroller target, where RAM is what int8 is for (`layers`
-    forces it); nor on the AVX-512 targets (no int16 templates) or neon: unmeasured."""
+    forces it); nor on the AVX-512 targets (no int16 templates) or neon: unmeasured. Nor on fewer than
+    MIN_INTEGER_TILES tiles: ball's conv2 (8 -> 12 channels, one tile) saved 0.5 % of the model's Ir on
+    ssse3 while its scratch took the arena from 768 to 1,216 B; pedestrian's conv3 (10 tiles) saved 24 %
+    of it (960K -> 727K Ir); between the two, unmeasured."""
     if not target.int16_dots or not integer_winograd_shaped(node) or not integer_winograd_fits(graph, node):
         return False
-    return graph.shape(node.inputs[1])[1] >= MIN_INPUT_CHANNELS and _pays(graph, node, target, INT16_BYTES)
+    rows, columns = graph.shape(node.outputs[0])[2:]
+    if graph.shape(node.inputs[1])[1] < MIN_INPUT_CHANNELS or _tiles(rows, columns) < MIN_INTEGER_TILES:
+        return False
+    return _pays(graph, node, target, INT16_BYTES)
 
 
 def float_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
@@ -111,7 +118,12 @@ def _pays(graph: Graph, node, target: Target, weight_bytes: int) -> bool:
     rows, columns = graph.shape(node.outputs[0])[2:]
     c_out, c_in = graph.shape(node.inputs[1])[:2]
     fits_l2 = not target.l2_bytes or 16 * c_out * c_in * weight_bytes < target.l2_bytes  # with room for the tiles
-    return fits_l2 or -(-rows // 2) * -(-columns // 2) >= MIN_TILES
+    return fits_l2 or _tiles(rows, columns) >= MIN_TILES
+
+
+def _tiles(rows: int, columns: int) -> int:
+    """The 2x2 output tiles of a rows x columns output."""
+    return -(-rows // 2) * -(-columns // 2)
 
 
 def winograd_candidates(graph: Graph) -> list[str]:
