@@ -5,7 +5,17 @@ from dataclasses import replace
 
 from benchmarks.memory_suite import MemoryRow, memory_table, run_memory_suite, section_markdown
 from benchmarks.real_suite import select_cases
-from benchmarks.suite import merge_section, model_path, results_markdown, run_suite, table_bars, write_chart
+from benchmarks.suite import (
+    Row,
+    higher_peaks,
+    merge_section,
+    model_path,
+    results_markdown,
+    run_suite,
+    table_bars,
+    with_peaks,
+    write_chart,
+)
 from nncg.bench.benchmark import BenchResult
 from nncg.bench.harness import ObjectSizes
 
@@ -151,3 +161,13 @@ def test_memory_table_escapes_the_plan():
     lines = table.splitlines()
     assert all(line.count("|") - line.count("\\|") == lines[0].count("|") for line in lines)
     assert "'a\\|b\\<i\\>'" in lines[-1] and "| 2.00x |" in lines[-1]
+
+
+def test_suites_report_the_higher_peak_of_before_and_after_and_their_percent_follows():
+    before = {"sse": 36.2, "avx2-fma": 120.0, "avx512-fma": None}
+    after = {"sse": 45.7, "avx2-fma": 110.0, "avx512-fma": None}
+    peaks = higher_peaks(before, after)
+    assert peaks == {"sse": 45.7, "avx2-fma": 120.0, "avx512-fma": None}
+    measured = replace(PLAIN, macs=300_000, peak_gflops=before["avx2-fma"])  # 60 GFLOP/s
+    rows = with_peaks([Row("m", "avx2", measured), Row("x", "avx2", None, "broken")], {**peaks, "avx2-fma": 150.0})
+    assert round(rows[0].result.percent_of_peak, 9) == 40.0 and rows[1].result is None
