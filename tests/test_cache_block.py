@@ -138,6 +138,23 @@ def test_a_partial_sum_read_back_is_jammable_but_a_neighbour_is_not():
     assert not jammable(loop(1))
 
 
+def test_partial_sums_of_vectors_and_a_tail_side_by_side_are_jammable():
+    """40 channels = a loop of 2 vectors of 16 and a tail of 8, each pixel 40 apart: every pixel reads
+    back only what it stores; at 36 apart the tail would overlap the next pixel's first vector."""
+
+    def loop(stride):
+        def nest(index, lanes):
+            init = Load("out", index, lanes)
+            body = (Assign("acc", Binary("+", LocalRef("acc"), Load("x", Affine.of("p"), lanes))),)
+            return Let("acc", init, (*body, Store("out", index, LocalRef("acc", lanes))))
+
+        vectors = Loop("c", 2, (nest(Affine.of("p") * stride + Affine.of("c") * 16, 16),), parallel=True)
+        return Loop("p", 9, (vectors, nest(Affine.of("p") * stride + 32, 8)), parallel=True)
+
+    assert jammable(loop(40))
+    assert not jammable(loop(36))
+
+
 def blocked_stages(compiled):
     return compiled.source.count("for (kb = 0;")
 
@@ -169,6 +186,17 @@ def test_blocked_conv_matches_onnxruntime(target_name, shape, c_out, kernel, att
     for halos in ("auto", "false"):
         compiled = nncg.compile(m, target=target_name, pipeline=pipeline(facts, f"Conv_0:{choice}", halos))
         check_against_onnxruntime(m, compiled)
+
+
+@pytest.mark.parametrize("target_name", TARGETS)
+def test_pointwise_conv_with_a_channel_tail_jams_every_reduction_block(target_name):
+    # mnasnet's project convs: 40 output channels (avx512: 16 + 16 + 8) over 3x3 pixels, 3 reduction blocks
+    m = conv_model((1, 24, 3, 3), 40, (1, 1), bias=False)
+    facts = nncg.get_target(target_name)
+    compiled = nncg.compile(m, target=target_name, pipeline=pipeline(facts, "Conv_0:40x8"))
+    if target_name == "avx512":  # after the first block, 2-D blocks of the vectors and the tail read back together
+        assert "acc_1_s0_1 = _mm512_loadu_ps" in compiled.source and "acc_s1_1 = _mm256_loadu_ps" in compiled.source
+    check_against_onnxruntime(m, compiled)
 
 
 def residual_relu_model(c, size):

@@ -69,6 +69,17 @@ def test_siblings_of_mixed_width_share_their_reduction():
     assert len(reductions) == 1
 
 
+def test_a_jammed_channel_block_and_a_narrower_tail_share_their_reduction():
+    # 40 channels on 16/8 lanes: a loop of 2 16-lane vectors (jammed) and an 8-lane tail, one loop over ci.
+    m = conv_model((1, 4, 5, 9), 40, (3, 3), pads=[1, 1, 1, 1])
+    kernel = lowered(m, widths=(16, 8), layers="Conv_0:2x3", registers=32).kernels[0]
+    jammed = next(s for s in walk_stmts(kernel.body) if isinstance(s, Loop) and s.var == "ow")
+    lanes = sorted(s.init.lanes for s in walk_stmts(jammed.body) if isinstance(s, Let))
+    assert lanes == [8, 8, 16, 16, 16, 16]
+    reductions = [s for s in walk_stmts(jammed.body) if isinstance(s, Loop) and s.var == "ci"]
+    assert len(reductions) == 1
+
+
 def test_cost_model_fills_the_registers_it_is_given():
     assert choose_blocks((40, 3), 16) == (3, 3)  # 9 accumulators, 6 registers left
     assert choose_blocks((40, 2), 16) == (5, 2)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from itertools import takewhile
 
 from ..ir.analysis import holds_accumulators, is_accumulator
 from ..ir.dtypes import is_integer_kernel
@@ -236,11 +237,19 @@ def jammable(loop: Loop) -> bool:
     jammed copy gets its own)."""
     if not loop.parallel:
         return False
-    written: dict[str, set] = {}
+    written: dict[str, list[Store]] = {}
     for stmt in walk_stmts(loop.body):
         if isinstance(stmt, Store):
-            written.setdefault(stmt.buffer, set()).add(stmt.index)
-    own = {buffer: next(iter(index)) for buffer, index in written.items() if len(index) == 1}
+            written.setdefault(stmt.buffer, []).append(stmt)
+    inner: dict[str, int] = {}  # the loops inside, each var at its largest extent (siblings may share one)
+    for s in walk_stmts(loop.body):
+        if isinstance(s, Loop):
+            inner[s.var] = max(s.extent, inner.get(s.var, 0))
+    own = {
+        buffer: {s.index for s in stores}
+        for buffer, stores in written.items()
+        if len({s.index for s in stores}) == 1 or _disjoint_per_iteration(stores, loop.var, inner)
+    }
     declared = {s.name for s in walk_stmts(loop.body) if isinstance(s, Let)}
     for stmt in walk_stmts(loop.body):
         if isinstance(stmt, Assign) and stmt.name not in declared:
@@ -253,8 +262,29 @@ def jammable(loop: Loop) -> bool:
 
 
 def _reads_own_element(load: Load, own: dict, var: str) -> bool:
-    """The load reads the one element of its buffer this iteration stores (a different one per iteration)."""
-    return own.get(load.buffer) == load.index and load.index.coeff(var) != 0
+    """The load reads an element of its buffer this iteration stores (a different one per iteration)."""
+    return load.index in own.get(load.buffer, ()) and load.index.coeff(var) != 0
+
+
+def _disjoint_per_iteration(stores: list[Store], var: str, inner: dict[str, int]) -> bool:
+    """Each iteration of `var` stores elements no other iteration stores: all the stores step by the
+    same stride in var, their elements within an iteration (over the `inner` loops, the vector's lanes)
+    span less than it, and the rest of their indices (outer loops) is the same. So a layer whose
+    channel vectors and tail store side by side (40 = 16 + 16 + 8 channels) reads its partial sums back
+    jammed, as one of a single store does."""
+    step = stores[0].index.coeff(var)
+    outer = {tuple(t for t in s.index.terms if t[0] != var and t[0] not in inner) for s in stores}
+    if step <= 0 or len(outer) != 1 or any(s.index.coeff(var) != step for s in stores):
+        return False
+    spans = [_within_iteration(s, var, inner) for s in stores]
+    return max(hi for _, hi in spans) - min(lo for lo, _ in spans) < step
+
+
+def _within_iteration(store: Store, var: str, inner: dict[str, int]) -> tuple[int, int]:
+    """The first and last element (offsets from the iteration's start) the store writes in one iteration."""
+    offset = Affine(tuple(t for t in store.index.terms if t[0] in inner), store.index.const)
+    lo, hi = offset.bounds(inner)
+    return lo, hi + max(1, store.value.lanes) - 1
 
 
 # ---------------------------------------------------------------------------- cost model
@@ -550,12 +580,33 @@ def _fused_run(run: list[Stmt]) -> tuple[Stmt, ...]:
     if len(run) < 2:
         return tuple(run)
     chains = [_let_chain(_suffixed_locals((s,), f"_s{i}")[0]) for i, s in enumerate(run)]
-    body = fuse([inner for _, inner in chains])
+    inners = [inner for _, inner in chains]
+    body = fuse(inners) or merge(inners)
     if body is None:
         return tuple(run)
     for let in reversed([let for lets, _ in chains for let in lets]):
         body = (replace(let, body=body),)
     return body
+
+
+def merge(bodies: list[tuple[Stmt, ...]]) -> tuple[Stmt, ...] | None:
+    """Sibling accumulators' bodies of different sizes in one (a jammed block of 2 channel vectors and
+    a half-width tail vector: 40 channels on avx512), so each broadcast input serves all of them: each
+    body is loops and border checks, then stores; the loops and checks, of the same shape in every body,
+    are shared with their bodies merged, and the statements follow one body's after the other's. None
+    when the bodies are not of that form."""
+    heads = [tuple(takewhile(lambda s: isinstance(s, Loop | If), b)) for b in bodies]
+    tails = [b[len(h) :] for b, h in zip(bodies, heads)]
+    if len({len(h) for h in heads}) != 1 or not all(isinstance(s, Store | Assign) for t in tails for s in t):
+        return None
+    out: list[Stmt] = []
+    for stmts in zip(*heads):
+        head = replace(stmts[0], body=())
+        body = merge([s.body for s in stmts]) if all(replace(s, body=()) == head for s in stmts) else None
+        if body is None:
+            return None
+        out.append(replace(stmts[0], body=body))
+    return (*out, *(s for t in tails for s in t))
 
 
 def jam_loop(loop: Loop, factor: int) -> tuple[Stmt, ...]:
