@@ -5,9 +5,14 @@ products) reads them once per panel, in one contiguous stream, from L2, L3 or me
 reads of a stream it does little work (a 1x1 conv on 3x3 pixels: 9 FMAs per weight vector), so the
 hardware prefetcher falls behind. Each reduction loop that reads such a stream by vectors therefore
 prefetches, one line per cache line it reads, the data PREFETCH_BYTES ahead of its loads (mobilenet_v2
-at 96x96 on avx512, 1x1 convs on 3x3 pixels: 20-27 % less time per layer, loaded; 0.5-4 KiB ahead
-measured alike). The address is clamped to the buffer's last element where the lookahead could pass
-its end, so no pointer leaves its array."""
+at 96x96 on avx512, 1x1 convs on 3x3 pixels: 20-27 % less time per layer, loaded). In a model those
+weights come from memory, where 2 KiB ahead was too close: its 320->1280 and 960->320 1x1 convs on 3x3
+pixels alone, weights evicted from the caches before each call, 115 -> 90 and 70 -> 58 us at 8 KiB ahead
+(16 KiB: 5 % slower from L3; avx512, loaded). A loop whose multiply-adds each read a weight vector of
+their own (a GEMV: a classifier at batch 1) is not prefetched: the hardware prefetcher follows its
+streams, and the prefetches only cost issue slots (1280x1000 Gemm, avx512, loaded: 54 -> 49 us from
+L3, 189 -> 174 us from memory, as fast as a plain vector sum over its weights). The address is clamped
+to the buffer's last element where the lookahead could pass its end, so no pointer leaves its array."""
 
 from __future__ import annotations
 
@@ -15,7 +20,7 @@ from ..ir.kinds import BufferRole, DType
 from ..ir.loops import Affine, Assign, Load, Loop, Program, walk_exprs
 from .c_text import c_affine
 
-PREFETCH_BYTES = 2048
+PREFETCH_BYTES = 8192
 LINE_BYTES = 64
 FLOAT_BYTES = 4
 
@@ -32,24 +37,33 @@ def streamed_constants(program: Program, l1_bytes: int) -> dict[str, int]:
 def prefetch_addresses(loop: Loop, streamed: dict[str, int], extents: dict[str, int]) -> list[tuple[str, str]]:
     """(buffer, C index) of each line to prefetch at the top of `loop`'s body: the vector loads of
     streamed buffers in its own statements whose address moves with it, PREFETCH_BYTES ahead, one per
-    cache line. `extents`: the loop variables in scope (this loop's included), to bound the index."""
+    cache line; none where no weight vector serves more than one update (a GEMV). `extents`: the loop
+    variables in scope (this loop's included), to bound the index."""
     if loop.parallel:
         return []
     ahead = PREFETCH_BYTES // FLOAT_BYTES
     line = LINE_BYTES // FLOAT_BYTES
     lines: dict[tuple, tuple[str, str]] = {}
+    loads: set[Load] = set()
+    updates = 0
     for stmt in loop.body:
         if not isinstance(stmt, Assign):
             continue
-        for e in walk_exprs(stmt.value):
-            if not (isinstance(e, Load) and e.lanes > 1 and e.buffer in streamed and e.index.coeff(loop.var)):
-                continue
-            if any(v not in extents for v in e.index.vars):
-                continue
+        streaming = [e for e in walk_exprs(stmt.value) if _streamed_load(e, loop.var, streamed, extents)]
+        updates += bool(streaming)
+        for e in streaming:
+            loads.add(e)
             index = e.index + ahead
             key = (e.buffer, index.terms, index.const // line)
             lines.setdefault(key, (e.buffer, _clamped(index, streamed[e.buffer] - 1, extents)))
-    return list(lines.values())
+    return list(lines.values()) if updates > len(loads) else []
+
+
+def _streamed_load(e, var: str, streamed: dict[str, int], extents: dict[str, int]) -> bool:
+    """A vector load of a streamed buffer that moves with the loop `var`, indexed by loops in scope."""
+    if not (isinstance(e, Load) and e.lanes > 1 and e.buffer in streamed and e.index.coeff(var)):
+        return False
+    return all(v in extents for v in e.index.vars)
 
 
 def _clamped(index: Affine, last: int, extents: dict[str, int]) -> str:
