@@ -19,43 +19,49 @@ from nncg.verify import run_compiled
 K, N = 8, 12
 
 
-def _parameters(x_type, seed: int, w_type=np.int8) -> dict[str, np.ndarray]:
+def _parameters(x_type, seed: int, w_type=np.int8, w_shape=(K, N)) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     info = np.iinfo(w_type)
+    columns = w_shape[-1] if len(w_shape) > 1 else 1
+    # onnxruntime takes per-column scales of weights of rank 3 as [..., 1, N]
+    scale_shape = (*w_shape[:-2], 1, columns) if len(w_shape) > 2 else (columns,)
     return {
         "xs": np.float32(0.05),
         "xz": np.asarray(17 if x_type == np.uint8 else -9, x_type),
-        "w": rng.integers(info.min, info.max + 1, (K, N)).astype(w_type),
-        "ws": rng.uniform(0.002, 0.01, N).astype(np.float32),
+        "w": rng.integers(info.min, info.max + 1, w_shape).astype(w_type),
+        "ws": rng.uniform(0.002, 0.01, scale_shape).astype(np.float32),
         "wz": np.asarray(0 if w_type == np.int8 else 131, w_type),
         "ys": np.float32(0.2),
         "yz": np.asarray(120 if x_type == np.uint8 else 5, x_type),
     }
 
 
-def qlinear_matmul_model(x_shape: tuple[int, ...], x_type=np.uint8, seed: int = 0, w_type=np.int8) -> onnx.ModelProto:
-    """x -> QuantizeLinear -> QLinearMatMul (constant weights [K, N], per-column scales; uint8 weights
-    with a zero point other than 0) -> DequantizeLinear."""
+def qlinear_matmul_model(
+    x_shape: tuple[int, ...], x_type=np.uint8, seed: int = 0, w_type=np.int8, w_shape=(K, N)
+) -> onnx.ModelProto:
+    """x -> QuantizeLinear -> QLinearMatMul (constant weights [K, N] unless said, per-column scales;
+    uint8 weights with a zero point other than 0) -> DequantizeLinear."""
     nodes = [
         helper.make_node("QuantizeLinear", ["x", "xs", "xz"], ["q"]),
         helper.make_node("QLinearMatMul", ["q", "xs", "xz", "w", "ws", "wz", "ys", "yz"], ["yq"]),
         helper.make_node("DequantizeLinear", ["yq", "ys", "yz"], ["y"]),
     ]
-    return onnx_model(nodes, inputs={"x": x_shape}, initializers=_parameters(x_type, seed, w_type))
+    return onnx_model(nodes, inputs={"x": x_shape}, initializers=_parameters(x_type, seed, w_type, w_shape))
 
 
-def qdq_matmul_model(x_shape: tuple[int, ...], x_type=np.uint8, seed: int = 0) -> onnx.ModelProto:
+def qdq_matmul_model(x_shape: tuple[int, ...], x_type=np.uint8, seed: int = 0, w_shape=(K, N)) -> onnx.ModelProto:
     """The QDQ group around a float MatMul (what quantize_static writes), per-column weight scales."""
     nodes = [
         helper.make_node("QuantizeLinear", ["x", "xs", "xz"], ["q"]),
         helper.make_node("DequantizeLinear", ["q", "xs", "xz"], ["d"]),
-        helper.make_node("DequantizeLinear", ["w", "ws", "wz"], ["wd"], axis=1),
+        helper.make_node("DequantizeLinear", ["w", "ws", "wz"], ["wd"], axis=len(w_shape) - 1),
         helper.make_node("MatMul", ["d", "wd"], ["m"]),
         helper.make_node("QuantizeLinear", ["m", "ys", "yz"], ["yq"]),
         helper.make_node("DequantizeLinear", ["yq", "ys", "yz"], ["y"]),
     ]
-    parameters = _parameters(x_type, seed)
-    parameters["wz"] = np.zeros(N, np.int8)
+    parameters = _parameters(x_type, seed, w_shape=w_shape)
+    parameters["ws"] = parameters["ws"].reshape(-1)  # DequantizeLinear's per-axis scale: a vector
+    parameters["wz"] = np.zeros(w_shape[-1], np.int8)
     return onnx_model(nodes, inputs={"x": x_shape}, initializers=parameters)
 
 
@@ -84,6 +90,24 @@ def test_qlinear_matmul_of_any_rank(x_shape, x_type):
 @pytest.mark.parametrize("x_shape", [(1, 3, K), (2, 3, K)])
 def test_qdq_matmul_of_rank_3(x_shape):
     check(qdq_matmul_model(x_shape, np.int8), "ansi-c")
+
+
+@pytest.mark.parametrize("x_shape", [(3, K), (2, 3, K)])
+@pytest.mark.parametrize("build", [qlinear_matmul_model, qdq_matmul_model])
+def test_weights_of_rank_3(build, x_shape):
+    """Constant weights [1, K, N] (a batch dim of 1, as exporters write a MatMul by a parameter of rank
+    3): one [K, N] matrix over every row, the result of rank 3 even for a 2-D x."""
+    check(build(x_shape, w_shape=(1, K, N)), "ansi-c")
+
+
+def test_weights_of_rank_1():
+    """Constant weights [K]: one column, which the result loses."""
+    check(qlinear_matmul_model((3, K), w_shape=(K,)), "ansi-c")
+
+
+def test_weights_of_a_batch_above_1_are_refused():
+    with pytest.raises(nncg.NncgError, match=r"takes one \[K, N\] matrix"):
+        nncg.compile(qlinear_matmul_model((2, 3, K), w_shape=(2, K, N)))
 
 
 @pytest.mark.parametrize("build", [qlinear_matmul_model, qdq_matmul_model])

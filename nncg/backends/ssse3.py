@@ -32,7 +32,9 @@ FMA_IN_DOUBLE = (
 
 
 def fused_in_double(width: VectorWidth) -> VectorWidth:
-    return replace(width, ops={**width.ops, "fma": "nncg_fma_pd({a}, {b}, {c})"}, helpers={"fma": FMA_IN_DOUBLE})
+    return replace(
+        width, ops={**width.ops, "fma": "nncg_fma_pd({a}, {b}, {c})"}, helpers={"fma": FMA_IN_DOUBLE}, fast_fma=False
+    )
 
 
 class Ssse3(SimdPrinter):

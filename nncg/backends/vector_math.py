@@ -3,8 +3,9 @@ without a math.h call per lane; abs (the sign bit cleared) and sqrt (the ISA's i
 them. Each algorithm is written once, here, over a width's templates (the float operations of
 vector_width.OPERATIONS plus the integer and bit operations of BIT_OPERATIONS), so every ISA prints
 the same algorithm with the same constants; an ISA only fills its table (x86.py, neon.py). Where a
-template is fused (`fma`) the ISA rounds once, elsewhere twice: the results differ in the last bit
-between ISAs, all within the bounds below.
+template is fused (`fma`) the ISA rounds once, elsewhere twice (SSE's `fma` is emulated in double for
+the int8 kernels' exact sums, ~15 instructions: here SSE multiplies and adds, VectorWidth.fast_fma):
+the results differ in the last bit between ISAs, all within the bounds below.
 
 Accuracy: the bounds, in ULPs (the float32 spacing at the exact result, 2^-149 for denormals), hold
 on SSE (no FMA), AVX2, AVX-512 and NEON (AArch64; ARMv7 with and without VFPv4's FMA), checked by
@@ -13,7 +14,7 @@ numpy/scipy; the largest errors measured, there and over every 64th bit pattern 
 
     function  bound  measured    function  bound  measured
     exp       1.5    1.01        sigmoid   2.5    2.33
-    log       1      0.81        erf       1.5    1.29 (SSE), 1.11 (NEON), 1.03 (AVX)
+    log       1      0.81        erf       1.5    1.11 (SSE, NEON), 1.03 (AVX)
     tanh      1.5    1.32        softplus  2      1.89
     abs       0      0           sqrt      0.5    0.5 (correctly rounded)
 
@@ -127,7 +128,7 @@ class _Body:
         return self.spell(op, a=a, b=b)
 
     def fma(self, a: str, b: str, c: str) -> str:
-        if "fma" in self.w.ops:
+        if "fma" in self.w.ops and self.w.fast_fma:
             return self.spell("fma", a=a, b=b, c=c)
         return self.op("+", self.op("*", a, b), c)
 

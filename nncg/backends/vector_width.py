@@ -107,6 +107,9 @@ class VectorWidth:
     ints: Mapping[str, str] = field(default_factory=dict)
     int_helpers: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     blends: bool = True  # a comparison's select is one instruction (SSE before 4.1: and, andnot, or)
+    # `fma` is an instruction (or ARMv7's unfused vmla); False where it is emulated in double (SSE): the
+    # vector math functions then multiply and add, within their bounds and ~10x cheaper
+    fast_fma: bool = True
 
     def spell(self, op: str, **fields: str) -> str:
         return self.ops[op].format(**fields)

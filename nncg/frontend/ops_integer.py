@@ -11,7 +11,7 @@ import numpy as np
 
 from nncg.frontend.context import Context, OnnxOp
 from nncg.frontend.ops_nn import conv_geometry
-from nncg.frontend.ops_quantized import QUANTIZATION_HINT, centred_weights, matrix_rows, product_shape
+from nncg.frontend.ops_quantized import QUANTIZATION_HINT, centred_weights, matrix_rows, matrix_weights, product_shape
 from nncg.frontend.qdq import NNCG_DOMAIN
 from nncg.ir.graph import IntegerConvAttrs, IntegerDenseAttrs, Node
 
@@ -85,15 +85,11 @@ def convert_matmul_integer(op: OnnxOp, ctx: Context) -> tuple[Node, ...]:
     matmul: A's rows, all batches together (matrix_rows), times B."""
     x = op.input(0)
     x_shape, w_shape = ctx.shape(x), ctx.shape(op.input(1))
-    if any(n != 1 for n in w_shape[:-2]):
-        raise op.error(
-            f"multiplies by weights of shape {list(w_shape)}; NNCG's integer matrix product takes one [K, N] matrix"
-        )
-    k, n = (w_shape[0], 1) if len(w_shape) == 1 else w_shape[-2:]
+    k, n, axis = matrix_weights(op, w_shape)
     if x_shape[-1] != k:
         raise op.error(f"multiplies shapes {list(x_shape)} and {list(w_shape)}, whose inner dims differ")
     shape = product_shape(x_shape, w_shape)
-    w = centred_weights(op, ctx, 1, 3, n, max(len(w_shape) - 1, 0)).reshape(k, n)
+    w = centred_weights(op, ctx, 1, 3, n, axis).reshape(k, n)
     attrs = IntegerDenseAttrs(_x_zero_point(op, ctx), bool(op.input(5)), _dequantized(op))
     constants = _constants(op, ctx, w, n, len(shape), len(shape) - 1)
     steps, rows = matrix_rows(op, ctx, x)

@@ -162,24 +162,39 @@ def _dense(
     op: OnnxOp, ctx: Context, w_slot: int, trans_w: bool, bias_slot: int | None, y_slot: int
 ) -> tuple[Node, ...]:
     """QLinearMatMul or QGemm of x [..., K] (NumPy's matmul: the rows of all batches together,
-    matrix_rows) and constant weights [K, N] ([N, K] with trans_w)."""
+    matrix_rows) and constant weights [..., K, N] or [K] (matrix_weights; [N, K] with trans_w)."""
     x = op.input(0)
     x_scale, x_zero, _ = quantization(op, ctx, 1, "input")
     y_scale, y_zero, y_dtype = quantization(op, ctx, y_slot, "output")
     w_shape = ctx.shape(op.input(w_slot))
-    if len(w_shape) != 2:
-        raise op.error(f"has {len(w_shape)}-D weights; NNCG's integer matrix product takes 2-D weights")
-    channels = w_shape[0] if trans_w else w_shape[1]
-    w, w_scales = integer_weights(op, ctx, w_slot, channels, 0 if trans_w else 1)
-    w = np.ascontiguousarray(w.T if trans_w else w)
+    if trans_w:
+        if len(w_shape) != 2:
+            raise op.error(f"has {len(w_shape)}-D weights; NNCG's integer matrix product takes 2-D weights")
+        channels, axis = w_shape[0], 0
+    else:
+        _, channels, axis = matrix_weights(op, w_shape)
+    w, w_scales = integer_weights(op, ctx, w_slot, channels, axis)
+    w = np.ascontiguousarray(w.T) if trans_w else w.reshape(-1, channels)
     if ctx.shape(x)[-1] != w.shape[0]:
         raise op.error(f"multiplies shapes {list(ctx.shape(x))} and {list(w_shape)}, whose inner dims differ")
     bias = int32_bias(op, ctx, bias_slot, channels) if bias_slot is not None else np.zeros(channels, np.int32)
-    ctx.set_shape(op, op.node.output[0], product_shape(ctx.shape(x), w.shape))
+    ctx.set_shape(op, op.node.output[0], product_shape(ctx.shape(x), w.shape if trans_w else w_shape))
     attrs = QDenseAttrs(x_zero, requantization(op, ctx, y_scale, y_zero, y_dtype))
     steps, rows = matrix_rows(op, ctx, x)
     parameters = _parameters(op, ctx, w, bias, x_scale, w_scales, y_scale)
     return (*steps, op.ir_node("QLinearDense", [rows, *parameters], attrs))
+
+
+def matrix_weights(op: OnnxOp, w_shape: tuple[int, ...]) -> tuple[int, int, int]:
+    """K, N and the column axis of constant weights [..., K, N] (leading dims of 1: NumPy's matmul
+    broadcasts one matrix over x's batches) or [K] (one column)."""
+    if any(n != 1 for n in w_shape[:-2]):
+        raise op.error(
+            f"multiplies by weights of shape {list(w_shape)}; NNCG's integer matrix product takes one [K, N] matrix"
+        )
+    if len(w_shape) == 1:
+        return w_shape[0], 1, 0
+    return w_shape[-2], w_shape[-1], len(w_shape) - 1
 
 
 def matrix_rows(op: OnnxOp, ctx: Context, x: str) -> tuple[tuple[Node, ...], str]:
