@@ -1,0 +1,65 @@
+"""Register blocks of SSE int8 kernels of pmaddwd pairs (register_block.pair_dot_block, issue 16): on
+ssse3 a reduction over input channels as dots of 2 adjacent activations is blocked as one pixel of up to
+PAIR_DOT_CHANNELS channel vectors; a first layer's tap dots and the other targets keep the cost model's
+blocks. Odd channel counts (13 -> 37 -> 42: channel-vector tails, a block tail of 2 vectors) stay
+bit-identical to onnxruntime on every target."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import skip_unless_host_runs
+from int8_models import _model, _weights, compare, quantized, random_feeds
+from onnx import helper
+
+import nncg
+from nncg.backends import get_backend
+from nncg.passes.register_block import PAIR_DOT_CHANNELS, chosen_blocks
+
+
+def pointwise_model(seed: int = 7):
+    """A 3x3 stem of 3 -> 13 channels, then two 1x1 Convs 13 -> 37 -> 42 (channels-last inputs)."""
+    rng = np.random.default_rng(seed)
+    init = {
+        "w0": _weights(rng, 13, 3, 3, 3),
+        "b0": rng.standard_normal(13) * 0.3,
+        "w1": _weights(rng, 37, 13, 1, 1),
+        "b1": rng.standard_normal(37) * 0.3,
+        "w2": _weights(rng, 42, 37, 1, 1),
+        "b2": rng.standard_normal(42) * 0.3,
+    }
+    nodes = [
+        helper.make_node("Conv", ["x", "w0", "b0"], ["c0"], pads=[1, 1, 1, 1], name="stem"),
+        helper.make_node("Relu", ["c0"], ["r0"]),
+        helper.make_node("Conv", ["r0", "w1", "b1"], ["c1"], name="pw1"),
+        helper.make_node("Relu", ["c1"], ["r1"]),
+        helper.make_node("Conv", ["r1", "w2", "b2"], ["y"], name="pw2"),
+    ]
+    return _model(nodes, [1, 3, 5, 7], init)
+
+
+def blocks(model, target: str) -> dict[str, tuple[int, int]]:
+    compiled = nncg.compile(model, target=target)
+    return chosen_blocks(compiled.record.before_register_block, get_backend(target).target)
+
+
+def test_pointwise_layers_block_one_pixel_on_ssse3():
+    model = quantized(pointwise_model())
+    ssse3, avx2 = blocks(model, "ssse3"), blocks(model, "avx2")
+    pointwise = [name for name in ssse3 if name.startswith("pw")]
+    assert len(pointwise) == 2
+    for name in pointwise:  # 10 and 11 channel vectors of 4 lanes
+        assert ssse3[name] == (1, PAIR_DOT_CHANNELS)
+        assert avx2[name][0] > 1  # avx2 keeps the cost model's pixel blocks
+    stem = next(name for name in ssse3 if name.startswith("stem"))
+    assert ssse3[stem][0] > 1  # tap dots of a first layer keep the cost model's block
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2", "avx512vnni"])
+def test_pointwise_identical_to_onnxruntime(target):
+    skip_unless_host_runs(target)
+    float_model = pointwise_model()
+    model = quantized(float_model)
+    compiled = nncg.compile(model, target=target, verify_ir=True)
+    result = compare(model, compiled, random_feeds(float_model, 2, 13))
+    assert result.max_steps == 0 and result.identical == 1.0, result
