@@ -69,7 +69,7 @@ ONE_VECTOR_INT8_PIXELS = 12
 # with the 6 rows x 4 columns they had, 90.7 at 15 pixels (an accumulator and a broadcast each).
 ONE_VECTOR_FLOAT_PIXELS = 24
 # Channel vectors of the one-pixel block of an SSE int8 kernel of pmaddwd pairs (pair_dot_block).
-PAIR_DOT_CHANNELS = 8
+PAIR_DOT_CHANNELS = 10
 
 
 def parse_block(text: str) -> tuple[int, int]:
@@ -150,18 +150,37 @@ def pair_dot_block(kernel: Kernel, program: Program, target: Target, facts: Nest
     pmaddwd reads its weights from memory and overwrites a copy of its broadcast activations (two-operand
     instructions), so pixels in a block share nothing a register would keep and only add live
     activations and accumulators: the 2x4 blocks spilled accumulators and copied them across the loop's
-    back edge. Callgrind Ir, gcc -O3, pointwise layers: dscnn's 288,420 -> 273,816, mobilenet_v1_025's
-    6x6x128 ones 311,633 -> 302,777."""
+    back edge. Ten accumulators, two activation pairs, a product and a zero still fit 16 registers.
+    Callgrind Ir, gcc -O3 (-fno-inline per layer): dscnn's pointwise layers 288,420 -> 270,913,
+    mobilenet_v1_025's 6x6x128 ones 311,633 -> 302,065, resnet8's Winograd GEMM layers 989,034 ->
+    863,142; whole models 1,855,035 -> 1,798,895, 5,221,588 -> 5,024,386, 5,597,341 -> 5,307,590 (8
+    channel vectors: 1,814,977, 5,109,474, 5,314,333; 12: 1,804,387, 4,973,178, 5,330,078)."""
     if not (target.dot2_quad_loads and is_integer_kernel(kernel, program) and _pair_dots_only(kernel)):
         return facts.choose()
     return 1, min(facts.shape[1], PAIR_DOT_CHANNELS)
 
 
 def _pair_dots_only(kernel: Kernel) -> bool:
-    """Whether the kernel's products are all dots of 2 adjacent activations (a reduction over input
-    channels; not a first layer's taps, whose pairs are packed from zero-point-shifted values)."""
+    """Whether the kernel's products are all dots of 2 adjacent activations summed in one loop under
+    their accumulators: a reduction over input channels only, as a 1x1 convolution's, a dense layer's or
+    integer Winograd's GEMMs have (not a first layer's taps, whose pairs are packed from
+    zero-point-shifted values, nor a KxK convolution, whose pixels share border checks and loops over
+    taps: resnet8's stride-2 3x3 one 760,461 -> 981,401 Ir as one pixel)."""
     dots = kernel_dots(kernel)
-    return bool(dots) and all(len(d.x) == 2 and _adjacent_loads(d.x) for d in dots)
+    if not dots or not all(len(d.x) == 2 and _adjacent_loads(d.x) for d in dots):
+        return False
+    depths = [_serial_depth(s.body) for s in walk_stmts(kernel.body) if isinstance(s, Let)]
+    return max(depths, default=0) == 1
+
+
+def _serial_depth(body: tuple[Stmt, ...], depth: int = 0) -> int:
+    """The most serial loops around a statement of `body`."""
+    deepest = depth
+    for stmt in body:
+        if isinstance(stmt, Loop | Let | If):
+            inner = depth + (isinstance(stmt, Loop) and not stmt.parallel)
+            deepest = max(deepest, _serial_depth(stmt.body, inner))
+    return deepest
 
 
 def _adjacent_loads(xs: tuple[Expr, ...]) -> bool:
