@@ -1,8 +1,8 @@
 """Register blocks of SSE int8 kernels of pmaddwd pairs (register_block.pair_dot_block, issue 16): on
 ssse3 a reduction over input channels as dots of 2 adjacent activations is blocked as one pixel of up to
-PAIR_DOT_CHANNELS channel vectors; a first layer's tap dots and the other targets keep the cost model's
-blocks. Odd channel counts (13 -> 37 -> 42: channel-vector tails, a block tail of 2 vectors) stay
-bit-identical to onnxruntime on every target."""
+PAIR_DOT_CHANNELS channel vectors; a first layer's tap dots, KxK convolutions and the other targets keep
+the cost model's blocks. Odd channel counts (13 -> 37 -> 42 -> 9: channel-vector tails, a block tail of
+1 vector) stay bit-identical to onnxruntime on every target."""
 
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ from nncg.passes.register_block import PAIR_DOT_CHANNELS, chosen_blocks
 
 
 def pointwise_model(seed: int = 7):
-    """A 3x3 stem of 3 -> 13 channels, then two 1x1 Convs 13 -> 37 -> 42 (channels-last inputs)."""
+    """A 3x3 stem of 3 -> 13 channels, two 1x1 Convs 13 -> 37 -> 42 (channels-last inputs), a 3x3 Conv
+    42 -> 9 of stride 2 (direct: no integer Winograd)."""
     rng = np.random.default_rng(seed)
     init = {
         "w0": _weights(rng, 13, 3, 3, 3),
@@ -27,13 +28,17 @@ def pointwise_model(seed: int = 7):
         "b1": rng.standard_normal(37) * 0.3,
         "w2": _weights(rng, 42, 37, 1, 1),
         "b2": rng.standard_normal(42) * 0.3,
+        "w3": _weights(rng, 9, 42, 3, 3),
+        "b3": rng.standard_normal(9) * 0.3,
     }
     nodes = [
         helper.make_node("Conv", ["x", "w0", "b0"], ["c0"], pads=[1, 1, 1, 1], name="stem"),
         helper.make_node("Relu", ["c0"], ["r0"]),
         helper.make_node("Conv", ["r0", "w1", "b1"], ["c1"], name="pw1"),
         helper.make_node("Relu", ["c1"], ["r1"]),
-        helper.make_node("Conv", ["r1", "w2", "b2"], ["y"], name="pw2"),
+        helper.make_node("Conv", ["r1", "w2", "b2"], ["c2"], name="pw2"),
+        helper.make_node("Relu", ["c2"], ["r2"]),
+        helper.make_node("Conv", ["r2", "w3", "b3"], ["y"], pads=[1, 1, 1, 1], strides=[2, 2], name="k3"),
     ]
     return _model(nodes, [1, 3, 5, 7], init)
 
@@ -51,8 +56,9 @@ def test_pointwise_layers_block_one_pixel_on_ssse3():
     for name in pointwise:  # 10 and 11 channel vectors of 4 lanes
         assert ssse3[name] == (1, PAIR_DOT_CHANNELS)
         assert avx2[name][0] > 1  # avx2 keeps the cost model's pixel blocks
-    stem = next(name for name in ssse3 if name.startswith("stem"))
-    assert ssse3[stem][0] > 1  # tap dots of a first layer keep the cost model's block
+    for prefix in ("stem", "k3"):  # a first layer's tap dots, a 3x3 Conv's loops over taps
+        name = next(name for name in ssse3 if name.startswith(prefix))
+        assert ssse3[name][0] > 1
 
 
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2", "avx512vnni"])
