@@ -21,25 +21,20 @@ def pointwise_model(seed: int = 7):
     """A 3x3 stem of 3 -> 13 channels, two 1x1 Convs 13 -> 37 -> 42 (channels-last inputs), a 3x3 Conv
     42 -> 9 of stride 2 (direct: no integer Winograd)."""
     rng = np.random.default_rng(seed)
-    init = {
-        "w0": _weights(rng, 13, 3, 3, 3),
-        "b0": rng.standard_normal(13) * 0.3,
-        "w1": _weights(rng, 37, 13, 1, 1),
-        "b1": rng.standard_normal(37) * 0.3,
-        "w2": _weights(rng, 42, 37, 1, 1),
-        "b2": rng.standard_normal(42) * 0.3,
-        "w3": _weights(rng, 9, 42, 3, 3),
-        "b3": rng.standard_normal(9) * 0.3,
-    }
-    nodes = [
-        helper.make_node("Conv", ["x", "w0", "b0"], ["c0"], pads=[1, 1, 1, 1], name="stem"),
-        helper.make_node("Relu", ["c0"], ["r0"]),
-        helper.make_node("Conv", ["r0", "w1", "b1"], ["c1"], name="pw1"),
-        helper.make_node("Relu", ["c1"], ["r1"]),
-        helper.make_node("Conv", ["r1", "w2", "b2"], ["c2"], name="pw2"),
-        helper.make_node("Relu", ["c2"], ["r2"]),
-        helper.make_node("Conv", ["r2", "w3", "b3"], ["y"], pads=[1, 1, 1, 1], strides=[2, 2], name="k3"),
+    layers = [  # name, input channels, output channels, kernel, attributes
+        ("stem", 3, 13, 3, {"pads": [1, 1, 1, 1]}),
+        ("pw1", 13, 37, 1, {}),
+        ("pw2", 37, 42, 1, {}),
+        ("k3", 42, 9, 3, {"pads": [1, 1, 1, 1], "strides": [2, 2]}),
     ]
+    init, nodes, x = {}, [], "x"
+    for i, (name, c_in, c_out, k, attrs) in enumerate(layers):
+        init[f"w{i}"], init[f"b{i}"] = _weights(rng, c_out, c_in, k, k), rng.standard_normal(c_out) * 0.3
+        y = "y" if i == len(layers) - 1 else f"c{i}"
+        nodes.append(helper.make_node("Conv", [x, f"w{i}", f"b{i}"], [y], name=name, **attrs))
+        if y != "y":
+            x = f"r{i}"
+            nodes.append(helper.make_node("Relu", [y], [x]))
     return _model(nodes, [1, 3, 5, 7], init)
 
 
