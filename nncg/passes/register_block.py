@@ -25,11 +25,14 @@ from itertools import takewhile
 
 from ..ir.analysis import holds_accumulators, is_accumulator
 from ..ir.dtypes import is_integer_kernel
-from ..ir.kinds import BufferRole, Layout
+from ..ir.kinds import BufferRole, DType, Layout
 from ..ir.loops import (
     Affine,
     Assign,
+    Cast,
+    Const,
     Dot,
+    Expr,
     If,
     Kernel,
     Let,
@@ -66,6 +69,8 @@ ONE_VECTOR_INT8_PIXELS = 12
 # on avx512 (loaded, interleaved): 78.0 us with its stem and first pointwise Conv at 24 pixels, 82.1
 # with the 6 rows x 4 columns they had, 90.7 at 15 pixels (an accumulator and a broadcast each).
 ONE_VECTOR_FLOAT_PIXELS = 24
+# Channel vectors of the one-pixel block of an SSE int8 kernel of pmaddwd pairs (pair_dot_block).
+PAIR_DOT_CHANNELS = 10
 
 
 def parse_block(text: str) -> tuple[int, int]:
@@ -110,7 +115,7 @@ def _block_kernel(
     planar = planar_tensors(program)
 
     def per_nest(pixel: Loop) -> tuple[int, int]:
-        pixels, channels = nest_facts(kernel, pixel, program, target).choose()
+        pixels, channels = pair_dot_block(kernel, program, target, nest_facts(kernel, pixel, program, target))
         return (1 if reads_across_planes((pixel,), planar) else pixels), channels
 
     return block_body(kernel.body, *block, per_nest)
@@ -131,13 +136,66 @@ def chosen_blocks(
         facts = None if scalar_integer else kernel_facts(kernel, program, target)
         if facts is None:
             continue
-        pixels, channels = layers.get(kernel.name) or facts.choose()
+        pixels, channels = layers.get(kernel.name) or pair_dot_block(kernel, program, target, facts)
         if kernel.name not in layers and facts.fused and channels == 1:
             pixels = one_vector_pixels(kernel, program, target, facts.shape[0], pixels, facts.vector_inputs)
         if kernel.name not in layers and reads_across_planes(kernel.body, planar_tensors(program)):
             pixels = 1
         blocks[kernel.name] = (pixels, channels)
     return blocks
+
+
+def pair_dot_block(kernel: Kernel, program: Program, target: Target, facts: NestFacts) -> tuple[int, int]:
+    """The cost model's block, but one pixel of up to PAIR_DOT_CHANNELS channel vectors for an int8 kernel
+    whose products are all pmaddwd pairs of shared activations on SSE (Target.dot2_quad_loads). Each
+    pmaddwd reads its weights from memory and overwrites a copy of its broadcast activations (two-operand
+    instructions), so pixels in a block share nothing a register would keep and only add live
+    activations and accumulators: the 2x4 blocks spilled accumulators and copied them across the loop's
+    back edge. Ten accumulators, two activation pairs, a product and a zero still fit 16 registers.
+    Callgrind Ir, gcc -O3 (-fno-inline per layer): dscnn's pointwise layers 288,420 -> 270,913,
+    mobilenet_v1_025's 6x6x128 ones 311,633 -> 302,065, resnet8's Winograd GEMM layers 989,034 ->
+    863,142; whole models 1,855,035 -> 1,798,843, 5,221,588 -> 5,023,829, 5,597,341 -> 5,308,906 (8
+    channel vectors: 1,814,977, 5,109,474, 5,314,333; 12: 1,804,387, 4,973,178, 5,330,078). A dense
+    layer's "pixels" are its output vectors: the autoencoder's took 311,703 Ir as one, 285,099 as 10."""
+    pair_dots = target.dot2_quad_loads and is_integer_kernel(kernel, program) and _pair_dots_only(kernel)
+    if not pair_dots or facts.shape[1] == 1:  # one vector a pixel (a dense layer's): its pixels are channels
+        return facts.choose()
+    return 1, min(facts.shape[1], PAIR_DOT_CHANNELS)
+
+
+def _pair_dots_only(kernel: Kernel) -> bool:
+    """Whether the kernel's products are all dots of 2 adjacent activations summed in one loop under
+    their accumulators: a reduction over input channels only, as a 1x1 convolution's, a dense layer's or
+    integer Winograd's GEMMs have (not a first layer's taps, whose pairs are packed from
+    zero-point-shifted values, nor a KxK convolution, whose pixels share border checks and loops over
+    taps: resnet8's stride-2 3x3 one 760,461 -> 981,401 Ir as one pixel)."""
+    dots = kernel_dots(kernel)
+    if not dots or not all(len(d.x) == 2 and _adjacent_loads(d.x) for d in dots):
+        return False
+    depths = [_serial_depth(s.body) for s in walk_stmts(kernel.body) if isinstance(s, Let)]
+    return max(depths, default=0) == 1
+
+
+def _serial_depth(body: tuple[Stmt, ...], depth: int = 0) -> int:
+    """The most serial loops around a statement of `body`."""
+    deepest = depth
+    for stmt in body:
+        if isinstance(stmt, Loop | Let | If):
+            inner = depth + (isinstance(stmt, Loop) and not stmt.parallel)
+            deepest = max(deepest, _serial_depth(stmt.body, inner))
+    return deepest
+
+
+def _adjacent_loads(xs: tuple[Expr, ...]) -> bool:
+    """Activations of adjacent elements from the first on, a missing last channel read as 0."""
+    first = xs[0].value if isinstance(xs[0], Cast) else None
+    return isinstance(first, Load) and all(
+        x in (Cast(DType.INT32, Load(first.buffer, first.index + j)), Const.integer(0)) for j, x in enumerate(xs)
+    )
+
+
+def kernel_dots(kernel: Kernel) -> list[Dot]:
+    return [e for s in walk_stmts(kernel.body) for top in stmt_exprs(s) for e in walk_exprs(top) if isinstance(e, Dot)]
 
 
 def one_vector_pixels(kernel: Kernel, program: Program, target: Target, extent: int, pixels: int, vector_inputs: bool):
@@ -371,7 +429,7 @@ def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
         return False
     if not is_integer_kernel(kernel, program):
         return True
-    dots = [e for s in walk_stmts(kernel.body) for top in stmt_exprs(s) for e in walk_exprs(top) if isinstance(e, Dot)]
+    dots = kernel_dots(kernel)
     return bool(dots) and all(len(d.x) == 4 and all(x.lanes == 1 for x in d.x) for d in dots)
 
 
