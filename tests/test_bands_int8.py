@@ -231,7 +231,7 @@ def test_models_at_each_setting(model):
 @pytest.mark.parametrize("target", ["ssse3", "avx2"])
 def test_balanced_bands_int8_convs_in_vectors(target):
     """In bands an int8 Conv runs in the target's dot products as whole: balanced bands resnet8's first
-    stages on x86 too, halving speed's arena, bit-identical and vectorised. Speed runs the 3x3 layers of
+    stages on x86 too, halving speed's arena (avx2: nearly), bit-identical and vectorised. Speed runs the 3x3 layers of
     16 and more input channels as integer Winograd, its arena the planner's count with their int16 and
     int32 scratch; balanced keeps them so in its bands, its arena the planner's count too."""
     skip_unless_host_runs(target)
@@ -241,10 +241,11 @@ def test_balanced_bands_int8_convs_in_vectors(target):
     speed = nncg.compile(qdq, target=target, memory="speed")
     balanced = nncg.compile(qdq, target=target, memory="balanced")
     assert speed.source.count(INTEGER_WINOGRAD) == 4 and "Winograd kept" in memory_figures(balanced).plan
-    for compiled, memory in ((speed, "speed"), (balanced, "balanced")):
-        assert compiled.arena_bytes == max(step.bytes for step in plan_steps(graph, memory, 0, target))
+    for compiled, memory in ((speed, "speed"), (balanced, "balanced")):  # in plan-memory's 64-byte alignment
+        assert compiled.arena_bytes == -(-max(step.bytes for step in plan_steps(graph, memory, 0, target)) // 64) * 64
     assert speed.arena_bytes > memory_figures(speed).layer_bound_bytes  # the scratch on top of the activations
-    assert balanced.arena_bytes <= speed.arena_bytes / 2
+    # avx2: half of speed's arena takes stage2_b_conv direct, 1.41x speed's Ir (band_costs.py); 1.90x less at 1.22x
+    assert balanced.arena_bytes <= speed.arena_bytes / (2 if target == "ssse3" else 1.9)
     assert_banded_dots(balanced, target)
     check(qdq, balanced, feeds=1)
 
@@ -301,7 +302,8 @@ def test_balanced_bands_the_input_quantize_in_vectors(name, target):
     assert groups and ops[groups[0].nodes[0]] == "QuantizeLinear"
     speed = nncg.compile(qdq, target=target, memory="speed")
     balanced = nncg.compile(qdq, target=target, memory="balanced")
-    assert balanced.arena_bytes <= speed.arena_bytes / 2
+    # avx2: half of speed's arena takes stage2_b_conv direct, 1.41x speed's Ir (band_costs.py); 1.90x less at 1.22x
+    assert balanced.arena_bytes <= speed.arena_bytes / (2 if target == "ssse3" else 1.9)
     assert_banded_dots(balanced, target)
     assert VECTOR_QUOTIENTS[target] in band_source(balanced)
     check(qdq, balanced, feeds=1)

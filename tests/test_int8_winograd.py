@@ -20,6 +20,7 @@ from nncg.errors import NncgError
 from nncg.frontend import import_onnx
 from nncg.lowering.band_plan import BandPlan
 from nncg.lowering.bands import BandGroup
+from nncg.lowering.winograd import WHOLE_CHUNKS
 from nncg.passes import default_pipeline
 from nncg.passes.winograd import winograd, winograd_candidates
 from nncg.verify import run_compiled
@@ -177,6 +178,20 @@ def test_kept_in_bands_bit_identical(target, monkeypatch):
         band = compiled.source[compiled.source.index(": Band */") :]
         assert "v_QLinearConv_1" in band and ("store_int16(" in band) == (target != "ansi-c")
         assert_matches_onnxruntime(model, compiled, sanitize=target == "ansi-c" and rows == 2)
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2"])
+def test_whole_layer_scratch_is_a_part_of_a_tile_row(target):
+    """A layer run whole takes its tiles a part of a tile row at a time (winograd.WHOLE_CHUNKS), so its
+    int16 V and int32 M hold that many tiles, not a row of 11 (21 columns, the last tile cut at the
+    right; 5 rows, the last tile row cut at the bottom): bit-identical."""
+    model = qlinear_model("uint8", True, (5, 21))
+    compiled = winograd_build(model, target)
+    chunk = WHOLE_CHUNKS["QLinearConv"]
+    assert not chunk.whole_rows and chunk.tiles < 11
+    assert f"/* 16x{chunk.tiles}x8 row-major */" in compiled.source  # V of the first conv: 8 input channels
+    assert f"/* 16x{chunk.tiles}x13 row-major */" in compiled.source  # M of the second: 13 output channels
+    assert_matches_onnxruntime(model, compiled)
 
 
 def winograd_bands(rows: int):

@@ -31,8 +31,7 @@ from .bands import POINTWISE, WINDOWED, BandGroup, geometry, row_bytes, streamab
 from .conv import conv_extras
 from .halo import conv_halos
 from .in_place import in_place_lead
-from .winograd import CHUNK_TILES, band_scratch_bytes, scratch_bytes
-from .winograd_integer import CHUNK_TILES as INTEGER_CHUNK_TILES
+from .winograd import band_scratch_bytes, scratch_bytes
 
 MEMORY_MODES = ("speed", "balanced", "min")
 BAND_ROWS = (1, 2, 4, 8)
@@ -40,6 +39,9 @@ BALANCED_LATENCY = 1.3  # issue 18: balanced at most 1.3x speed's latency ...
 BALANCED_CUT = 2  # ... with at least 2x less arena
 CONVS = ("Conv", "QLinearConv")  # priced by their MACs (an int8 one as a float one)
 FLOAT_BYTES = DType.FLOAT32.bytes  # shifts are priced per 4 bytes moved
+# a group of bands: every Conv direct, the Winograd layers kept, or kept but those of the largest band
+# scratch (which sets the group's: a layer of many channels, resnet8's stage2_b_conv) direct
+WINOGRAD_VARIANTS = ("direct", "kept", "small")
 
 
 @dataclass(frozen=True)
@@ -146,6 +148,7 @@ def describe_plan(groups: tuple[BandGroup, ...]) -> str:
     return "; ".join(
         f"{shown(g.nodes[0])}..{shown(g.nodes[-1])} in bands of {g.rows} output row(s)"
         + (", Winograd kept" if g.winograd else "")
+        + (f" but not on {', '.join(shown(name) for name in g.direct)}" if g.direct else "")
         for g in groups
     )
 
@@ -170,7 +173,7 @@ def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> l
         while stop < len(nodes) and streamable(graph, nodes[stop]):
             stop += 1
         for rows in BAND_ROWS:
-            for winograd in (False, True):
+            for winograd in WINOGRAD_VARIANTS:
                 for j in range(i + 1, stop + 1):  # one layer alone: run direct, without a Winograd scratch
                     step = _band_step(graph, live, costs, i, j, rows, winograd)
                     if step is not None and step.lines > ceiling:
@@ -181,15 +184,19 @@ def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> l
 
 
 def _band_step(
-    graph: Graph, live: _Liveness, costs: BandCosts, i: int, j: int, rows: int, winograd: bool
+    graph: Graph, live: _Liveness, costs: BandCosts, i: int, j: int, rows: int, winograd: str
 ) -> Step | None:
-    """The group of nodes [i, j) in bands of `rows`, keeping its Winograd layers with `winograd`
-    (None where that keeps none, or for one layer alone: it would be the layer run whole)."""
-    group = BandGroup(tuple(n.name for n in graph.nodes[i:j]), rows, winograd)
+    """The group of nodes [i, j) in bands of `rows`, its Winograd layers as `winograd` says
+    (WINOGRAD_VARIANTS; None where that keeps none, or for one layer alone: it would be the layer
+    run whole)."""
+    group = BandGroup(tuple(n.name for n in graph.nodes[i:j]), rows, winograd != "direct")
     if rows > graph.shape(graph.nodes[j - 1].outputs[0])[2]:
         return None
     geo = geometry(graph, group)
-    if geo is None or (winograd and (j - i == 1 or not geo.winograd)):
+    if geo is not None and winograd == "small":
+        group = replace(group, direct=_largest_scratch(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd]))
+        geo = geometry(graph, group)
+    if geo is None or (group.winograd and (j - i == 1 or not geo.winograd)):
         return None
     scratch = band_scratch_bytes(graph, [n for n in graph.nodes[i:j] if n.name in geo.winograd])
     scratch += sum(_quantized_row(graph, n) for n in graph.nodes[i:j])
@@ -203,13 +210,20 @@ def _band_step(
 
     def per_mac(node: Node) -> float:
         if node.op == "QLinearConv":  # in the target's int8 dot products, in bands as whole (vectorize.py)
-            kept = costs.integer_winograd if node.name in geo.winograd else 1.0
-            return kept * (costs.integer_banded if j - i > 1 else 1.0)
+            if node.name in geo.winograd:
+                return costs.integer_winograd * (costs.kept_banded or costs.integer_banded)
+            return costs.integer_banded if j - i > 1 else 1.0
         return banded * (costs.winograd if node.name in geo.winograd else 1.0)
 
     work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in graph.nodes[i:j])
     cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.bytes(i, j, geo.internal) + lines, cost, lines)
+
+
+def _largest_scratch(graph: Graph, nodes: list[Node]) -> tuple[str, ...]:
+    """The Winograd layers of a group of bands whose band scratch is the largest (the group's)."""
+    sizes = {node.name: band_scratch_bytes(graph, [node]) for node in nodes}
+    return tuple(name for name, size in sizes.items() if size == max(sizes.values()))
 
 
 def _quantized_row(graph: Graph, node: Node) -> int:
@@ -220,11 +234,9 @@ def _quantized_row(graph: Graph, node: Node) -> int:
 
 
 def _scratch(graph: Graph, node: Node) -> int:
-    """The scratch bytes of a Winograd layer run whole: float32 V and M, or int16 V and int32 M in
-    chunks of their own size."""
-    if not node.runs_winograd:
-        return 0
-    return scratch_bytes(graph, node, INTEGER_CHUNK_TILES if node.op == "QLinearConv" else CHUNK_TILES)
+    """The scratch bytes of a Winograd layer run whole: float32 V and M, or int16 V and int32 M, in
+    chunks of their op's size."""
+    return scratch_bytes(graph, node) if node.runs_winograd else 0
 
 
 def _output_copy(graph: Graph, node: Node) -> int:

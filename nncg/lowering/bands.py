@@ -37,14 +37,16 @@ STREAMABLE = WINDOWED + POINTWISE
 class BandGroup:
     """Layers (node names, consecutive in graph order) run together, `rows` output rows per band;
     with `winograd`, the Convs (float or int8) the graph passes made Winograd stay Winograd where their
-    rows advance in whole 2-row tiles (else every Conv runs direct)."""
+    rows advance in whole 2-row tiles, but those named in `direct` (else every Conv runs direct)."""
 
     nodes: tuple[str, ...]
     rows: int
     winograd: bool = False
+    direct: tuple[str, ...] = ()
 
     def __str__(self) -> str:
-        return f"{self.nodes[0]}..{self.nodes[-1]}:{self.rows}{':winograd' if self.winograd else ''}"
+        direct = "".join(f":{name}" for name in self.direct)
+        return f"{self.nodes[0]}..{self.nodes[-1]}:{self.rows}{':winograd' if self.winograd else ''}{direct}"
 
 
 @dataclass(frozen=True)
@@ -130,7 +132,7 @@ def geometry(graph: Graph, group: BandGroup) -> Geometry | None:
         return None
     if not all(_channels_last_inputs(graph, n, internal) for n in nodes if n.op in POINTWISE):
         return None
-    tiled = {n.name for n in nodes if group.winograd and n.runs_winograd}
+    tiled = {n.name for n in nodes if group.winograd and n.runs_winograd and n.name not in group.direct}
     flat = _rows(nodes, group.rows, {}, (1,), tiled)
     if flat is None:
         return None

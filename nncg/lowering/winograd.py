@@ -55,10 +55,23 @@ TILE, PATCH = 2, 4  # outputs per tile side, inputs per patch side
 B_T = ((1, 0, -1, 0), (0, 1, 1, 0), (0, -1, 1, 0), (0, 1, 0, -1))
 G = ((1.0, 0.0, 0.0), (0.5, 0.5, 0.5), (0.5, -0.5, 0.5), (0.0, 0.0, 1.0))
 A_T = ((1, 1, 1, 0), (0, 1, -1, -1))
-CHUNK_TILES = 24  # tiles per chunk (rounded up to whole tile rows): scratch that stays in L1
-BAND_CHUNK_TILES = 8  # tiles per chunk of a layer in bands, along a tile row: a band's scratch
-TILE_ROW = "tr"  # the loop over a band's tile rows
+TILE_ROW = "tr"  # the loop over a band's (or a layer's) tile rows
 SCRATCH_DTYPES = {"Conv": (DType.FLOAT32,) * 2, "QLinearConv": (DType.INT16, DType.INT32)}  # V's and M's
+
+
+@dataclass(frozen=True)
+class Chunking:
+    """How the tiles are cut into chunks, the scratch one chunk's: at least `tiles` tiles in whole
+    tile rows (`whole_rows`), or at most `tiles` along one tile row (a long row in parts)."""
+
+    tiles: int
+    whole_rows: bool
+
+
+CHUNK_TILES = 24  # float: tiles per chunk, rounded up to whole tile rows: scratch that stays in L1
+INTEGER_CHUNK_TILES = 1  # integer: tiles per chunk along a tile row (winograd_integer.py)
+WHOLE_CHUNKS = {"Conv": Chunking(CHUNK_TILES, True), "QLinearConv": Chunking(INTEGER_CHUNK_TILES, False)}
+BAND_CHUNKS = {"Conv": Chunking(8, False), "QLinearConv": Chunking(INTEGER_CHUNK_TILES, False)}  # in bands
 FLOAT_ZERO = Const.splat(0.0)
 Scratch = Callable[[str, tuple[int, ...]], TensorRef]  # a scratch buffer of a name and shape
 
@@ -75,9 +88,11 @@ def lower_winograd(ctx: LoweringContext, node: Node) -> None:
 
 
 def emit_layer(ctx: LoweringContext, node: Node, layer: WinogradNests, op: str) -> None:
-    """The kernel of a layer run whole: its chunks of tiles, image after image."""
-    batch = layer.out.shape[0]
-    body = layer.grid.chunks(Affine.of("n") if batch > 1 else Affine(), layer.chunk)
+    """The kernel of a layer run whole: its chunks of tiles (whole tile rows or parts of one), image
+    after image."""
+    batch, grid = layer.out.shape[0], layer.grid
+    n = Affine.of("n") if batch > 1 else Affine()
+    body = grid.chunks(n, layer.chunk) if grid.chunking.whole_rows else grid.row_chunks(n, layer.row_chunk)
     ctx.emit(node.name, op, (Loop("n", batch, body),) if batch > 1 else body)  # serial: shared scratch
 
 
@@ -86,36 +101,34 @@ def lower_winograd_band(
 ) -> None:
     """The layer's nest over `tile_rows` tile rows from `first_tile_row` (an affine in the band loops;
     rows outside the output are skipped), for a group of bands (stream.py): per tile row, chunks of
-    BAND_CHUNK_TILES tiles along it, so its scratch is a band's, not the whole layer's. The layers of
-    one group run one after the other and share their scratch: `scratch` names its buffers (filled in
-    by the first)."""
-    emit_band(ctx, node, _Layer(ctx, node, BAND_CHUNK_TILES, scratch), first_tile_row, tile_rows)
+    BAND_CHUNKS along it, so its scratch is a band's, not the whole layer's. The layers of one group
+    run one after the other and share their scratch: `scratch` names its buffers (filled in by the
+    first)."""
+    emit_band(ctx, node, _Layer(ctx, node, BAND_CHUNKS[node.op], scratch), first_tile_row, tile_rows)
 
 
 def emit_band(ctx: LoweringContext, node: Node, layer: WinogradNests, first_tile_row: Affine, tile_rows: int) -> None:
     """The kernel of a layer in a group of bands (lower_winograd_band), whatever its arithmetic."""
     row = first_tile_row + Affine.of(TILE_ROW) if tile_rows > 1 else first_tile_row
-    body = layer.grid.band_row(row, layer.band_chunk)
+    body = layer.grid.band_row(row, layer.row_chunk)
     ctx.emit(node.name, "Conv", (Loop(TILE_ROW, tile_rows, body),) if tile_rows > 1 else body)
 
 
 class WinogradNests(ABC):
     """The three nests of a chunk of Winograd tiles, whatever the arithmetic: a subclass gives the
     scratch's type and fills in the values (input_value, scratch_value, multiply, output_value). The
-    scratch holds `band_tiles` tiles, or the whole layer's chunk when None."""
+    scratch holds a chunk of `chunking`, by default (None) the op's when run whole (WHOLE_CHUNKS)."""
 
     zero: Const = FLOAT_ZERO
-    chunk_target = CHUNK_TILES  # tiles per chunk of a layer run whole (chunk_tiles)
 
-    def __init__(self, ctx: LoweringContext, node: Node, width: int, band_tiles: int | None, scratch: Scratch):
+    def __init__(self, ctx: LoweringContext, node: Node, width: int, chunking: Chunking | None, scratch: Scratch):
         self.attrs = node.attrs
         self.x = ctx.ref(node.inputs[0])
         self.c_out, self.c_in = ctx.graph.shape(node.inputs[1])[:2]
         self.width = width
         self.out = ctx.output(node.outputs[0], channels_last(4))
-        self.grid = TileGrid(
-            self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, band_tiles, self.chunk_target
-        )
+        chunking = chunking or WHOLE_CHUNKS[node.op]
+        self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, chunking)
         tiles = self.grid.chunk_tiles
         self.v = scratch(f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in))
         self.m = scratch(f"m_{node.name}", (PATCH * PATCH, tiles, width))
@@ -204,19 +217,22 @@ class WinogradNests(ABC):
             *grid.transform(n, first_row, [kind.writes for kind in rows], 1, ("co", self.c_out), self.transform_output),
         )
 
-    def band_chunk(self, row: Affine, kind: RowKind, first_col: Affine, cols: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
+    def row_chunk(self, at: TileAt, kind: RowKind, cols: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
+        """The nests of a chunk along one tile row: `at` gives its image, row and first column."""
         grid = self.grid
         return (
-            *grid.row_transform(row, kind.reads, first_col, cols, 0, ("ci", self.c_in), self.transform_input),
+            *grid.row_transform(at, kind.reads, cols, 0, ("ci", self.c_in), self.transform_input),
             *gemms(len(cols), self.width, self.multiply),
-            *grid.row_transform(row, kind.writes, first_col, cols, 1, ("co", self.c_out), self.transform_output),
+            *grid.row_transform(at, kind.writes, cols, 1, ("co", self.c_out), self.transform_output),
         )
 
 
 class _Layer(WinogradNests):
     """One float Winograd Conv: transformed filters, bias, residual and activation at the store."""
 
-    def __init__(self, ctx: LoweringContext, node: Node, band_tiles: int | None, shared: dict[str, str] | None = None):
+    def __init__(
+        self, ctx: LoweringContext, node: Node, chunking: Chunking | None, shared: dict[str, str] | None = None
+    ):
         attrs: ConvAttrs = node.attrs
         c_out = ctx.graph.shape(node.inputs[1])[0]
         width = max(c_out, attrs.gemm_channels)
@@ -226,7 +242,7 @@ class _Layer(WinogradNests):
         bias_name, residual_name = conv_extras(node)
         self.bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
         self.residual = ctx.ref(residual_name) if residual_name else None
-        super().__init__(ctx, node, width, band_tiles, lambda name, shape: scratch_buffer(ctx, name, shape, shared))
+        super().__init__(ctx, node, width, chunking, lambda name, shape: scratch_buffer(ctx, name, shape, shared))
 
     def output_value(self, value: Expr, channel: Affine, index: list[Affine]) -> Expr:
         if self.bias:
@@ -289,10 +305,10 @@ class TileAt:
     channel: Affine
 
 
-def scratch_bytes(graph: Graph, node: Node, target: int = CHUNK_TILES) -> int:
-    """The bytes of a Winograd layer's two scratch buffers run whole in chunks of `target` tiles (what
-    the band planner counts)."""
-    return sum(_scratch_sizes(graph, node, chunk_tiles(graph.shape(node.outputs[0])[2:], target)[1]))
+def scratch_bytes(graph: Graph, node: Node) -> int:
+    """The bytes of a Winograd layer's two scratch buffers run whole, in chunks of its op's
+    WHOLE_CHUNKS (what the band planner counts)."""
+    return sum(_scratch_sizes(graph, node, chunk_tiles(graph.shape(node.outputs[0])[2:], WHOLE_CHUNKS[node.op])[1]))
 
 
 def _scratch_sizes(graph: Graph, node: Node, tiles: int) -> tuple[int, int]:
@@ -303,10 +319,18 @@ def _scratch_sizes(graph: Graph, node: Node, tiles: int) -> tuple[int, int]:
     return PATCH * PATCH * tiles * c_in * v.bytes, PATCH * PATCH * tiles * width * m.bytes
 
 
-def chunk_tiles(out_hw: tuple[int, int], target: int = CHUNK_TILES) -> tuple[int, int]:
-    """Tile rows per chunk and tiles per chunk: at least `target`, in whole tile rows."""
-    tiles = [-(-size // TILE) for size in out_hw]
-    rows = max(1, min(tiles[0], -(-target // tiles[1])))
+def tile_count(size: int) -> int:
+    """The 2x2 tiles along an output side of `size`."""
+    return -(-size // TILE)
+
+
+def chunk_tiles(out_hw: tuple[int, int], chunking: Chunking) -> tuple[int, int]:
+    """Tile rows per chunk and tiles per chunk: at least chunking.tiles in whole tile rows, or at
+    most that along one tile row."""
+    tiles = [tile_count(size) for size in out_hw]
+    if not chunking.whole_rows:
+        return 1, min(chunking.tiles, tiles[1])
+    rows = max(1, min(tiles[0], -(-chunking.tiles // tiles[1])))
     return rows, rows * tiles[1]
 
 
@@ -315,36 +339,23 @@ def band_scratch_bytes(graph: Graph, nodes: list[Node]) -> int:
     (a float layer's and an integer one's are apart: scratch_buffer), the largest."""
     largest: dict[tuple[int, DType], int] = {}
     for node in nodes:
-        sizes = _scratch_sizes(graph, node, band_chunk_tiles(graph.shape(node.outputs[0])[2:]))
+        sizes = _scratch_sizes(graph, node, chunk_tiles(graph.shape(node.outputs[0])[2:], BAND_CHUNKS[node.op])[1])
         for key, size in zip(enumerate(SCRATCH_DTYPES[node.op]), sizes):
             largest[key] = max(largest.get(key, 0), size)
     return sum(largest.values())
 
 
-def band_chunk_tiles(out_hw: tuple[int, int]) -> int:
-    """Tiles per chunk of a layer in bands: BAND_CHUNK_TILES, or a tile row if that is shorter."""
-    return min(BAND_CHUNK_TILES, -(-out_hw[1] // TILE))
-
-
 class TileGrid:
-    """The output's 2x2 tiles, taken a chunk of `target` tiles (whole tile rows) at a time, so the
-    scratch of the transforms and GEMMs stays small and in cache. Tiles whose patch reaches into the
-    padding or whose outputs reach past the output get loops of their own (see RowKind), so no
-    loop has a border check."""
+    """The output's 2x2 tiles, taken a chunk (`chunking`) at a time, so the scratch of the transforms
+    and GEMMs stays small and in cache. Tiles whose patch reaches into the padding or whose outputs
+    reach past the output get loops of their own (see RowKind), so no loop has a border check."""
 
     def __init__(
-        self,
-        out_hw: tuple[int, int],
-        pads: tuple[int, ...],
-        readable: list[tuple[int, int]],
-        band: int | None = None,
-        target: int = CHUNK_TILES,
+        self, out_hw: tuple[int, int], pads: tuple[int, ...], readable: list[tuple[int, int]], chunking: Chunking
     ):
-        self.out_hw, self.pads, self.readable = out_hw, pads, readable
-        self.tiles = tuple(-(-size // TILE) for size in out_hw)
-        self.rows_per_chunk, self.chunk_tiles = chunk_tiles(out_hw, target)
-        if band is not None:  # chunks along one tile row
-            self.rows_per_chunk, self.chunk_tiles = 1, band_chunk_tiles(out_hw)
+        self.out_hw, self.pads, self.readable, self.chunking = out_hw, pads, readable, chunking
+        self.tiles = tuple(tile_count(size) for size in out_hw)
+        self.rows_per_chunk, self.chunk_tiles = chunk_tiles(out_hw, chunking)
         self.col_kinds = [self.kind(1, t) for t in range(self.tiles[1])]
 
     def kind(self, dim: int, t: int) -> RowKind:
@@ -367,27 +378,41 @@ class TileGrid:
         return tuple(out)
 
     def band_row(self, row: Affine, chunk) -> tuple[Stmt, ...]:
-        """chunk(tile row, its kind, first tile column, kinds of its columns) for every chunk of the
-        tile row `row` (an affine of the band loops): one guarded copy per run of alike tile rows, as
-        which row a band reaches is known only at run time (rows outside the output: none); along
-        the row, runs of alike chunks share one loop."""
-        size, out = self.chunk_tiles, []
-        columns = range(self.tiles[1])
-        kinds = [tuple(self.col_kinds[k : k + size]) for k in range(0, len(columns), size)]
-        for row_start, row_stop, kind in runs(self.tiles[0], lambda r: self.kind(0, r)):
-            body: list[Stmt] = []
-            for start, stop, cols in runs(len(kinds), kinds.__getitem__):
-                if stop - start == 1:
-                    body.extend(chunk(row, kind, Affine.of(start * size), cols))
-                else:
-                    first_col = (Affine.of("tk") + start) * size
-                    body.append(Loop("tk", stop - start, chunk(row, kind, first_col, cols)))
-            out.append(If((Bound(row, row_start, row_stop),), tuple(body)))
+        """along_row's chunks of the tile row `row` (an affine of the band loops): one guarded copy
+        per run of alike tile rows, as which row a band reaches is known only at run time (rows
+        outside the output: none)."""
+        return tuple(
+            If((Bound(row, start, stop),), self.along_row(Affine(), row, kind, chunk))
+            for start, stop, kind in runs(self.tiles[0], lambda r: self.kind(0, r))
+        )
+
+    def row_chunks(self, n: Affine, chunk) -> tuple[Stmt, ...]:
+        """along_row's chunks of every tile row of image n, one loop per run of alike tile rows
+        (serial: the chunks share the scratch)."""
+        out: list[Stmt] = []
+        for start, stop, kind in runs(self.tiles[0], lambda r: self.kind(0, r)):
+            if stop - start == 1:
+                out.extend(self.along_row(n, Affine.of(start), kind, chunk))
+            else:
+                out.append(Loop(TILE_ROW, stop - start, self.along_row(n, Affine.of(TILE_ROW) + start, kind, chunk)))
         return tuple(out)
 
-    def row_transform(self, row, row_flags, first_col, cols, side, channel, body) -> tuple[Stmt, ...]:
-        """body(TileAt, row flags, column flags) over a band chunk's tiles (one tile row from column
-        first_col) and channels, one loop nest per run of alike columns."""
+    def along_row(self, n: Affine, row: Affine, kind: RowKind, chunk) -> tuple[Stmt, ...]:
+        """chunk(TileAt of its first tile, the row's kind, kinds of its columns) for every chunk of
+        chunk_tiles tiles along tile row `row`; runs of alike chunks share one loop."""
+        size, out = self.chunk_tiles, []
+        kinds = [tuple(self.col_kinds[k : k + size]) for k in range(0, self.tiles[1], size)]
+        for start, stop, cols in runs(len(kinds), kinds.__getitem__):
+            if stop - start == 1:
+                out.extend(chunk(TileAt(n, row, Affine.of(start * size), Affine(), Affine()), kind, cols))
+            else:
+                first_col = (Affine.of("tk") + start) * size
+                out.append(Loop("tk", stop - start, chunk(TileAt(n, row, first_col, Affine(), Affine()), kind, cols)))
+        return tuple(out)
+
+    def row_transform(self, first: TileAt, row_flags, cols, side, channel, body) -> tuple[Stmt, ...]:
+        """body(TileAt, row flags, column flags) over a chunk along a tile row (image, row and first
+        column of `first`) and its channels, one loop nest per run of alike columns."""
         flags = [(kind.reads, kind.writes)[side] for kind in cols]
         out: list[Stmt] = []
         for col_start, col_stop, col_flags in runs(len(flags), flags.__getitem__):
@@ -395,7 +420,7 @@ class TileGrid:
 
             def inner(env, col_start=col_start, col_flags=col_flags):
                 tile = env["tw"] + col_start
-                at = TileAt(Affine(), row, first_col + tile, tile, env[channel[0]])
+                at = TileAt(first.n, first.row, first.col + tile, tile, env[channel[0]])
                 return body(at, row_flags, col_flags)
 
             out.extend(nest(loops, inner, parallel=True))

@@ -11,7 +11,8 @@ and Y' is requantised with the multipliers divided by 4: float32(4 s) * (m / 4) 
 the bit (scaling by a power of two is exact in float32, short of overflow and subnormals, which
 integer_winograd_fits rules out), and in the fixed-point form m / 4 is the same significand with
 the shift 2 larger. V's and M's scratch are int16 and int32 arena buffers (ir/arena.py keeps them
-apart from the float ones). The nests are winograd.py's: tiles, chunks and border loops."""
+apart from the float ones). The nests are winograd.py's: tiles, chunks and border loops; a layer run
+whole is chunked along its tile rows (winograd.WHOLE_CHUNKS), so its scratch is a few tiles'."""
 
 from __future__ import annotations
 
@@ -24,9 +25,10 @@ from .context import LoweringContext
 from .quantized import centred
 from .requantize import Scales
 from .winograd import (
-    BAND_CHUNK_TILES,
+    BAND_CHUNKS,
     PATCH,
     SCRATCH_DTYPES,
+    Chunking,
     WinogradNests,
     emit_band,
     emit_layer,
@@ -36,7 +38,6 @@ from .winograd import (
 G2 = np.array(((2, 0, 0), (1, 1, 1), (1, -1, 1), (0, 0, 2)), np.int64)  # 2G: integers
 SCALE = 4  # Y' = SCALE * the direct sum (G' = 2G on both sides)
 INT32_MAX = 2**31 - 1
-CHUNK_TILES = 1  # tiles per chunk of a layer run whole: one tile row (chunk_tiles), the scratch a few KB
 WINOGRAD_OP = "QLinearConvWinograd"  # the kernel's op: not one the vectorize pass takes (its scratch is int16)
 
 
@@ -70,9 +71,8 @@ class _IntegerLayer(WinogradNests):
     """One QLinearConv's Winograd nests in integers (the module's docstring)."""
 
     zero = Const.integer(0)
-    chunk_target = CHUNK_TILES
 
-    def __init__(self, ctx: LoweringContext, node: Node, band_tiles: int | None = None, shared: dict | None = None):
+    def __init__(self, ctx: LoweringContext, node: Node, chunking: Chunking | None = None, shared: dict | None = None):
         attrs: QConvAttrs = node.attrs
         c_out = ctx.graph.shape(node.inputs[1])[0]
         self.u = ctx.add_constant(f"u_{node.name}", integer_filters(ctx.graph.constants[node.inputs[1]]))
@@ -85,7 +85,7 @@ class _IntegerLayer(WinogradNests):
         def scratch(name: str, shape: tuple[int, ...]):
             return scratch_buffer(ctx, name, shape, shared, dtypes[name[0]])
 
-        super().__init__(ctx, node, c_out, band_tiles, scratch)
+        super().__init__(ctx, node, c_out, chunking, scratch)
         self.zero_point = attrs.x_zero_point
 
     def input_value(self, load: Load) -> Expr:
@@ -111,4 +111,4 @@ def lower_integer_winograd_band(
 ) -> None:
     """As winograd.lower_winograd_band: the layer over a band's tile rows, its scratch the group's
     (int16 V and int32 M, apart from a float layer's)."""
-    emit_band(ctx, node, _IntegerLayer(ctx, node, BAND_CHUNK_TILES, scratch), first_tile_row, tile_rows)
+    emit_band(ctx, node, _IntegerLayer(ctx, node, BAND_CHUNKS[node.op], scratch), first_tile_row, tile_rows)

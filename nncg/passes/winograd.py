@@ -26,6 +26,7 @@ from ..ir.applicability import integer_winograd_shaped, winograd_applies
 from ..ir.graph import Graph
 from ..ir.kinds import ConvAlgorithm, DType
 from ..ir.target import Target
+from ..lowering.winograd import tile_count
 from ..lowering.winograd_integer import integer_winograd_fits
 from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
@@ -87,9 +88,9 @@ def integer_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     Ir of each 3x3 layer (`python3 -m benchmarks.int8_winograd`): 16 to 64 input channels 0.63-0.66x
     the direct kernel's on ssse3, 0.53-0.58x on avx2; the stem's 3 channels least (0.76x, 0.71x), left
     direct as float's. The whole model at speed 0.74x on ssse3 (7.34M -> 5.46M), 0.69x on avx2; its
-    scratch, a tile row (winograd_integer.CHUNK_TILES, as few instructions as 24-tile chunks), took
-    speed's arena from 48 to 72 KB, which the band planner counts; balanced keeps it in bands (36 KB,
-    half of speed's, 1.13x speed's Ir on ssse3, 1.24x on avx2). Not on scalar C: 2.6x fewer
+    scratch, one tile at a time along each tile row (winograd.WHOLE_CHUNKS; a whole tile row before
+    took speed's arena from 48 to 72 KB), takes it to 49.5 KB, and the model to 0.89x the Ir of
+    whole-row chunks on avx2 (clang), 0.94x on ssse3 (gcc); 4-tile chunks 0.95x, 1.02x. Not on scalar C: 2.6x fewer
     instructions, but scalar C is the microcontroller target, where RAM is what int8 is for (`layers`
     forces it); nor on the AVX-512 targets (no int16 templates) or neon: unmeasured. Nor on fewer than
     MIN_INTEGER_TILES tiles: ball's conv2 (8 -> 12 channels, one tile) saved 0.5 % of the model's Ir on
@@ -123,7 +124,7 @@ def _pays(graph: Graph, node, target: Target, weight_bytes: int) -> bool:
 
 def _tiles(rows: int, columns: int) -> int:
     """The 2x2 output tiles of a rows x columns output."""
-    return -(-rows // 2) * -(-columns // 2)
+    return tile_count(rows) * tile_count(columns)
 
 
 def winograd_candidates(graph: Graph) -> list[str]:
