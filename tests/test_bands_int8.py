@@ -231,9 +231,9 @@ def test_models_at_each_setting(model):
 @pytest.mark.parametrize("target", ["ssse3", "avx2"])
 def test_balanced_bands_int8_convs_in_vectors(target):
     """In bands an int8 Conv runs in the target's dot products as whole: balanced bands resnet8's first
-    stages on x86 too, halving speed's arena (avx2: nearly), bit-identical and vectorised. Speed runs the 3x3 layers of
-    16 and more input channels as integer Winograd, its arena the planner's count with their int16 and
-    int32 scratch; balanced keeps them so in its bands, its arena the planner's count too."""
+    stages on x86 too, bit-identical and vectorised. Speed runs the 3x3 layers of 16 and more input
+    channels as integer Winograd, its arena the planner's count with their int16 and int32 scratch;
+    balanced keeps them so in its bands, its arena the planner's count too."""
     skip_unless_host_runs(target)
     qdq = quantized(repository_model(MODELS["resnet8"]))
     graph = lowered_graph(qdq, target)
@@ -244,10 +244,24 @@ def test_balanced_bands_int8_convs_in_vectors(target):
     for compiled, memory in ((speed, "speed"), (balanced, "balanced")):  # in plan-memory's 64-byte alignment
         assert compiled.arena_bytes == -(-max(step.bytes for step in plan_steps(graph, memory, 0, target)) // 64) * 64
     assert speed.arena_bytes > memory_figures(speed).layer_bound_bytes  # the scratch on top of the activations
-    # avx2: half of speed's arena takes stage2_b_conv direct, 1.41x speed's Ir (band_costs.py); 1.90x less at 1.22x
-    assert balanced.arena_bytes <= speed.arena_bytes / (2 if target == "ssse3" else 1.9)
+    assert balanced.arena_bytes < speed.arena_bytes
     assert_banded_dots(balanced, target)
     check(qdq, balanced, feeds=1)
+
+
+AVX2_HALF = "issue 18 open: on avx2 half of speed's arena runs stage2_b_conv direct, 1.41x speed's Ir (band_costs.py)"
+
+
+@pytest.mark.parametrize(
+    "target", ["ssse3", pytest.param("avx2", marks=pytest.mark.xfail(strict=True, reason=AVX2_HALF))]
+)
+def test_balanced_halves_resnet8_int8_arena(target):
+    """Issue 18's balanced target on resnet8 int8: at least 2x less arena than speed (whose integer
+    Winograd scratch counts). Met on ssse3; avx2's balanced takes 1.90x at 1.22x speed's Ir instead."""
+    qdq = quantized(repository_model(MODELS["resnet8"]))
+    speed = nncg.compile(qdq, target=target, memory="speed")
+    balanced = nncg.compile(qdq, target=target, memory="balanced")
+    assert balanced.arena_bytes <= speed.arena_bytes / 2
 
 
 def quantize_edge_feeds(model: onnx.ModelProto, seed: int = 5) -> list[dict[str, np.ndarray]]:
@@ -302,8 +316,7 @@ def test_balanced_bands_the_input_quantize_in_vectors(name, target):
     assert groups and ops[groups[0].nodes[0]] == "QuantizeLinear"
     speed = nncg.compile(qdq, target=target, memory="speed")
     balanced = nncg.compile(qdq, target=target, memory="balanced")
-    # avx2: half of speed's arena takes stage2_b_conv direct, 1.41x speed's Ir (band_costs.py); 1.90x less at 1.22x
-    assert balanced.arena_bytes <= speed.arena_bytes / (2 if target == "ssse3" else 1.9)
+    assert balanced.arena_bytes <= speed.arena_bytes / 2
     assert_banded_dots(balanced, target)
     assert VECTOR_QUOTIENTS[target] in band_source(balanced)
     check(qdq, balanced, feeds=1)
