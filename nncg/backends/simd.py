@@ -115,8 +115,9 @@ class SimdPrinter(IntegerVectors, ScalarPrinter):
 
     def _vector_Fma(self, e: Fma, width: VectorWidth) -> str:
         a, b, c = self.expr(e.a), self.expr(e.b), self.expr(e.c)
-        if "fma" in width.ops:
-            return width.spell("fma", a=a, b=b, c=c)
+        fused = next((op for op in ("fma", "fma_exact") if op in width.ops), None)
+        if fused:
+            return width.spell(fused, a=a, b=b, c=c)
         return width.spell("+", a=width.spell("*", a=a, b=b), b=c)
 
     def _vector_Select(self, e: Select, width: VectorWidth) -> str:

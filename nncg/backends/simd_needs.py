@@ -70,7 +70,8 @@ def operations(node: Expr | Store, width: VectorWidth) -> tuple[str, ...]:
     if isinstance(node, Binary):
         return (node.op,)
     if isinstance(node, Fma):
-        return ("fma",) if "fma" in width.ops else ("*", "+")
+        fused = tuple(op for op in ("fma", "fma_exact") if op in width.ops)
+        return fused[:1] or ("*", "+")
     if isinstance(node, Select):
         return (node.cmp,)
     return ()  # a local; a call goes to a math helper

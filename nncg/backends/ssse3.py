@@ -33,7 +33,7 @@ FMA_IN_DOUBLE = (
 
 def fused_in_double(width: VectorWidth) -> VectorWidth:
     return replace(
-        width, ops={**width.ops, "fma": "nncg_fma_pd({a}, {b}, {c})"}, helpers={"fma": FMA_IN_DOUBLE}, fast_fma=False
+        width, ops={**width.ops, "fma_exact": "nncg_fma_pd({a}, {b}, {c})"}, helpers={"fma_exact": FMA_IN_DOUBLE}
     )
 
 

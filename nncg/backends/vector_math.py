@@ -3,8 +3,8 @@ without a math.h call per lane; abs (the sign bit cleared) and sqrt (the ISA's i
 them. Each algorithm is written once, here, over a width's templates (the float operations of
 vector_width.OPERATIONS plus the integer and bit operations of BIT_OPERATIONS), so every ISA prints
 the same algorithm with the same constants; an ISA only fills its table (x86.py, neon.py). Where a
-template is fused (`fma`) the ISA rounds once, elsewhere twice (SSE's `fma` is emulated in double for
-the int8 kernels' exact sums, ~15 instructions: here SSE multiplies and adds, VectorWidth.fast_fma):
+template is fused (`fma`) the ISA rounds once, elsewhere twice (SSE has only `fma_exact`, emulated in
+double for the int8 kernels' exact sums, ~15 instructions: here SSE multiplies and adds):
 the results differ in the last bit between ISAs, all within the bounds below.
 
 Accuracy: the bounds, in ULPs (the float32 spacing at the exact result, 2^-149 for denormals), hold
@@ -128,7 +128,7 @@ class _Body:
         return self.spell(op, a=a, b=b)
 
     def fma(self, a: str, b: str, c: str) -> str:
-        if "fma" in self.w.ops and self.w.fast_fma:
+        if "fma" in self.w.ops:
             return self.spell("fma", a=a, b=b, c=c)
         return self.op("+", self.op("*", a, b), c)
 

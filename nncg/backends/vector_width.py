@@ -18,11 +18,12 @@ OPERATIONS = {
     "math": ("fn",),  # the NAME of the helper computing the math function fn of each lane: NAME(x)
     # Optional:
     "sqrt": ("a",),  # the correctly rounded square root of each lane; required with `bits`
-    "fma": ("a", "b", "c"),  # a * b + c, one rounding; required when the target has FMA
+    "fma": ("a", "b", "c"),  # a * b + c in the ISA's instruction (one rounding; ARMv7 NEON: vmla); required with FMA
+    "fma_exact": ("a", "b", "c"),  # a * b + c, one rounding, emulated where the ISA has no FMA (Target.fma_in_double)
     "vector": ("values",),  # a constant vector lane by lane; without it constants are table rows
     "table": (),  # the name of the static table of constant vectors (when there is no `vector`)
 }
-OPTIONAL = ("sqrt", "fma", "vector", "table")
+OPTIONAL = ("sqrt", "fma", "fma_exact", "vector", "table")
 
 # The integer and bit operations on vectors of int32 lanes the vector math functions are written in
 # (vector_math.py), with `sqrt`. A width without them computes a math function with math.h, lane by lane.
@@ -107,9 +108,6 @@ class VectorWidth:
     ints: Mapping[str, str] = field(default_factory=dict)
     int_helpers: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     blends: bool = True  # a comparison's select is one instruction (SSE before 4.1: and, andnot, or)
-    # `fma` is an instruction (or ARMv7's unfused vmla); False where it is emulated in double (SSE): the
-    # vector math functions then multiply and add, within their bounds and ~10x cheaper
-    fast_fma: bool = True
 
     def spell(self, op: str, **fields: str) -> str:
         return self.ops[op].format(**fields)
