@@ -183,12 +183,13 @@ class WinogradNests(ABC):
         )
         return with_locals("r", r, stores)
 
-    def multiply(self, first: Affine, env: dict[str, Affine]) -> tuple[Stmt, ...]:
-        """M of output channel `first` + co of a block (M's channel co)."""
+    def multiply(self, number: Affine, env: dict[str, Affine]) -> tuple[Stmt, ...]:
+        """M of output channel co of block `number` (M's channel co); U blocked (blocked_filters) or not."""
         e, t, co = env["e"], env["t"], env["co"]
         v, u, m = self.v, self.u, self.m
         ci = Affine.of("ci") if self.c_in > 1 else Affine()
-        product = self.product(Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, u.at([e, ci, first + co])))
+        weight = u.at([number, e, ci, co]) if len(u.shape) == 4 else u.at([e, ci, number * self.block + co])
+        product = self.product(Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, weight))
         update = Assign("acc", Binary("+", LocalRef("acc"), product))
         reduction = (Loop("ci", self.c_in, (update,)),) if self.c_in > 1 else (Assign("acc", product),)
         return (Let("acc", self.zero, (*reduction, Store(m.buffer, m.at([e, t, co]), LocalRef("acc")))),)
@@ -197,10 +198,10 @@ class WinogradNests(ABC):
         """One term of a GEMM's sum over input channels."""
         return Binary("*", v, u)
 
-    def transform_output(self, first: Affine, block_at: TileAt, rows, cols) -> tuple[Stmt, ...]:
-        """The outputs of output channel `first` + block_at.channel of a block (M's channel that)."""
+    def transform_output(self, number: Affine, block_at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+        """The outputs of output channel block_at.channel of block `number` (M's channel that)."""
         m, out, zero = self.m, self.out, self.zero
-        at = replace(block_at, channel=first + block_at.channel)
+        at = replace(block_at, channel=number * self.block + block_at.channel)
 
         def product(a: int, b: int) -> Expr:
             return Load(m.buffer, m.at([a * PATCH + b, at.tile, block_at.channel]))
@@ -223,11 +224,11 @@ class WinogradNests(ABC):
     def chunk(self, n: Affine, first_row: Affine, rows: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
         grid, tiles = self.grid, len(rows) * self.grid.tiles[1]
 
-        def block(first: Affine, width: int, stored: int) -> tuple[Stmt, ...]:
+        def block(number: Affine, width: int, stored: int) -> tuple[Stmt, ...]:
             writes = [kind.writes for kind in rows]
             return (
-                *gemms(tiles, width, partial(self.multiply, first)),
-                *grid.transform(n, first_row, writes, 1, ("co", stored), partial(self.transform_output, first)),
+                *gemms(tiles, width, partial(self.multiply, number)),
+                *grid.transform(n, first_row, writes, 1, ("co", stored), partial(self.transform_output, number)),
             )
 
         return (
@@ -239,10 +240,10 @@ class WinogradNests(ABC):
         """The nests of a chunk along one tile row: `at` gives its image, row and first column."""
         grid = self.grid
 
-        def block(first: Affine, width: int, stored: int) -> tuple[Stmt, ...]:
+        def block(number: Affine, width: int, stored: int) -> tuple[Stmt, ...]:
             return (
-                *gemms(len(cols), width, partial(self.multiply, first)),
-                *grid.row_transform(at, kind.writes, cols, 1, ("co", stored), partial(self.transform_output, first)),
+                *gemms(len(cols), width, partial(self.multiply, number)),
+                *grid.row_transform(at, kind.writes, cols, 1, ("co", stored), partial(self.transform_output, number)),
             )
 
         return (
@@ -251,18 +252,17 @@ class WinogradNests(ABC):
         )
 
     def channel_blocks(self, block: Callable[[Affine, int, int], tuple[Stmt, ...]]) -> tuple[Stmt, ...]:
-        """block(first output channel, GEMM width, output channels stored) for every block of
+        """block(block number, GEMM width, output channels stored) for every block of
         self.block channels of the GEMMs' width, the whole ones in one loop (serial: they share M),
         then the rest; of a padded GEMM (one block) only the channels below c_out are stored."""
         size, width, out = self.block, self.width, []
         whole, rest = divmod(width, size)
         if whole > 1:
-            out.append(Loop(BLOCK, whole, block(Affine.of(BLOCK) * size, size, size)))
+            out.append(Loop(BLOCK, whole, block(Affine.of(BLOCK), size, size)))
         elif whole == 1:
             out.extend(block(Affine(), size, min(size, self.c_out)))
         if rest:
-            first = whole * size
-            out.extend(block(Affine.of(first), rest, rest))
+            out.extend(block(Affine.of(whole), rest, rest))
         return tuple(out)
 
 
@@ -357,6 +357,17 @@ def _scratch_sizes(graph: Graph, node: Node, chunking: Chunking) -> tuple[int, i
     tiles = chunk_tiles(graph.shape(node.outputs[0])[2:], chunking)[1]
     v, m = SCRATCH_DTYPES[node.op]
     return PATCH * PATCH * tiles * c_in * v.bytes, PATCH * PATCH * tiles * block_width(width, c_out, chunking) * m.bytes
+
+
+def blocked_filters(u: np.ndarray, block: int) -> np.ndarray:
+    """U[e][ci][co] as U[b][e][ci][c] (co = b * block + c; the last block padded with zeros) where
+    `block` cuts its output channels in blocks, so a block's GEMMs read whole cache lines of it."""
+    e, c_in, c_out = u.shape
+    if block >= c_out:
+        return u
+    count = -(-c_out // block)
+    padded = np.pad(u, ((0, 0), (0, 0), (0, count * block - c_out)))
+    return np.ascontiguousarray(padded.reshape(e, c_in, count, block).transpose(2, 0, 1, 3))
 
 
 def block_width(width: int, c_out: int, chunking: Chunking) -> int:
