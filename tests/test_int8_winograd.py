@@ -20,7 +20,7 @@ from nncg.errors import NncgError
 from nncg.frontend import import_onnx
 from nncg.lowering.band_plan import BandPlan
 from nncg.lowering.bands import BandGroup
-from nncg.lowering.winograd import WHOLE_CHUNKS
+from nncg.lowering.winograd import BAND_CHUNKS, WHOLE_CHUNKS, band_scratch_bytes, blocked_filters
 from nncg.passes import default_pipeline
 from nncg.passes.winograd import winograd, winograd_candidates
 from nncg.verify import run_compiled
@@ -177,7 +177,33 @@ def test_kept_in_bands_bit_identical(target, monkeypatch):
         compiled = winograd_build(model, target, kernels=0)
         band = compiled.source[compiled.source.index(": Band */") :]
         assert "v_QLinearConv_1" in band and ("store_int16(" in band) == (target != "ansi-c")
+        assert f"/* 16x1x{BAND_CHUNKS['QLinearConv'].channels} row-major */" in compiled.source  # M: one block
         assert_matches_onnxruntime(model, compiled, sanitize=target == "ansi-c" and rows == 2)
+
+
+def test_band_scratch_holds_one_block_of_output_channels():
+    """In bands, a chunk's GEMMs and output transform run a block of output channels at a time
+    (12 = 8 + 4, 13 = 8 + 5: a whole block and the rest), so the planner counts an int32 M of one block
+    of the chunk's tiles next to the int16 V of all input channels."""
+    graph = import_onnx(qlinear_model("uint8", True, (9, 7)))
+    convs = [n for n in graph.nodes if n.op == "QLinearConv"]
+    chunk = BAND_CHUNKS["QLinearConv"]
+    assert chunk.channels == 8 and not chunk.whole_rows
+    v_bytes, m_bytes = 16 * chunk.tiles * 12 * 2, 16 * chunk.tiles * 8 * 4
+    assert band_scratch_bytes(graph, convs) == v_bytes + m_bytes
+    assert band_scratch_bytes(graph, convs[:1]) == 16 * chunk.tiles * 8 * 2 + m_bytes  # 8 in, 12 out
+
+
+def test_blocked_filters_keep_a_block_contiguous():
+    """A blocked layer's U is U[block][e][ci][channel of the block], the last block padded with zeros,
+    so a block's GEMMs read whole cache lines of it; unblocked, U stays as it is."""
+    u = np.arange(16 * 3 * 13, dtype=np.int16).reshape(16, 3, 13)
+    blocked = blocked_filters(u, 8)
+    assert blocked.shape == (2, 16, 3, 8)
+    np.testing.assert_array_equal(blocked[1, :, :, :5], u[:, :, 8:])
+    np.testing.assert_array_equal(blocked[0], u[:, :, :8])
+    assert not blocked[1, :, :, 5:].any()
+    assert blocked_filters(u, 13) is u
 
 
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2"])

@@ -36,6 +36,14 @@ rows with Winograd kept 1.22x, the same with stage2_b_conv direct 1.41x, all dir
 (1.2, 0.4, 1.4) estimates 1.22x, 1.44x, 1.88x and keeps ball int8's direct bands (two int8 3x3 Convs:
 1.05-1.07x above). On ssse3 (gcc) the 4-lane figures estimate the plan with stage2_b_conv direct at
 1.17x, and it took 1.17x.
+With M in bands one block of 8 output channels (winograd.BAND_CHUNKS: 512 B a tile) and U laid out block by
+block (winograd.blocked_filters), balanced keeps Winograd on both avx2 and ssse3 at 25,088 B (2.02x less than
+speed's 50,688). On avx2 (clang -O2, one inference, cachegrind with a 32 KB I1 and D1) it takes 1.28x speed's
+Ir (the same plan with all channels in M: 1.21x, at 26,624 B; stage1's 16-channel layers in two blocks
+broadcast V once per block) and has fewer D1 read misses than speed (64k against 67k; 71k with all channels
+in M, 81k with blocks over U unblocked); what speed does not pay is the band kernel's code, 27k I1 misses
+against speed's 3k, as each band runs every layer's unrolled row code once. These costs still order the
+plans so.
 
 A QuantizeLinear in bands (the model input's, into a channels-last line buffer) costs what it costs whole,
 1 per element: it quantises each row in vectors into a planar scratch row, then interleaves that into the line

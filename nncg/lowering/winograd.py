@@ -22,6 +22,7 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from itertools import groupby
 
 import numpy as np
@@ -62,16 +63,22 @@ SCRATCH_DTYPES = {"Conv": (DType.FLOAT32,) * 2, "QLinearConv": (DType.INT16, DTy
 @dataclass(frozen=True)
 class Chunking:
     """How the tiles are cut into chunks, the scratch one chunk's: at least `tiles` tiles in whole
-    tile rows (`whole_rows`), or at most `tiles` along one tile row (a long row in parts)."""
+    tile rows (`whole_rows`), or at most `tiles` along one tile row (a long row in parts). With
+    `channels`, a chunk's GEMMs and output transform run that many output channels at a time (the
+    last block the rest), so M holds one block: V is transformed once per chunk and read by every
+    block, the multiplies are the same (0: all channels at once)."""
 
     tiles: int
     whole_rows: bool
+    channels: int = 0
 
 
 CHUNK_TILES = 24  # float: tiles per chunk, rounded up to whole tile rows: scratch that stays in L1
 INTEGER_CHUNK_TILES = 1  # integer: tiles per chunk along a tile row (winograd_integer.py)
+INTEGER_BLOCK = 8  # integer in bands: output channels per GEMM and output transform (an avx2 int32 vector)
 WHOLE_CHUNKS = {"Conv": Chunking(CHUNK_TILES, True), "QLinearConv": Chunking(INTEGER_CHUNK_TILES, False)}
-BAND_CHUNKS = {"Conv": Chunking(8, False), "QLinearConv": Chunking(INTEGER_CHUNK_TILES, False)}  # in bands
+BAND_CHUNKS = {"Conv": Chunking(8, False), "QLinearConv": Chunking(INTEGER_CHUNK_TILES, False, INTEGER_BLOCK)}
+BLOCK = "cb"  # the loop over a chunk's blocks of output channels
 FLOAT_ZERO = Const.splat(0.0)
 Scratch = Callable[[str, tuple[int, ...]], TensorRef]  # a scratch buffer of a name and shape
 
@@ -130,8 +137,9 @@ class WinogradNests(ABC):
         chunking = chunking or WHOLE_CHUNKS[node.op]
         self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, chunking)
         tiles = self.grid.chunk_tiles
+        self.block = block_width(width, self.c_out, chunking)
         self.v = scratch(f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in))
-        self.m = scratch(f"m_{node.name}", (PATCH * PATCH, tiles, width))
+        self.m = scratch(f"m_{node.name}", (PATCH * PATCH, tiles, self.block))
 
     def input_value(self, load: Load) -> Expr:
         """A patch value as the input transform sums it."""
@@ -175,11 +183,13 @@ class WinogradNests(ABC):
         )
         return with_locals("r", r, stores)
 
-    def multiply(self, env: dict[str, Affine]) -> tuple[Stmt, ...]:
+    def multiply(self, number: Affine, env: dict[str, Affine]) -> tuple[Stmt, ...]:
+        """M of output channel co of block `number` (M's channel co); U blocked (blocked_filters) or not."""
         e, t, co = env["e"], env["t"], env["co"]
         v, u, m = self.v, self.u, self.m
         ci = Affine.of("ci") if self.c_in > 1 else Affine()
-        product = self.product(Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, u.at([e, ci, co])))
+        weight = u.at([number, e, ci, co]) if len(u.shape) == 4 else u.at([e, ci, number * self.block + co])
+        product = self.product(Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, weight))
         update = Assign("acc", Binary("+", LocalRef("acc"), product))
         reduction = (Loop("ci", self.c_in, (update,)),) if self.c_in > 1 else (Assign("acc", product),)
         return (Let("acc", self.zero, (*reduction, Store(m.buffer, m.at([e, t, co]), LocalRef("acc")))),)
@@ -188,11 +198,13 @@ class WinogradNests(ABC):
         """One term of a GEMM's sum over input channels."""
         return Binary("*", v, u)
 
-    def transform_output(self, at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+    def transform_output(self, number: Affine, block_at: TileAt, rows, cols) -> tuple[Stmt, ...]:
+        """The outputs of output channel block_at.channel of block `number` (M's channel that)."""
         m, out, zero = self.m, self.out, self.zero
+        at = replace(block_at, channel=number * self.block + block_at.channel)
 
         def product(a: int, b: int) -> Expr:
-            return Load(m.buffer, m.at([a * PATCH + b, at.tile, at.channel]))
+            return Load(m.buffer, m.at([a * PATCH + b, at.tile, block_at.channel]))
 
         # s = A^T M for the rows that are stored, in locals: each product is loaded once
         kept_rows = [i for i in range(TILE) if rows[i]]
@@ -211,20 +223,47 @@ class WinogradNests(ABC):
 
     def chunk(self, n: Affine, first_row: Affine, rows: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
         grid, tiles = self.grid, len(rows) * self.grid.tiles[1]
+
+        def block(number: Affine, width: int, stored: int) -> tuple[Stmt, ...]:
+            writes = [kind.writes for kind in rows]
+            return (
+                *gemms(tiles, width, partial(self.multiply, number)),
+                *grid.transform(n, first_row, writes, 1, ("co", stored), partial(self.transform_output, number)),
+            )
+
         return (
             *grid.transform(n, first_row, [kind.reads for kind in rows], 0, ("ci", self.c_in), self.transform_input),
-            *gemms(tiles, self.width, self.multiply),
-            *grid.transform(n, first_row, [kind.writes for kind in rows], 1, ("co", self.c_out), self.transform_output),
+            *self.channel_blocks(block),
         )
 
     def row_chunk(self, at: TileAt, kind: RowKind, cols: tuple[RowKind, ...]) -> tuple[Stmt, ...]:
         """The nests of a chunk along one tile row: `at` gives its image, row and first column."""
         grid = self.grid
+
+        def block(number: Affine, width: int, stored: int) -> tuple[Stmt, ...]:
+            return (
+                *gemms(len(cols), width, partial(self.multiply, number)),
+                *grid.row_transform(at, kind.writes, cols, 1, ("co", stored), partial(self.transform_output, number)),
+            )
+
         return (
             *grid.row_transform(at, kind.reads, cols, 0, ("ci", self.c_in), self.transform_input),
-            *gemms(len(cols), self.width, self.multiply),
-            *grid.row_transform(at, kind.writes, cols, 1, ("co", self.c_out), self.transform_output),
+            *self.channel_blocks(block),
         )
+
+    def channel_blocks(self, block: Callable[[Affine, int, int], tuple[Stmt, ...]]) -> tuple[Stmt, ...]:
+        """block(block number, GEMM width, output channels stored) for every block of
+        self.block channels of the GEMMs' width, the whole ones in one loop (serial: they share M),
+        then the rest; of a padded GEMM (one block) only the channels below c_out are stored."""
+        size, width, out = self.block, self.width, []
+        whole, rest = divmod(width, size)
+        if whole > 1:
+            out.append(Loop(BLOCK, whole, block(Affine.of(BLOCK), size, size)))
+        elif whole == 1:
+            out.extend(block(Affine(), size, min(size, self.c_out)))
+        if rest:
+            out.extend(block(Affine.of(whole), rest, rest))
+        return tuple(out)
 
 
 class _Layer(WinogradNests):
@@ -308,15 +347,33 @@ class TileAt:
 def scratch_bytes(graph: Graph, node: Node) -> int:
     """The bytes of a Winograd layer's two scratch buffers run whole, in chunks of its op's
     WHOLE_CHUNKS (what the band planner counts)."""
-    return sum(_scratch_sizes(graph, node, chunk_tiles(graph.shape(node.outputs[0])[2:], WHOLE_CHUNKS[node.op])[1]))
+    return sum(_scratch_sizes(graph, node, WHOLE_CHUNKS[node.op]))
 
 
-def _scratch_sizes(graph: Graph, node: Node, tiles: int) -> tuple[int, int]:
-    """The bytes of V and M for `tiles` tiles, each in its SCRATCH_DTYPES type."""
+def _scratch_sizes(graph: Graph, node: Node, chunking: Chunking) -> tuple[int, int]:
+    """The bytes of V and M of a chunk of `chunking`, each in its SCRATCH_DTYPES type."""
     c_out, c_in = graph.shape(node.inputs[1])[:2]
     width = max(c_out, node.attrs.gemm_channels) if isinstance(node.attrs, ConvAttrs) else c_out
+    tiles = chunk_tiles(graph.shape(node.outputs[0])[2:], chunking)[1]
     v, m = SCRATCH_DTYPES[node.op]
-    return PATCH * PATCH * tiles * c_in * v.bytes, PATCH * PATCH * tiles * width * m.bytes
+    return PATCH * PATCH * tiles * c_in * v.bytes, PATCH * PATCH * tiles * block_width(width, c_out, chunking) * m.bytes
+
+
+def blocked_filters(u: np.ndarray, block: int) -> np.ndarray:
+    """U[e][ci][co] as U[b][e][ci][c] (co = b * block + c; the last block padded with zeros) where
+    `block` cuts its output channels in blocks, so a block's GEMMs read whole cache lines of it."""
+    e, c_in, c_out = u.shape
+    if block >= c_out:
+        return u
+    count = -(-c_out // block)
+    padded = np.pad(u, ((0, 0), (0, 0), (0, count * block - c_out)))
+    return np.ascontiguousarray(padded.reshape(e, c_in, count, block).transpose(2, 0, 1, 3))
+
+
+def block_width(width: int, c_out: int, chunking: Chunking) -> int:
+    """The output channels that M holds at a time (Chunking.channels) of a GEMM of `width` channels,
+    all of them where width pads c_out (float's gemm_channels)."""
+    return min(chunking.channels, width) if chunking.channels and width == c_out else width
 
 
 def tile_count(size: int) -> int:
@@ -339,7 +396,7 @@ def band_scratch_bytes(graph: Graph, nodes: list[Node]) -> int:
     (a float layer's and an integer one's are apart: scratch_buffer), the largest."""
     largest: dict[tuple[int, DType], int] = {}
     for node in nodes:
-        sizes = _scratch_sizes(graph, node, chunk_tiles(graph.shape(node.outputs[0])[2:], BAND_CHUNKS[node.op])[1])
+        sizes = _scratch_sizes(graph, node, BAND_CHUNKS[node.op])
         for key, size in zip(enumerate(SCRATCH_DTYPES[node.op]), sizes):
             largest[key] = max(largest.get(key, 0), size)
     return sum(largest.values())

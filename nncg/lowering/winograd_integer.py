@@ -28,8 +28,11 @@ from .winograd import (
     BAND_CHUNKS,
     PATCH,
     SCRATCH_DTYPES,
+    WHOLE_CHUNKS,
     Chunking,
     WinogradNests,
+    block_width,
+    blocked_filters,
     emit_band,
     emit_layer,
     scratch_buffer,
@@ -75,7 +78,9 @@ class _IntegerLayer(WinogradNests):
     def __init__(self, ctx: LoweringContext, node: Node, chunking: Chunking | None = None, shared: dict | None = None):
         attrs: QConvAttrs = node.attrs
         c_out = ctx.graph.shape(node.inputs[1])[0]
-        self.u = ctx.add_constant(f"u_{node.name}", integer_filters(ctx.graph.constants[node.inputs[1]]))
+        block = block_width(c_out, c_out, chunking or WHOLE_CHUNKS[node.op])
+        filters = blocked_filters(integer_filters(ctx.graph.constants[node.inputs[1]]), block)
+        self.u = ctx.add_constant(f"u_{node.name}", filters)
         bias = ctx.graph.constants[node.inputs[2]].astype(np.int64) * SCALE
         self.bias = ctx.add_constant(f"b_{node.name}", bias.astype(np.int32))
         multipliers = np.asarray(ctx.graph.constants[node.inputs[3]], np.float32) / np.float32(SCALE)
