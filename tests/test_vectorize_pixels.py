@@ -241,10 +241,17 @@ def test_stems_loop_planes_outside_the_row_taps_on_fma_targets():
     assert planes_outside(stem, nncg.get_target("avx2")) == [True]
     assert planes_outside(stem, nncg.get_target("ssse3")) == [False]  # slower there (see the cost model)
     assert planes_outside(stem, target()) == [False]
-    one_plane = conv_model((1, 1, 9, 9), 16, (3, 3), strides=[2, 2])
-    assert planes_outside(one_plane, nncg.get_target("avx512")) == [False]
-    chain = two_convs((1, 2, 5, 21), 4, 3)  # the second Conv reads a channels-last tensor
-    assert planes_outside(chain, nncg.get_target("avx512")) == [True, False]
+    avx512 = nncg.get_target("avx512")
+    assert planes_outside(conv_model((1, 1, 9, 9), 16, (3, 3), strides=[2, 2]), avx512) == [False]  # one plane
+    assert planes_outside(conv_model((1, 3, 9, 9), 16, (3, 3)), avx512) == [False]  # stride 1
+    assert planes_outside(conv_model((1, 3, 9, 9), 8, (3, 3), strides=[2, 2]), avx512) == [False]  # half a vector
+    chain = [
+        helper.make_node("Conv", ["x", "w1"], ["a"], strides=[2, 2]),
+        helper.make_node("Conv", ["a", "w2"], ["y"], strides=[2, 2]),
+    ]
+    inits = {"w1": weights(16, 3, 3, 3), "w2": weights(16, 16, 3, 3)}
+    channels_last = onnx_model(chain, inputs={"x": (1, 3, 13, 13)}, initializers=inits)
+    assert planes_outside(channels_last, avx512) == [True, False]  # the second reads a channels-last tensor
 
 
 def test_the_plane_loop_wraps_the_row_taps():
@@ -261,7 +268,9 @@ def forced_planes_outside(monkeypatch):
     monkeypatch.setattr(
         module,
         "planes_outside_row_pays",
-        lambda graph, node, planar, facts: chosen(graph, node, planar, dataclass_replace(facts, fma=True)),
+        lambda graph, node, planar, facts: chosen(
+            graph, node, planar, dataclass_replace(facts, fma=True, vector_widths=facts.vector_widths or (1,))
+        ),
     )
 
 

@@ -14,8 +14,8 @@ then reads it element by element, and pays for the layer's gain. The cost model 
 axis where the gain is large (see chosen_by_cost_model); `layers` overrides it per layer, and
 `--tune` decides by timing the whole model, consumers included.
 
-A Conv that reads a planar tensor but keeps the channel axis (a stem: stride 2, or many output
-channels) gets `planes_outside_row` where it pays (see planes_outside_row_pays): its reduction
+A Conv that reads a planar tensor but keeps the channel axis (a stem: stride 2, 3 input channels)
+gets `planes_outside_row` where it pays (see planes_outside_row_pays): its reduction
 loops over the input channels outside the taps along a row, so the innermost loop walks a plane's
 row rather than 3 planes. Inside, with the few input channels unrolled, the row-tap loop was
 innermost and its pixels' taps overlap (stride 2, 3 taps): gcc -O3 carries the overlapping input
@@ -94,21 +94,26 @@ def pixel_axis_applies(graph: Graph, node: Node, planar: set[str]) -> bool:
 
 
 def planes_outside_row_pays(graph: Graph, node: Node, planar: set[str], target: Target) -> bool:
-    """A direct Conv on the channel axis reading a planar tensor, with input channels to loop over and
-    taps along a row, on an FMA target. Measured on 3x3 stride-2 stems (3 -> 16..64 channels, 96x96,
-    loaded, interleaved A/B): avx512 0.87-0.93x the time for 24-64 channels, avx2 0.85x for 16, the
-    others unchanged; ssse3 (no FMA, 16 registers) was 1.25x slower on 3 -> 32, where gcc then
-    hoists and spills the weights instead."""
+    """A direct Conv on the channel axis reading a planar tensor, with input channels to loop over,
+    taps along a row, a row stride above 1 and at least a widest vector of output channels, on an FMA
+    target. Measured on 3x3 stride-2 stems (3 -> 16..64 channels, 96x96, loaded, interleaved A/B):
+    avx512 0.87-0.93x the time for 24-64 channels, avx2 0.85x for 16, the others unchanged. Left out
+    where it measured slower: ssse3 (no FMA, 16 registers; 1.25x on 3 -> 32, gcc then hoists and
+    spills the weights), mobilenet_v1_025's 3 -> 8 stem on avx512 (1.09x the model: 24 pixels x one
+    8-lane vector keep the row-tap loop, which overlaps again) and stride 1 (resnet8's 3 -> 16, 1.01-1.04x
+    on avx512)."""
     attrs = node.attrs
+    if not (target.fma and target.vector_widths and node.op == "Conv" and isinstance(attrs, ConvAttrs)):
+        return False
+    c_out, c_in = graph.shape(node.inputs[1])[:2]
     return (
-        target.fma
-        and node.op == "Conv"
-        and isinstance(attrs, ConvAttrs)
-        and attrs.algorithm == ConvAlgorithm.DIRECT
+        attrs.algorithm == ConvAlgorithm.DIRECT
         and attrs.vector_axis == VectorAxis.CHANNELS
         and node.inputs[0] in planar
-        and graph.shape(node.inputs[1])[1] > 1
+        and c_in > 1
         and attrs.kernel[-1] > 1
+        and attrs.strides[-1] > 1
+        and c_out // attrs.group >= max(target.vector_widths)
     )
 
 
