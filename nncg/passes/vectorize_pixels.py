@@ -19,7 +19,8 @@ gets `planes_outside_row` where it pays (see planes_outside_row_pays): its reduc
 loops over the input channels outside the taps along a row, so the innermost loop walks a plane's
 row rather than 3 planes. Inside, with the few input channels unrolled, the row-tap loop was
 innermost and its pixels' taps overlap (stride 2, 3 taps): gcc -O3 carries the overlapping input
-values from one tap to the next (predictive commoning) and spills the register block for it."""
+values from one tap to the next (predictive commoning) and spills the register block for it
+(avx512 mobilenet_v2-shaped stem: 20 accumulators, 18 carried scalars stored to the stack)."""
 
 from __future__ import annotations
 
@@ -96,14 +97,16 @@ def pixel_axis_applies(graph: Graph, node: Node, planar: set[str]) -> bool:
 def planes_outside_row_pays(graph: Graph, node: Node, planar: set[str], target: Target) -> bool:
     """A direct Conv on the channel axis reading a planar tensor, with input channels to loop over,
     taps along a row, a row stride above 1 and at least a widest vector of output channels, on an FMA
-    target. Measured on 3x3 stride-2 stems (3 -> 16..64 channels, 96x96, loaded, interleaved A/B):
-    avx512 0.87-0.93x the time for 24-64 channels, avx2 0.85x for 16, the others unchanged. Left out
-    where it measured slower: ssse3 (no FMA, 16 registers; 1.25x on 3 -> 32, gcc then hoists and
-    spills the weights), mobilenet_v1_025's 3 -> 8 stem on avx512 (1.09x the model: 24 pixels x one
-    8-lane vector keep the row-tap loop, which overlaps again) and stride 1 (resnet8's 3 -> 16, 1.01-1.04x
-    on avx512)."""
+    target with 32 registers (register blocks of 20+ accumulators, which the commoning spills).
+    Measured on avx512 (loaded, --profile --cpu-time and interleaved A/B): squeezenet1_1's 3 -> 64
+    stem 0.80-0.90x the time, 3x3 stride-2 stems alone 0.87-0.93x for 24-64 channels; mobilenet_v2's
+    and mnasnet0_5's unchanged in the model. Left out where it measured slower: avx2 (16 registers;
+    mobilenet_v2's stem 1.08-1.13x in the model), ssse3 (1.25x on 3 -> 32: gcc then hoists and spills
+    the weights), mobilenet_v1_025's 3 -> 8 stem on avx512 (1.09x the model: 24 pixels x one 8-lane
+    vector keep the row-tap loop, which overlaps again) and stride 1 (resnet8's 3 -> 16, 1.01-1.04x)."""
     attrs = node.attrs
-    if not (target.fma and target.vector_widths and node.op == "Conv" and isinstance(attrs, ConvAttrs)):
+    wide = target.fma and target.registers >= 32 and target.vector_widths
+    if not (wide and node.op == "Conv" and isinstance(attrs, ConvAttrs)):
         return False
     c_out, c_in = graph.shape(node.inputs[1])[:2]
     return (
