@@ -1,6 +1,9 @@
 """Vectorising over output pixels: the pass's choices and errors, the planar layer's loop nest, and
 every padding, stride, group, batch and consumer case against onnxruntime on every x86 target."""
 
+import importlib
+from dataclasses import replace as dataclass_replace
+
 import pytest
 from helpers import check_against_onnxruntime, onnx_model, target, weights
 from onnx import helper
@@ -218,3 +221,74 @@ def test_a_channels_last_consumer_of_a_planar_tensor_jams_channels_only():
         planar = planar_tensors(program)
         strided = {k.name: reads_across_planes(k.body, planar) for k in program.kernels if k.name in expected}
         assert strided == expected
+
+
+# ---------------------------------------------------------------------------- stems: planes outside the row taps
+
+STEMS = {
+    "3x3_s2_pad1": conv_model((1, 3, 23, 29), 20, (3, 3), pads=[1, 1, 1, 1], strides=[2, 2]),
+    "7x7_s2_pad3": conv_model((1, 3, 21, 27), 24, (7, 7), pads=[3, 3, 3, 3], strides=[2, 2]),
+}
+
+
+def planes_outside(m, facts) -> list[bool]:
+    return [n.attrs.planes_outside_row for n in graph_after(m, "vectorize-pixels", facts).nodes]
+
+
+def test_stems_loop_planes_outside_the_row_taps_on_avx512():
+    stem = STEMS["3x3_s2_pad1"]
+    assert planes_outside(stem, nncg.get_target("avx512")) == [True]
+    assert planes_outside(stem, nncg.get_target("avx2")) == [False]  # slower there (see the cost model)
+    assert planes_outside(stem, nncg.get_target("ssse3")) == [False]
+    assert planes_outside(stem, target()) == [False]
+    avx512 = nncg.get_target("avx512")
+    assert planes_outside(conv_model((1, 1, 9, 9), 16, (3, 3), strides=[2, 2]), avx512) == [False]  # one plane
+    assert planes_outside(conv_model((1, 3, 9, 9), 16, (3, 3)), avx512) == [False]  # stride 1
+    assert planes_outside(conv_model((1, 3, 9, 9), 8, (3, 3), strides=[2, 2]), avx512) == [False]  # half a vector
+    chain = [
+        helper.make_node("Conv", ["x", "w1"], ["a"], strides=[2, 2]),
+        helper.make_node("Conv", ["a", "w2"], ["y"], strides=[2, 2]),
+    ]
+    inits = {"w1": weights(16, 3, 3, 3), "w2": weights(16, 16, 3, 3)}
+    channels_last = onnx_model(chain, inputs={"x": (1, 3, 13, 13)}, initializers=inits)
+    assert planes_outside(channels_last, avx512) == [True, False]  # the second reads a channels-last tensor
+
+
+def test_the_plane_loop_wraps_the_row_taps():
+    compiled = nncg.compile(STEMS["3x3_s2_pad1"], "avx512", unroll=None)
+    nest = [s for k in compiled.record.before_register_block.kernels for s in walk_stmts(k.body) if isinstance(s, Loop)]
+    row_taps = [s for s in nest if s.var == "kw"]
+    assert row_taps and all(any(s.var == "ci" and t in s.body for s in nest) for t in row_taps)
+
+
+def forced_planes_outside(monkeypatch):
+    """The cost model taking planes outside the row taps on any target (ansi-c, ssse3, avx2 too)."""
+    module = importlib.import_module("nncg.passes.vectorize_pixels")
+    chosen = module.planes_outside_row_pays
+    monkeypatch.setattr(
+        module,
+        "planes_outside_row_pays",
+        lambda graph, node, planar, facts: chosen(
+            graph,
+            node,
+            planar,
+            dataclass_replace(facts, fma=True, registers=32, vector_widths=facts.vector_widths or (1,)),
+        ),
+    )
+
+
+@pytest.mark.parametrize("case", STEMS)
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", *TARGETS])
+def test_stems_match_onnxruntime(case, target, monkeypatch):
+    forced_planes_outside(monkeypatch)
+    compiled = nncg.compile(STEMS[case], target, pipeline=pipeline(target), verify_ir=True)
+    check_against_onnxruntime(STEMS[case], compiled)
+
+
+@pytest.mark.parametrize("target", ["ssse3", "avx512"])
+def test_cache_blocked_stem_matches_onnxruntime(target, monkeypatch):
+    forced_planes_outside(monkeypatch)
+    stem = STEMS["7x7_s2_pad3"]
+    blocked = with_layer_choices(pipeline(target), {"cache-block": {"Conv_0": "16x3"}})
+    compiled = nncg.compile(stem, target, pipeline=blocked, verify_ir=True)
+    check_against_onnxruntime(stem, compiled)

@@ -76,6 +76,9 @@ class ConvAttrs:
     algorithm: ConvAlgorithm = ConvAlgorithm.DIRECT  # set by the winograd pass
     gemm_channels: int = 0  # Winograd: output channels padded to this many in its GEMMs (0: not padded)
     vector_axis: VectorAxis = VectorAxis.CHANNELS  # set by the vectorize-pixels pass, read by the lowering
+    # Set by the vectorize-pixels pass for a planar input: the reduction loops over the input channels
+    # (planes) outside the taps along a row instead of inside them.
+    planes_outside_row: bool = False
     # Set by the cache-block pass: weights packed in panels of `panel` output channels, the reduction
     # done `ci_block` input channels at a time (0: not blocked / all input channels at once).
     panel: int = 0

@@ -4,7 +4,9 @@ layer the vectorize-pixels pass marked, a planar (NCHW) output with its rows inn
 Weights are read as [k_1..k_d][c_in/group][c_out], packed in that order when constant (a runtime
 weight is read in place through a strided view, see weights.py). With groups, output channel
 g*C_out_g + co reads input channels g*C_in_g + ci; a depthwise conv has one channel per group, so
-the group loop is the contiguous one and vectorises. A fused residual is added at the store."""
+the group loop is the contiguous one and vectorises. A fused residual is added at the store. With
+`planes_outside_row` (a planar input), the input-channel loop wraps the taps along a row instead of
+sitting inside them (see passes/vectorize_pixels.py)."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef,
 from .activation import apply_activation
 from .context import LoweringContext, channels_last, nest, row_major
 from .weights import permuted, weight_operand
-from .window import spatial_names, window_nest
+from .window import around_row_taps, spatial_names, window_nest
 
 
 def conv_extras(node: Node) -> tuple[str | None, str | None]:
@@ -39,6 +41,8 @@ def lower_conv(ctx: LoweringContext, node: Node) -> None:
     names = spatial_names(rank)
     out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]
 
+    planes_outside = attrs.planes_outside_row and c_in > 1
+
     def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
         n, co = env["n"], env["g"] * c_out_g + env["co"]
         ci = Affine.of("ci") if c_in > 1 else Affine()
@@ -48,10 +52,12 @@ def lower_conv(ctx: LoweringContext, node: Node) -> None:
             x_load = Load(x.buffer, x.at([n, ci_global, *positions]))
             product = Binary("*", x_load, Load(w.buffer, w.at([*k_vars, ci, co])))
             update: tuple[Stmt, ...] = (Assign("acc", Binary("+", LocalRef("acc"), product)),)
-            return (Loop("ci", c_in, update),) if c_in > 1 else update
+            return (Loop("ci", c_in, update),) if c_in > 1 and not planes_outside else update
 
         init = Load(bias.buffer, bias.at([co])) if bias else Const.splat(0.0)
         window = window_nest(attrs, env, dict(out_loops), x.spatial_ranges, tap)
+        if planes_outside:
+            window = around_row_taps(window, rank, ("ci", c_in))
         index = [n, co, *(env["o" + s] for s in names)]
         value: Expr = LocalRef("acc")
         if residual:

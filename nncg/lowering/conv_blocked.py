@@ -28,7 +28,7 @@ from .activation import apply_activation
 from .context import LoweringContext, TensorRef, channels_last, nest
 from .conv import conv_extras
 from .weights import by_panels, weight_operand
-from .window import spatial_names, window_nest
+from .window import around_row_taps, spatial_names, window_nest
 
 
 class _Operands(NamedTuple):
@@ -135,6 +135,7 @@ def _pixel_nest(
     names = spatial_names(len(attrs.kernel))
     out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]
     ci_block = attrs.ci_block
+    planes_outside = attrs.planes_outside_row and ci_block > 1
 
     def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
         n, co = env["n"], env["co"]
@@ -145,7 +146,7 @@ def _pixel_nest(
             x_load = Load(x.buffer, x.at([n, first_input + block * ci_block + ci, *positions]))
             product = Binary("*", x_load, Load(w.buffer, w.at([panel, block, *k_vars, ci, co])))
             update: tuple[Stmt, ...] = (Assign("acc", Binary("+", LocalRef("acc"), product)),)
-            return (Loop("ci", ci_block, update),) if ci_block > 1 else update
+            return (Loop("ci", ci_block, update),) if ci_block > 1 and not planes_outside else update
 
         index = [n, channel, *(env["o" + s] for s in names)]
         if not first:
@@ -158,6 +159,8 @@ def _pixel_nest(
         if last:
             value = apply_activation(value, attrs.activation)
         window = window_nest(attrs, env, dict(out_loops), x.spatial_ranges, tap)
+        if planes_outside:
+            window = around_row_taps(window, len(names), ("ci", ci_block))
         return (Let("acc", init, (*window, Store(out.buffer, out.at(index), value))),)
 
     return nest([("n", out.shape[0]), *out_loops, ("co", width)], body, parallel=True)

@@ -4,6 +4,7 @@ the input position each tap reads, and the border checks that padding needs."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 from ..ir.loops import Affine, Bound, If, Loop, Stmt
 
@@ -99,3 +100,17 @@ def guarded_taps(
         if extent > 1:
             stmts = (Loop(var, extent, stmts),)
     return stmts
+
+
+def around_row_taps(stmts: tuple[Stmt, ...], rank: int, loop: tuple[str, int]) -> tuple[Stmt, ...]:
+    """stmts with `loop` (var, extent) wrapped around the taps along a row (the last spatial dim's
+    tap loop of a window_nest)."""
+    row_taps = "k" + spatial_names(rank)[-1]
+    out: list[Stmt] = []
+    for stmt in stmts:
+        if isinstance(stmt, Loop) and stmt.var == row_taps:
+            stmt = Loop(*loop, (stmt,))
+        elif isinstance(stmt, Loop | If):
+            stmt = replace(stmt, body=around_row_taps(stmt.body, rank, loop))
+        out.append(stmt)
+    return tuple(out)
