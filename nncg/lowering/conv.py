@@ -44,10 +44,17 @@ def lower_conv(ctx: LoweringContext, node: Node, channels_outermost: bool = Fals
     groups, rank = attrs.group, len(attrs.kernel)
     c_out, c_in = ctx.graph.shape(node.inputs[1])[:2]  # [c_out, c_in/group, k_1..k_d]
     c_out_g = c_out // groups
+    pixels = attrs.vector_axis == VectorAxis.PIXELS
+    in_blocks = channels_outermost and not pixels and c_in == c_out_g == 1
+    # the weights are packed block by block below; otherwise in tap order, before the bias
+    w = (
+        None
+        if in_blocks
+        else weight_operand(ctx, node.inputs[1], f"w_{node.name}", lambda r: permuted(r, (*range(2, rank + 2), 1, 0)))
+    )
     bias_name, residual_name = conv_extras(node)
     bias = weight_operand(ctx, bias_name, f"b_{node.name}") if bias_name else None
     residual = ctx.ref(residual_name) if residual_name else None
-    pixels = attrs.vector_axis == VectorAxis.PIXELS
     out = ctx.output(node.outputs[0], row_major(rank + 2) if pixels else channels_last(rank + 2))
     names = spatial_names(rank)
     out_loops = [("o" + s, out.shape[2 + i]) for i, s in enumerate(names)]
@@ -72,7 +79,7 @@ def lower_conv(ctx: LoweringContext, node: Node, channels_outermost: bool = Fals
         store = Store(out.buffer, out.at(index), apply_activation(value, attrs.activation))
         return (Let("acc", init, (*window, store)),)
 
-    if channels_outermost and not pixels and c_in == c_out_g == 1:
+    if in_blocks:
         weights = ctx.graph.constants[node.inputs[1]]
 
         def pack(start: int, stop: int, panels: int) -> np.ndarray:
@@ -89,7 +96,6 @@ def lower_conv(ctx: LoweringContext, node: Node, channels_outermost: bool = Fals
 
         ctx.emit(node.name, "Conv", by_panels(ctx, f"w_{node.name}", groups, DEPTHWISE_CHANNEL_BLOCK, pack, nests))
         return
-    w = weight_operand(ctx, node.inputs[1], f"w_{node.name}", lambda r: permuted(r, (*range(2, rank + 2), 1, 0)))
     channel_loops = [("g", groups), ("co", c_out_g)]
     if pixels:  # the output row innermost, contiguous in the planar output: vectorize takes it
         loops = [("n", out.shape[0]), *out_loops[:-1], *channel_loops, out_loops[-1]]
@@ -97,6 +103,7 @@ def lower_conv(ctx: LoweringContext, node: Node, channels_outermost: bool = Fals
         loops = [("n", out.shape[0]), *out_loops, *channel_loops]
 
     def unpacked(k_vars: list[Affine], ci: Affine, co: Affine) -> Expr:
+        assert w is not None
         return Load(w.buffer, w.at([*k_vars, ci, co]))
 
     ctx.emit(node.name, "Conv", nest(loops, lambda env: body(env, unpacked), parallel=True))
