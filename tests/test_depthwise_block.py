@@ -10,14 +10,14 @@ import nncg
 from nncg.passes.register_block import choose_blocks, chosen_blocks
 
 
-def pointwise_then_depthwise(channels: int, size: int, stride: int, residual: bool = False):
+def pointwise_then_depthwise(channels: int, size: int, stride: int, residual: bool = False, kernel: int = 3):
     """A 1x1 Conv (so the depthwise Conv reads a channels-last tensor, as in mobilenet_v2), then a 3x3
     depthwise Conv with Relu6; with `residual`, a dense 3x3 Conv adding the 1x1 Conv's output instead."""
     group = 1 if residual else channels
     nodes = [
         helper.make_node("Conv", ["x", "w0"], ["p"], name="pointwise"),
         helper.make_node(
-            "Conv", ["p", "w1", "b1"], ["c"], name="conv", group=group, pads=[1, 1, 1, 1], strides=[stride, stride]
+            "Conv", ["p", "w1", "b1"], ["c"], name="conv", group=group, pads=[kernel // 2] * 4, strides=[stride, stride]
         ),  # fmt: skip
     ]
     if residual:
@@ -25,7 +25,7 @@ def pointwise_then_depthwise(channels: int, size: int, stride: int, residual: bo
     nodes.append(helper.make_node("Clip", ["s" if residual else "c", "lo", "hi"], ["y"], name="relu6"))
     inits = {
         "w0": weights(channels, 8, 1, 1),
-        "w1": weights(channels, channels // group, 3, 3),
+        "w1": weights(channels, channels // group, kernel, kernel),
         "b1": weights(channels),
         "lo": np.array(0.0, np.float32),
         "hi": np.array(6.0, np.float32),
@@ -59,4 +59,22 @@ def test_depthwise_conv_is_recognised_from_its_loop_nest():
 def test_depthwise_blocks_match_onnxruntime(target, channels, size, stride):
     # 144 = 9 vectors of 16 (two 3x4 blocks and one more vector), 72 = 4 of 16 and one of 8, 80 = 5 of 16
     m = pointwise_then_depthwise(channels, size, stride)
+    check_against_onnxruntime(m, nncg.compile(m, target=target), opt="-O1")
+
+
+def test_depthwise_weights_past_l1_put_channel_blocks_outermost():
+    # 360 5x5 filters are 36 KB, past the x86 targets' 32 KiB L1; 240 of them (24 KB) stay in it; ansi-c
+    # knows no L1 size
+    big, small = (nncg.compile(pointwise_then_depthwise(c, 7, 1, kernel=5), target="avx512") for c in (360, 240))
+    assert "for (p = 0; p < 5; ++p)" in big.source  # 5 blocks of 64 channels, then the 40 left
+    assert "w_conv_rest[" in big.source and "w_conv_rest" not in small.source
+    assert "w_conv_rest" not in nncg.compile(pointwise_then_depthwise(360, 7, 1, kernel=5), target="ansi-c").source
+
+
+@pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2", "avx512"])
+@pytest.mark.parametrize("channels, size, kernel, stride", [(360, 7, 5, 1), (1000, 5, 3, 2)])
+def test_channel_blocks_outermost_match_onnxruntime(target, channels, size, kernel, stride):
+    # 360 = 5 blocks of 64 and 40 (2 vectors of 16 and one of 8 on avx512), 1000 = 15 of 64 and 40; on
+    # 7x7 pixels and 3x3 (stride 2) every or almost every pixel reads the zero padding
+    m = pointwise_then_depthwise(channels, size, stride, kernel=kernel)
     check_against_onnxruntime(m, nncg.compile(m, target=target), opt="-O1")
