@@ -90,9 +90,11 @@ def integer_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     direct as float's. The whole model at speed 0.74x on ssse3 (7.34M -> 5.46M), 0.69x on avx2; its
     scratch, one tile at a time along each tile row (winograd.WHOLE_CHUNKS; a whole tile row before
     took speed's arena from 48 to 72 KB), takes it to 49.5 KB, and the model to 0.89x the Ir of
-    whole-row chunks on avx2 (clang), 0.94x on ssse3 (gcc); 4-tile chunks 0.95x, 1.02x. Not on scalar C: 2.6x fewer
-    instructions, but scalar C is the microcontroller target, where RAM is what int8 is for (`layers`
-    forces it); nor on the AVX-512 targets (no int16 templates) or neon: unmeasured. Nor on fewer than
+    whole-row chunks on avx2 (clang), 0.94x on ssse3 (gcc); 4-tile chunks 0.95x, 1.02x. In time, whole rows
+    ran ~8 % faster on resnet8 avx2 (longer chunks block tiles per weight load; idle, side by side), on ssse3 and
+    pedestrian 1-tile chunks as fast or faster: the 1-tile chunks trade that for 24 KB of arena. Not on
+    scalar C: 2.6x fewer instructions, but scalar C is the microcontroller target, where RAM is what int8
+    is for (`layers` forces it); nor on the AVX-512 targets (no int16 templates) or neon: unmeasured. Nor on fewer than
     MIN_INTEGER_TILES tiles: ball's conv2 (8 -> 12 channels, one tile) saved 0.5 % of the model's Ir on
     ssse3 while its scratch took the arena from 768 to 1,216 B; pedestrian's conv3 (10 tiles) saved 24 %
     of it (960K -> 727K Ir); between the two, unmeasured."""
