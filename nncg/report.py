@@ -186,6 +186,8 @@ def _graph_choices(attrs) -> list[str]:
             choices.append(f"cache-blocked: panels of {attrs.panel} output channels{block}")
         else:
             choices.append("direct")
+        if attrs.channel_block:
+            choices.append(f"depthwise in channel blocks of {attrs.channel_block}")
         if attrs.vector_axis == VectorAxis.PIXELS:
             choices.append("vectorised over pixels")
         if attrs.residual:

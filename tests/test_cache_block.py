@@ -57,8 +57,12 @@ def test_layer_choices_override_and_are_checked():
     with pytest.raises(NncgError, match="a panel of 32 is more than its 16 channels"):
         graph_after(small, "cache-block{layers=Conv_0:32x2}")
     depthwise = conv_model((1, 8, 6, 6), 8, (3, 3), group=8)
-    with pytest.raises(NncgError, match="neither a direct, not depthwise Conv"):
+    assert graph_after(depthwise, "cache-block{layers=Conv_0:4}").nodes[0].attrs.channel_block == 4
+    with pytest.raises(NncgError, match="a depthwise Conv: give its channel block alone"):
         graph_after(depthwise, "cache-block{layers=Conv_0:8x1}")
+    with pytest.raises(NncgError, match="neither a direct Conv"):
+        pixels = "vectorize-pixels{layers=Conv_0:true},cache-block{layers=Conv_0:8}"
+        graph_after(conv_model((1, 8, 6, 6), 8, (3, 3)), pixels)
     grouped = conv_model((1, 8, 6, 6), 16, (3, 3), group=2)  # 8 output channels from 4 inputs a group
     assert graph_after(grouped, "cache-block{layers=Conv_0:8x2}").nodes[0].attrs.ci_block == 2
     with pytest.raises(NncgError, match="a grouped Conv's panel is its group, 8"):

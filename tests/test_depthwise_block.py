@@ -8,6 +8,7 @@ from onnx import helper
 
 import nncg
 from nncg.passes.register_block import choose_blocks, chosen_blocks
+from nncg.report import layer_rows
 
 
 def pointwise_then_depthwise(channels: int, size: int, stride: int, residual: bool = False, kernel: int = 3):
@@ -69,6 +70,19 @@ def test_depthwise_weights_past_l1_put_channel_blocks_outermost():
     assert "for (p = 0; p < 5; ++p)" in big.source  # 5 blocks of 64 channels, then the 40 left
     assert "w_conv_rest[" in big.source and "w_conv_rest" not in small.source
     assert "w_conv_rest" not in nncg.compile(pointwise_then_depthwise(360, 7, 1, kernel=5), target="ansi-c").source
+
+
+def test_cache_block_pass_marks_depthwise_channel_blocks_and_layers_override_them():
+    # the pass's choice is a ConvAttrs field: the report says it, and `layers` sets or removes it
+    m = pointwise_then_depthwise(360, 7, 1, kernel=5)
+    compiled = nncg.compile(m, target="avx2")
+    (row,) = (row for row in layer_rows(compiled) if row.name == "conv")
+    assert "depthwise in channel blocks of 64" in row.choices
+    pipeline = compiled.pipeline.replace("cache-block", "cache-block{layers=conv:off}")
+    assert "w_conv_rest" not in nncg.compile(m, target="avx2", pipeline=pipeline).source
+    blocks_of_32 = nncg.compile(m, target="avx2", pipeline=pipeline.replace("conv:off", "conv:32"))
+    assert "for (p = 0; p < 11; ++p)" in blocks_of_32.source  # 11 blocks of 32 channels, then the 8 left
+    check_against_onnxruntime(m, blocks_of_32, opt="-O1")
 
 
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2", "avx512"])

@@ -54,6 +54,15 @@ def group_panels_apply(graph: Graph, node: Node) -> bool:
     )
 
 
+def depthwise_blocks_apply(graph: Graph, node: Node) -> bool:
+    """A direct depthwise Conv (one input and one output channel a group) vectorised over its channels,
+    with constant weights: computed a block of channels at a time outside its pixel loops."""
+    if not _direct_channel_conv(graph, node):
+        return False
+    c_out, c_in_g = graph.shape(node.inputs[1])[:2]
+    return c_in_g == 1 and node.attrs.group == c_out > 1
+
+
 def panel_packing_applies(graph: Graph, node: Node) -> bool:
     """A Gemm/MatMul whose w is one constant [K, N] matrix (x's rows may be any)."""
     attrs = node.attrs

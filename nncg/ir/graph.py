@@ -83,6 +83,9 @@ class ConvAttrs:
     # done `ci_block` input channels at a time (0: not blocked / all input channels at once).
     panel: int = 0
     ci_block: int = 0
+    # Set by the cache-block pass for a depthwise Conv: computed this many channels at a time outside its
+    # pixel loops, each block's weights packed together (0: channels innermost).
+    channel_block: int = 0
 
     def __post_init__(self) -> None:
         coerce(self, algorithm=ConvAlgorithm, vector_axis=VectorAxis)

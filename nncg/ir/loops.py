@@ -544,6 +544,16 @@ def walk_stmts(body: tuple[Stmt, ...]):
             yield from walk_stmts(stmt.body)
 
 
+def expr_dots(expr: Expr) -> list[Dot]:
+    """The dot products in expr, itself included."""
+    return [e for e in walk_exprs(expr) if isinstance(e, Dot)]
+
+
+def body_dots(body: tuple[Stmt, ...]) -> list[Dot]:
+    """The dot products the statements of body evaluate, nested statements included."""
+    return [dot for stmt in walk_stmts(body) for expr in stmt_exprs(stmt) for dot in expr_dots(expr)]
+
+
 def map_body(body: tuple[Stmt, ...], fn) -> tuple[Stmt, ...]:
     """Rebuilds statements bottom-up; fn(stmt) returns a replacement statement or a tuple of them."""
     out: list[Stmt] = []

@@ -16,7 +16,7 @@ from .band_plan import plan_layers
 from .bands import BandGroup
 from .concat import lower_concat
 from .context import LoweringContext, TensorRef, row_major
-from .conv import depthwise_weights_exceed_l1, lower_conv
+from .conv import lower_conv
 from .conv_blocked import lower_blocked_conv
 from .conv_transpose import lower_conv_transpose
 from .dense import lower_dense
@@ -69,7 +69,7 @@ def lower_any_conv(ctx: LoweringContext, node: Node) -> None:
     elif node.attrs.panel:
         lower_blocked_conv(ctx, node)
     else:
-        lower_conv(ctx, node, channels_outermost=depthwise_weights_exceed_l1(ctx, node))
+        lower_conv(ctx, node)
 
 
 def lower_any_qlinear_conv(ctx: LoweringContext, node: Node) -> None:
@@ -175,7 +175,7 @@ def lower(
     how the integer ops of an int8 model scale their results, `float` (onnxruntime's arithmetic) or
     `fixed` (integers only, see lowering/requantize.py)."""
     name = program_name(function_name or graph.name)
-    ctx = LoweringContext(graph, name, halos, requantize, target.l1_bytes if target else 0)
+    ctx = LoweringContext(graph, name, halos, requantize)
     plan = plan_layers(graph, memory, budget, target and target.name)
     groups = {group.nodes[0]: group for group in plan.groups}
     by_name = {node.name: node for node in graph.nodes}

@@ -223,7 +223,8 @@ def _band_step(
 def _largest_scratch(graph: Graph, nodes: list[Node]) -> tuple[str, ...]:
     """The Winograd layers of a group of bands whose band scratch is the largest (the group's)."""
     sizes = {node.name: band_scratch_bytes(graph, [node]) for node in nodes}
-    return tuple(name for name, size in sizes.items() if size == max(sizes.values()))
+    largest = max(sizes.values(), default=0)
+    return tuple(name for name, size in sizes.items() if size == largest)
 
 
 def _quantized_row(graph: Graph, node: Node) -> int:

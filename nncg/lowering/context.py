@@ -115,11 +115,8 @@ class LoweringContext:
     of their own (nncg/ir/c_names.py); a node's kernel keeps the node's name, which --tune and the
     per-layer pass parameters use as the layer's identity."""
 
-    def __init__(
-        self, graph: Graph, program: str, halos: bool | str = "auto", requantize: str = "float", l1_bytes: int = 0
-    ):
+    def __init__(self, graph: Graph, program: str, halos: bool | str = "auto", requantize: str = "float"):
         self.graph = graph
-        self.l1_bytes = l1_bytes  # the target's L1 data cache (0: unknown), for loop orders that keep weights in it
         self.program = program
         self.requantize = requantize  # the form of requantisation: float or fixed (lowering/requantize.py)
         self.buffers: list[Buffer] = []

@@ -10,22 +10,17 @@ sitting inside them (see passes/vectorize_pixels.py)."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
 
 from ..ir.graph import ConvAttrs, Node
-from ..ir.kinds import DType, VectorAxis
+from ..ir.kinds import VectorAxis
 from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
 from .activation import apply_activation
 from .context import LoweringContext, TensorRef, channels_last, nest, row_major
 from .weights import by_panels, permuted, weight_operand
 from .window import around_row_taps, spatial_names, window_nest
-
-# Channels a depthwise Conv computes over all its pixels at a time (depthwise_weights_exceed_l1): 4
-# vectors of 16, their 5x5 weights 6.4 KB.
-DEPTHWISE_CHANNEL_BLOCK = 64
 
 # The load of a weight at (tap variables, input channel, output channel).
 WeightLoad = Callable[[list[Affine], Affine, Affine], Expr]
@@ -38,16 +33,16 @@ def conv_extras(node: Node) -> tuple[str | None, str | None]:
     return (extras[0] if extras else None), residual
 
 
-def lower_conv(ctx: LoweringContext, node: Node, channels_outermost: bool = False) -> None:
-    """With `channels_outermost`, a depthwise Conv runs DEPTHWISE_CHANNEL_BLOCK channels at a time
-    outside its pixel loops, each block's weights packed together (see depthwise_weights_exceed_l1)."""
+def lower_conv(ctx: LoweringContext, node: Node) -> None:
+    """With `channel_block` (the cache-block pass chose it), a depthwise Conv runs that many channels at
+    a time outside its pixel loops, each block's weights packed together."""
     attrs: ConvAttrs = node.attrs
     x = ctx.ref(node.inputs[0])
     groups, rank = attrs.group, len(attrs.kernel)
     c_out, c_in = ctx.graph.shape(node.inputs[1])[:2]  # [c_out, c_in/group, k_1..k_d]
     c_out_g = c_out // groups
     pixels = attrs.vector_axis == VectorAxis.PIXELS
-    in_blocks = channels_outermost and not pixels and c_in == c_out_g == 1
+    in_blocks = attrs.channel_block > 0  # only ever set on a depthwise Conv over channels
     # the weights are packed block by block below; otherwise in tap order, before the bias
     w = (
         None
@@ -100,7 +95,7 @@ def lower_conv(ctx: LoweringContext, node: Node, channels_outermost: bool = Fals
 
             return nest([("n", out.shape[0]), *out_loops, ("g", width), ("co", 1)], in_block, parallel=True)
 
-        ctx.emit(node.name, "Conv", by_panels(ctx, f"w_{node.name}", groups, DEPTHWISE_CHANNEL_BLOCK, pack, nests))
+        ctx.emit(node.name, "Conv", by_panels(ctx, f"w_{node.name}", groups, attrs.channel_block, pack, nests))
         return
     channel_loops = [("g", groups), ("co", c_out_g)]
     if pixels:  # the output row innermost, contiguous in the planar output: vectorize takes it
@@ -113,16 +108,3 @@ def lower_conv(ctx: LoweringContext, node: Node, channels_outermost: bool = Fals
         return Load(w.buffer, w.at([*k_vars, ci, co]))
 
     ctx.emit(node.name, "Conv", nest(loops, lambda env: body(env, unpacked), parallel=True))
-
-
-def depthwise_weights_exceed_l1(ctx: LoweringContext, node: Node) -> bool:
-    """Whether a (constant) depthwise Conv's weights pass the target's L1, so lower_conv runs it a
-    block of channels at a time: a block's weights, packed together, stay in L1 while it sweeps every
-    pixel, where channels innermost read all the layer's weights again at each pixel (from L2 once
-    they pass L1: efficientnet_b0's 1152-channel 5x5 layers on 3x3 pixels, 115 KB, ran 1.9x slower on
-    avx512 alone, loaded); packed, the block's weights stream from memory in one run. Where
-    they fit, channels innermost were as fast or faster (a 96-channel stride-2 3x3 layer on 48x48
-    pixels: 1.1x-1.2x slower with channel blocks outermost on avx2 and avx512, loaded)."""
-    c_out, c_in_g, *kernel = ctx.graph.shape(node.inputs[1])
-    depthwise = c_in_g == 1 and node.attrs.group == c_out > 1 and ctx.graph.is_constant(node.inputs[1])
-    return depthwise and 0 < ctx.l1_bytes < DType.FLOAT32.bytes * c_out * math.prod(kernel)

@@ -127,6 +127,8 @@ class WinogradNests(ABC):
     scratch holds a chunk of `chunking`, by default (None) the op's when run whole (WHOLE_CHUNKS)."""
 
     zero: Const = FLOAT_ZERO
+    # U held as U[b][e][ci][c], in blocks of self.block output channels (blocked_filters), not U[e][ci][co]
+    u_blocked = False
 
     def __init__(self, ctx: LoweringContext, node: Node, width: int, chunking: Chunking | None, scratch: Scratch):
         self.attrs = node.attrs
@@ -134,12 +136,17 @@ class WinogradNests(ABC):
         self.c_out, self.c_in = ctx.graph.shape(node.inputs[1])[:2]
         self.width = width
         self.out = ctx.output(node.outputs[0], channels_last(4))
-        chunking = chunking or WHOLE_CHUNKS[node.op]
+        chunking = self.resolved_chunking(node, chunking)
         self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, chunking)
         tiles = self.grid.chunk_tiles
         self.block = block_width(width, self.c_out, chunking)
         self.v = scratch(f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in))
         self.m = scratch(f"m_{node.name}", (PATCH * PATCH, tiles, self.block))
+
+    @staticmethod
+    def resolved_chunking(node: Node, chunking: Chunking | None) -> Chunking:
+        """The chunking the nests run: `chunking`, or the op's when run whole (WHOLE_CHUNKS)."""
+        return chunking or WHOLE_CHUNKS[node.op]
 
     def input_value(self, load: Load) -> Expr:
         """A patch value as the input transform sums it."""
@@ -184,11 +191,11 @@ class WinogradNests(ABC):
         return with_locals("r", r, stores)
 
     def multiply(self, number: Affine, env: dict[str, Affine]) -> tuple[Stmt, ...]:
-        """M of output channel co of block `number` (M's channel co); U blocked (blocked_filters) or not."""
+        """M of output channel co of block `number` (M's channel co); U blocked (u_blocked) or not."""
         e, t, co = env["e"], env["t"], env["co"]
         v, u, m = self.v, self.u, self.m
         ci = Affine.of("ci") if self.c_in > 1 else Affine()
-        weight = u.at([number, e, ci, co]) if len(u.shape) == 4 else u.at([e, ci, number * self.block + co])
+        weight = u.at([number, e, ci, co]) if self.u_blocked else u.at([e, ci, number * self.block + co])
         product = self.product(Load(v.buffer, v.at([e, t, ci])), Load(u.buffer, weight))
         update = Assign("acc", Binary("+", LocalRef("acc"), product))
         reduction = (Loop("ci", self.c_in, (update,)),) if self.c_in > 1 else (Assign("acc", product),)

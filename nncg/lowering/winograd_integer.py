@@ -28,7 +28,6 @@ from .winograd import (
     BAND_CHUNKS,
     PATCH,
     SCRATCH_DTYPES,
-    WHOLE_CHUNKS,
     Chunking,
     WinogradNests,
     block_width,
@@ -78,7 +77,8 @@ class _IntegerLayer(WinogradNests):
     def __init__(self, ctx: LoweringContext, node: Node, chunking: Chunking | None = None, shared: dict | None = None):
         attrs: QConvAttrs = node.attrs
         c_out = ctx.graph.shape(node.inputs[1])[0]
-        block = block_width(c_out, c_out, chunking or WHOLE_CHUNKS[node.op])
+        block = block_width(c_out, c_out, self.resolved_chunking(node, chunking))
+        self.u_blocked = block < c_out  # blocked_filters keeps a single block whole
         filters = blocked_filters(integer_filters(ctx.graph.constants[node.inputs[1]]), block)
         self.u = ctx.add_constant(f"u_{node.name}", filters)
         bias = ctx.graph.constants[node.inputs[2]].astype(np.int64) * SCALE

@@ -17,8 +17,10 @@ largest divisor of the input channels that fits. A grouped (not depthwise) Conv 
 one group per panel, whatever its size: unblocked, its group loop is the innermost loop around the
 channels, so register-block jams groups, which share neither inputs nor weights (regnet_x_400mf's
 16-channel groups on avx2: 1 pixel x 5 groups, 1.5 loads per multiply-add); per panel it jams
-pixels, which share the group's weights. `layers` overrides it per layer (what `--tune`
-measured); lowering/conv_blocked.py does the rest."""
+pixels, which share the group's weights. A depthwise Conv whose weights exceed L1 is not packed in
+panels but computed `channel_block` channels at a time outside its pixel loops (depthwise_blocks).
+`layers` overrides it per layer (what `--tune` measured); lowering/conv_blocked.py (lowering/conv.py
+for the depthwise channel blocks) does the rest."""
 
 from __future__ import annotations
 
@@ -26,7 +28,13 @@ import math
 from dataclasses import replace
 
 from ..errors import NncgError
-from ..ir.applicability import cache_block_applies, group_panels_apply, panel_packing_applies, reduction_streams
+from ..ir.applicability import (
+    cache_block_applies,
+    depthwise_blocks_apply,
+    group_panels_apply,
+    panel_packing_applies,
+    reduction_streams,
+)
 from ..ir.graph import Graph, Node
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
@@ -34,6 +42,9 @@ from .register_block import RESERVED, channel_block
 
 OFF = (0, 0)
 FLOAT_BYTES = 4
+# Channels a depthwise Conv whose weights exceed L1 computes over all its pixels at a time: 4 vectors
+# of 16, their 5x5 weights 6.4 KB.
+DEPTHWISE_CHANNEL_BLOCK = 64
 
 
 def parse_choice(text: str) -> tuple[int, int]:
@@ -73,6 +84,8 @@ def cache_block(graph: Graph, target: Target, layers: dict[str, tuple[int, int]]
 
 
 def _blocked(graph: Graph, node: Node, choice: tuple[int, int]):
+    if depthwise_blocks_apply(graph, node):
+        return replace(node.attrs, channel_block=choice[0])
     if node.op == "Conv":
         return replace(node.attrs, panel=choice[0], ci_block=choice[1] or graph.shape(node.inputs[1])[1])
     return replace(node.attrs, panel=choice[0])
@@ -92,14 +105,18 @@ def _check_choice(graph: Graph, node: Node, choice: tuple[int, int]) -> None:
         c_out, c_in = graph.shape(node.inputs[1])[:2]
         if block > c_in or (block and c_in % block):
             raise NncgError(f"cache-block: layer {node.name}: the input-channel block {block} does not divide {c_in}")
+    elif depthwise_blocks_apply(graph, node):
+        c_out = graph.shape(node.inputs[1])[0]
+        if block:
+            raise NncgError(f"cache-block: layer {node.name} is a depthwise Conv: give its channel block alone")
     elif panel_packing_applies(graph, node):
         c_out = _columns(graph, node)
         if block:
             raise NncgError(f"cache-block: layer {node.name} is a Gemm/MatMul: give its panel alone (PANEL)")
     else:
         raise NncgError(
-            f"cache-block: layer {node.name} is neither a direct, not depthwise Conv over output channels with "
-            "constant weights (the winograd and vectorize-pixels passes may have taken it) nor a Gemm/MatMul "
+            f"cache-block: layer {node.name} is neither a direct Conv over output channels with constant "
+            "weights (the winograd and vectorize-pixels passes may have taken it) nor a Gemm/MatMul "
             "with a constant 2-D w"
         )
     if panel > c_out:
@@ -122,9 +139,12 @@ def _shape(graph: Graph, node: Node) -> tuple[int, int, int]:
 
 def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
     """(panel, input-channel block) for a grouped Conv or a layer whose weights exceed L1, else OFF. A Gemm/MatMul
-    takes the whole reduction at once (block 0): its rows are few, there is little to reuse."""
+    takes the whole reduction at once (block 0): its rows are few, there is little to reuse; a depthwise
+    Conv is blocked by channels alone (depthwise_blocks)."""
     if not target.l1_bytes or not target.vector_widths:
         return OFF
+    if depthwise_blocks_apply(graph, node):
+        return depthwise_blocks(graph, node, target)
     if group_panels_apply(graph, node):
         c_out, c_in, taps = _shape(graph, node)
         panel = c_out // node.attrs.group
@@ -137,6 +157,19 @@ def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
         return OFF
     panel = panel_width(graph, node, target)
     return panel, input_block(c_in, taps, panel, target) if conv else 0
+
+
+def depthwise_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
+    """(DEPTHWISE_CHANNEL_BLOCK, 0) for a depthwise Conv whose weights exceed L1, else OFF. Run a block of
+    channels at a time, a block's weights, packed together, stay in L1 while it sweeps every pixel, where
+    channels innermost read all the layer's weights again at each pixel (from L2 once they pass L1:
+    efficientnet_b0's 1152-channel 5x5 layers on 3x3 pixels, 115 KB, ran 1.9x slower on avx512 alone,
+    loaded); packed, the block's weights stream from memory in one run. Where they fit, channels
+    innermost were as fast or faster (a 96-channel stride-2 3x3 layer on 48x48 pixels: 1.1x-1.2x slower
+    with channel blocks outermost on avx2 and avx512, loaded)."""
+    if FLOAT_BYTES * math.prod(_shape(graph, node)) <= target.l1_bytes:
+        return OFF
+    return DEPTHWISE_CHANNEL_BLOCK, 0
 
 
 def panel_width(graph: Graph, node: Node, target: Target) -> int:
@@ -157,8 +190,9 @@ def input_block(c_in: int, taps: int, panel: int, target: Target) -> int:
 
 
 def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[tuple[int, int], ...]]:
-    """For --tune: the cost model's choice, unblocked, and (Convs) the input block halved and doubled,
-    for each layer whose weights exceed half of L1 (smaller ones stay in L1 either way)."""
+    """For --tune: the cost model's choice, unblocked, and (Convs) the input block halved and doubled
+    (depthwise Convs: the channel blocks), for each layer whose weights exceed half of L1 (smaller ones
+    stay in L1 either way)."""
     out = {}
     if not target.l1_bytes or not target.vector_widths:
         return out
@@ -166,10 +200,13 @@ def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[tuple[int
         if group_panels_apply(graph, node):
             out[node.name] = (chosen_blocks(graph, node, target), OFF)
             continue
-        applies = cache_block_applies(graph, node) or panel_packing_applies(graph, node)
+        depthwise = depthwise_blocks_apply(graph, node)
+        applies = depthwise or cache_block_applies(graph, node) or panel_packing_applies(graph, node)
         if not applies or 2 * FLOAT_BYTES * math.prod(_shape(graph, node)) <= target.l1_bytes:
             continue
-        if cache_block_applies(graph, node):
+        if depthwise:
+            options = [chosen_blocks(graph, node, target), OFF, (DEPTHWISE_CHANNEL_BLOCK, 0)]
+        elif cache_block_applies(graph, node):
             c_out, c_in, taps = _shape(graph, node)
             panel = panel_width(graph, node, target)
             block = input_block(c_in, taps, panel, target)

@@ -31,7 +31,6 @@ from ..ir.loops import (
     Assign,
     Cast,
     Const,
-    Dot,
     Expr,
     If,
     Kernel,
@@ -41,6 +40,7 @@ from ..ir.loops import (
     Program,
     Stmt,
     Store,
+    body_dots,
     stmt_exprs,
     walk_exprs,
     walk_stmts,
@@ -169,7 +169,7 @@ def _pair_dots_only(kernel: Kernel) -> bool:
     integer Winograd's GEMMs have (not a first layer's taps, whose pairs are packed from
     zero-point-shifted values, nor a KxK convolution, whose pixels share border checks and loops over
     taps: resnet8's stride-2 3x3 one 760,461 -> 981,401 Ir as one pixel)."""
-    dots = kernel_dots(kernel)
+    dots = body_dots(kernel.body)
     if not dots or not all(len(d.x) == 2 and _adjacent_loads(d.x) for d in dots):
         return False
     depths = [_serial_depth(s.body) for s in walk_stmts(kernel.body) if isinstance(s, Let)]
@@ -192,10 +192,6 @@ def _adjacent_loads(xs: tuple[Expr, ...]) -> bool:
     return isinstance(first, Load) and all(
         x in (Cast(DType.INT32, Load(first.buffer, first.index + j)), Const.integer(0)) for j, x in enumerate(xs)
     )
-
-
-def kernel_dots(kernel: Kernel) -> list[Dot]:
-    return [e for s in walk_stmts(kernel.body) for top in stmt_exprs(s) for e in walk_exprs(top) if isinstance(e, Dot)]
 
 
 def one_vector_pixels(kernel: Kernel, program: Program, target: Target, extent: int, pixels: int, vector_inputs: bool):
@@ -429,7 +425,7 @@ def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
         return False
     if not is_integer_kernel(kernel, program):
         return True
-    dots = kernel_dots(kernel)
+    dots = body_dots(kernel.body)
     return bool(dots) and all(len(d.x) == 4 and all(x.lanes == 1 for x in d.x) for d in dots)
 
 
@@ -574,7 +570,7 @@ def _reduces_pairs(loop: Loop) -> bool:
     """A serial loop of at least 2 iterations whose body only accumulates dots of 2 shared activations."""
     if loop.parallel or loop.extent < 2 or not all(isinstance(s, Assign) for s in loop.body):
         return False
-    dots = [e for s in loop.body for e in walk_exprs(s.value) if isinstance(e, Dot)]
+    dots = body_dots(loop.body)  # its Assigns' values
     return bool(dots) and all(len(d.x) == 2 and all(x.lanes == 1 for x in d.x) for d in dots)
 
 

@@ -57,6 +57,7 @@ from ..ir.loops import (
     Select,
     Stmt,
     Store,
+    expr_dots,
     map_body,
     map_stmt_exprs,
     stmt_exprs,
@@ -186,7 +187,7 @@ def vectorizable(loop: Loop, lanes: int, borders: bool = False) -> bool:
         if isinstance(stmt, If) and not borders and any(b.expr.coeff(var) for b in stmt.bounds):
             return False
         for expr in stmt_exprs(stmt):
-            dots = [e for e in walk_exprs(expr) if isinstance(e, Dot)]
+            dots = expr_dots(expr)
             if any(not _dot_vectorizable(d, var) for d in dots):
                 return False
             weights = {d.w for d in dots}
@@ -251,7 +252,7 @@ def _multiply_accumulates(stmt: Stmt) -> bool:
         guarded = len(stmt.body) == 1 and isinstance(stmt.body[0], If)
         body = stmt.body[0].body if guarded else stmt.body
         return multiply_accumulate(replace(stmt, body=body)) is not None
-    return isinstance(stmt, Assign) and any(isinstance(e, Dot) for e in walk_exprs(stmt.value))
+    return isinstance(stmt, Assign) and bool(expr_dots(stmt.value))
 
 
 # ---------------------------------------------------------------------------- mechanism
