@@ -164,7 +164,7 @@ def test_banded_depthwise_border_columns_run_in_vectors(target, monkeypatch):
 @pytest.mark.parametrize("rows", [1, 2, 3, 8])
 @pytest.mark.parametrize("target", X86)
 def test_chain_on_the_x86_targets(chain, target, rows, monkeypatch):
-    """Every int8 kind in one group, its convolutions in vectors, the others scalar."""
+    """Every int8 kind in one group, its convolutions and requantised add in vectors, the others scalar."""
     skip_unless_host_runs(target)
     monkeypatch.setattr(lowering, "plan_layers", whole_chain_plan(rows))
     compiled = nncg.compile(chain, target=target, memory="min", verify_ir=True)
@@ -233,7 +233,9 @@ def test_balanced_bands_int8_convs_in_vectors(target):
     """In bands an int8 Conv runs in the target's dot products as whole: balanced bands resnet8's first
     stages on x86 too, bit-identical and vectorised. Speed runs the 3x3 layers of 16 and more input
     channels as integer Winograd, its arena the planner's count with their int16 and int32 scratch;
-    balanced keeps them so in its bands, its arena the planner's count too."""
+    balanced keeps them so in its bands, its arena the planner's count too. Every value the band kernel
+    requantises, its residual adds' too, is in vectors (no scalar nncg_requantize: scalar adds in double
+    arithmetic, every channel unrolled, had doubled the kernel's code past the instruction cache)."""
     skip_unless_host_runs(target)
     qdq = quantized(repository_model(MODELS["resnet8"]))
     graph = lowered_graph(qdq, target)
@@ -246,6 +248,7 @@ def test_balanced_bands_int8_convs_in_vectors(target):
     assert speed.arena_bytes > memory_figures(speed).layer_bound_bytes  # the scratch on top of the activations
     assert balanced.arena_bytes < speed.arena_bytes
     assert_banded_dots(balanced, target)
+    assert "nncg_requantize(" not in band_source(balanced)
     check(qdq, balanced, feeds=1)
 
 

@@ -41,9 +41,16 @@ block (winograd.blocked_filters), balanced keeps Winograd on both avx2 and ssse3
 speed's 50,688). On avx2 (clang -O2, one inference, cachegrind with a 32 KB I1 and D1) it takes 1.28x speed's
 Ir (the same plan with all channels in M: 1.21x, at 26,624 B; stage1's 16-channel layers in two blocks
 broadcast V once per block) and has fewer D1 read misses than speed (64k against 67k; 71k with all channels
-in M, 81k with blocks over U unblocked); what speed does not pay is the band kernel's code, 27k I1 misses
-against speed's 3k, as each band runs every layer's unrolled row code once. These costs still order the
-plans so.
+in M, 81k with blocks over U unblocked). Its band kernel's QLinearAdds were then scalar (double arithmetic,
+every channel unrolled: 132 KB of code, 27k I1 misses against speed's 3.3k, Ir 1.28x); vectorised as run whole
+(vectorize.py) the kernel is 61.5 KB, 3.9k I1 misses, Ir 1.08x. The avx2 int8 figures are re-fitted to TIME
+then: interleaved A/B on a loaded machine (`benchmark_variants`, 31 batches, the plans forced), resnet8's
+input..stage2_add in bands of 2 rows with Winograd kept took 1.06x speed's latency, with stage2_b_conv direct
+1.17x, all direct 1.41x; (integer_banded, integer_winograd, kept_banded) = (1.2, 0.55, 1.05) estimate 1.07x,
+1.25x, 1.60x (VECTOR8's integer_winograd, the int8_winograd figure above; integer_banded kept at 1.2, as ball
+int8's plan with its QuantizeLinear in 2-row bands, which 1.05 chose, took 1.21x speed against 1.02x for the
+1-row bands 1.2 keeps). pedestrian int8's balanced then keeps Winograd in both groups on avx2 too (5,248 B
+instead of 8,576: 0.76x speed's latency against 0.92x, same A/B).
 
 A QuantizeLinear in bands (the model input's, into a channels-last line buffer) costs what it costs whole,
 1 per element: it quantises each row in vectors into a planar scratch row, then interleaves that into the line
@@ -83,7 +90,7 @@ VECTOR4 = BandCosts(
 VECTOR8 = BandCosts(
     winograd=0.6, blocked=0.85, banded=1.2, per_band=128.0, shift=0.25, integer_banded=1.1, integer_winograd=0.55
 )
-AVX2 = replace(VECTOR8, integer_banded=1.2, integer_winograd=0.4, kept_banded=1.4)  # int8: resnet8 (docstring)
+AVX2 = replace(VECTOR8, integer_banded=1.2, kept_banded=1.05)  # int8: resnet8 by time (docstring)
 COSTS = {
     "ansi-c": SCALAR,
     "ssse3": VECTOR4,

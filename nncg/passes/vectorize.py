@@ -90,7 +90,8 @@ def vectorize(program: Program, target: Target) -> Program:
         if kernel.op == "Band" and kernel.name in integer:
             floats = {b.name for b in program.buffers if b.dtype == DType.FLOAT32}
             scratch = {b.name for b in program.role(BufferRole.INTERNAL) if b.dtype in (DType.INT16, DType.INT32)}
-            body = _mark_band_stages(kernel.body, widths, floats, scratch if target.int16_dots else set())
+            fused = target.fma or target.fma_in_double
+            body = _mark_band_stages(kernel.body, widths, floats, scratch if target.int16_dots else set(), fused)
         else:
             body = mark_vector_loop(kernel.body, widths)
         overlaps = any(
@@ -206,23 +207,25 @@ def _dot_vectorizable(dot: Dot, var: str) -> bool:
 
 
 def _mark_band_stages(
-    body: tuple[Stmt, ...], widths: tuple[int, ...], floats: set[str], scratch: set[str]
+    body: tuple[Stmt, ...], widths: tuple[int, ...], floats: set[str], scratch: set[str], fused: bool
 ) -> tuple[Stmt, ...]:
     """An int8 band kernel's body with its convolutions' and QuantizeLinear's nests marked: through the
     band's serial loops (over bands, nested runs, a run's rows) and border checks, each layer's nest (a
     parallel loop) is marked where it multiply-accumulates, quantises floats (`floats`: the float
     buffers) or is an integer Winograd transform (it stores or loads `scratch`: V's int16 and M's int32
-    buffers, on a target with Target.int16_dots), as run whole; the other layers (table lookups,
+    buffers, on a target with Target.int16_dots) or, with `fused` (FUSED_OPS vectorise), is a QLinearAdd
+    (_adds), as run whole; the other layers (table lookups,
     pooling, the line buffers' shifts and the interleaving of a quantised row: 8-bit loads and stores
     the integer vectors do not widen) stay scalar."""
     out: list[Stmt] = []
     for stmt in body:
         if isinstance(stmt, If) or (isinstance(stmt, Loop) and not stmt.parallel):
-            stmt = replace(stmt, body=_mark_band_stages(stmt.body, widths, floats, scratch))
+            stmt = replace(stmt, body=_mark_band_stages(stmt.body, widths, floats, scratch, fused))
         elif (
             any(_multiply_accumulates(s) for s in walk_stmts((stmt,)))
             or _quantizes(stmt, floats)
             or _uses(stmt, scratch)
+            or (fused and _adds(stmt))
         ):
             out += mark_vector_loop((stmt,), widths)
             continue
@@ -242,6 +245,13 @@ def _quantizes(stmt: Stmt, floats: set[str]) -> bool:
     stores = [s for s in walk_stmts((stmt,)) if isinstance(s, Store)]
     loads = [e for s in stores for e in walk_exprs(s.value) if isinstance(e, Load)]
     return bool(loads) and all(isinstance(s.value, Requantize) for s in stores) and {e.buffer for e in loads} <= floats
+
+
+def _adds(stmt: Stmt) -> bool:
+    """A nest whose stores are all requantised fused multiply-adds: QLinearAdd's (lowering/quantized_add.py)."""
+    stores = [s for s in walk_stmts((stmt,)) if isinstance(s, Store)]
+    fused = (any(_fused_multiply_add(e) for e in walk_exprs(s.value)) for s in stores)
+    return bool(stores) and all(isinstance(s.value, Requantize) for s in stores) and all(fused)
 
 
 def _multiply_accumulates(stmt: Stmt) -> bool:
