@@ -65,6 +65,11 @@ RESERVED = 6
 # 3x2 were slower on the large layers; loads bound to locals once per block changed nothing (gcc folds
 # them back into the multiply-adds).
 VECTOR_INPUT_PIXELS = 8
+# Pixels per block at most of the other depthwise layers (few channel vectors, short rows) where a pixel holds
+# MAX_CHANNEL_BLOCK - 1 channel vectors: 6 (avx512's register fit) measured 1.2x-1.9x slower than 3; 8 pixels
+# of one vector made dscnn (64 channels, rows of 5) 1.14x and mobilenet_v1_025 1.02x-1.08x slower (avx512,
+# avx2; loaded, whole models).
+FEW_VECTOR_INPUT_PIXELS = 3
 # Pixels per block at most of a fused int8 layer of one channel vector: avx512vnni's register fit, 15
 # (15 accumulators, 15 broadcasts), measured 1.8x slower than 12 (8, 10 and 16 within 15 % of 12) on
 # resnet8's 32x32x16 layers.
@@ -446,15 +451,21 @@ def choose_blocks(
     squeezenet1_1 and regnet_x_400mf 1.07x-1.13x faster; 6x2, 12 accumulators and 6 broadcasts,
     spilled three accumulators every reduction step). Where each channel vector multiplies its own
     input vector (`vector_inputs`, a depthwise Conv) nothing is shared across a pixel's channels:
-    fused, a block is VECTOR_INPUT_PIXELS pixels of one channel vector.
+    fused, a block is VECTOR_INPUT_PIXELS pixels of one channel vector where the layer has more than
+    MAX_CHANNEL_BLOCK channel vectors and its rows are that long; else, with 4 channel vectors, at most
+    FEW_VECTOR_INPUT_PIXELS pixels (in narrow rows most pixels are border columns, where a block of one
+    channel vector is a chain of dependent multiply-adds).
     Where the pixel loop is shorter than the registers allow and sits in a loop of `rows`, the block
     takes whole rows, as many as fit: each weight vector then serves the pixels of several rows
     (resnet18's layer4, 3x3 pixels, avx512: 6x4, two rows, 1.07x faster than 3x4; 9x3 spills)."""
     extent, vectors = shape
-    channels = 1 if fused and vector_inputs else channel_block(vectors)
+    along_row = fused and vector_inputs and vectors > MAX_CHANNEL_BLOCK and extent >= VECTOR_INPUT_PIXELS
+    channels = 1 if along_row else channel_block(vectors)
     fit = (registers - 1) // (channels + 1) if fused else (registers - RESERVED) // channels
-    if fused and vector_inputs:
+    if along_row:
         fit = VECTOR_INPUT_PIXELS
+    elif fused and vector_inputs and channels == MAX_CHANNEL_BLOCK - 1:
+        fit = min(fit, FEW_VECTOR_INPUT_PIXELS)
     pixels = max(1, min(extent, fit))
     if pixels == extent and rows > 1 and fit >= 2 * extent:
         pixels = extent * min(rows, fit // extent)
