@@ -45,6 +45,7 @@ def test_cost_model_blocks_vector_inputs_along_the_row_where_fused():
     assert choose_blocks((40, 2), 32, fused=True, vector_inputs=True) == (10, 2)
     assert choose_blocks((40, 5), 32, fused=True, vector_inputs=True) == (5, 5)
     assert choose_blocks((5, 9), 16, fused=True, vector_inputs=True) == (3, 4)
+    assert choose_blocks((6, 9), 16, fused=True, vector_inputs=True, rows=6) == (6, 1)
 
 
 def _blocks(model, target: str) -> dict[str, tuple[int, int]]:

@@ -65,6 +65,10 @@ RESERVED = 6
 # 3x2 were slower on the large layers; loads bound to locals once per block changed nothing (gcc folds
 # them back into the multiply-adds).
 VECTOR_INPUT_PIXELS = 8
+# Pixels a row holds at least for those blocks. In the models (profile, CPU time, loaded, 2 runs), 8x1 against
+# 3x4: mobilenet_v2_96's depthwise layers on 48-6 pixel rows avx2 0.63x-0.97x, avx512 0.69x-1.07x; on rows of
+# 3 (2 rows a block) mobilenet_v2 avx2 0.66x-0.89x but mnasnet0_5 avx2 1.05x-1.54x, avx512 0.89x-1.55x.
+VECTOR_INPUT_ROW = 6
 # Pixels per block at most of the other depthwise layers (few channel vectors, short rows) where a pixel holds
 # MAX_CHANNEL_BLOCK - 1 channel vectors: 6 (avx512's register fit) measured 1.2x-1.9x slower than 3; 8 pixels
 # of one vector made dscnn (64 channels, rows of 5) 1.14x and mobilenet_v1_025 1.02x-1.08x slower (avx512,
@@ -452,14 +456,14 @@ def choose_blocks(
     spilled three accumulators every reduction step). Where each channel vector multiplies its own
     input vector (`vector_inputs`, a depthwise Conv) nothing is shared across a pixel's channels:
     fused, a block is VECTOR_INPUT_PIXELS pixels of one channel vector where the layer has more than
-    MAX_CHANNEL_BLOCK channel vectors and its rows are that long; else, with 4 channel vectors, at most
-    FEW_VECTOR_INPUT_PIXELS pixels (in narrow rows most pixels are border columns, where a block of one
-    channel vector is a chain of dependent multiply-adds).
+    MAX_CHANNEL_BLOCK channel vectors and rows of at least VECTOR_INPUT_ROW pixels; else, with 4
+    channel vectors, at most FEW_VECTOR_INPUT_PIXELS pixels (in narrow rows most pixels are border
+    columns, where a block of one channel vector is a chain of dependent multiply-adds).
     Where the pixel loop is shorter than the registers allow and sits in a loop of `rows`, the block
     takes whole rows, as many as fit: each weight vector then serves the pixels of several rows
     (resnet18's layer4, 3x3 pixels, avx512: 6x4, two rows, 1.07x faster than 3x4; 9x3 spills)."""
     extent, vectors = shape
-    along_row = fused and vector_inputs and vectors > MAX_CHANNEL_BLOCK and extent >= VECTOR_INPUT_PIXELS
+    along_row = fused and vector_inputs and vectors > MAX_CHANNEL_BLOCK and extent >= VECTOR_INPUT_ROW
     channels = 1 if along_row else channel_block(vectors)
     fit = (registers - 1) // (channels + 1) if fused else (registers - RESERVED) // channels
     if along_row:
