@@ -55,25 +55,11 @@ PIXEL_BLOCKS = (1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24)  # pixels per block --t
 # (the broadcast input, a product, weights the compiler keeps).
 MAX_CHANNEL_BLOCK = 5
 RESERVED = 6
-# Pixels of one channel vector per block where a fused multiply-add reads a vector of inputs per channel
-# (depthwise): gcc reads both the inputs and the weights from memory whatever the block (two loads per
-# multiply-add), so a block adds no reuse but only instructions and accumulators. Single layers against
-# main's 3 pixels x 4 channel vectors (loaded, interleaved in one process, gcc -O3): 3x3 144 channels 24x24,
-# 3x3 96 channels 48->24, 5x5 240 channels 12x12, 5x5 72 channels 24->12: avx512 0.93x, 0.81-0.86x,
-# 0.61-0.66x, 0.65-0.70x the time (89, 69-71, 117-125, 87-106 GFLOP/s); avx2 0.69x, 0.85x, 0.65-0.80x,
-# 0.82x; 16 and 32 channels 48x48: avx2 0.55x, 0.71x, avx512 0.93x, 1.02x. 4 and 6 pixels, 4x2, 2x2 and
-# 3x2 were slower on the large layers; loads bound to locals once per block changed nothing (gcc folds
-# them back into the multiply-adds).
-VECTOR_INPUT_PIXELS = 8
-# Pixels a row holds at least for those blocks. In the models (profile, CPU time, loaded, 2 runs), 8x1 against
-# 3x4: mobilenet_v2_96's depthwise layers on 48-6 pixel rows avx2 0.63x-0.97x, avx512 0.69x-1.07x; on rows of
-# 3 (2 rows a block) mobilenet_v2 avx2 0.66x-0.89x but mnasnet0_5 avx2 1.05x-1.54x, avx512 0.89x-1.55x.
-VECTOR_INPUT_ROW = 6
-# Pixels per block at most of the other depthwise layers (few channel vectors, short rows) where a pixel holds
-# MAX_CHANNEL_BLOCK - 1 channel vectors: 6 (avx512's register fit) measured 1.2x-1.9x slower than 3; 8 pixels
-# of one vector made dscnn (64 channels, rows of 5) 1.14x and mobilenet_v1_025 1.02x-1.08x slower (avx512,
-# avx2; loaded, whole models).
-FEW_VECTOR_INPUT_PIXELS = 3
+# Pixels per block at most where a fused multiply-add reads a vector of inputs per channel (depthwise) and
+# a pixel holds MAX_CHANNEL_BLOCK - 1 channel vectors: avx512's register fit, 6x4, measured 1.2x-1.9x
+# slower than 3x4 on single 3x3 depthwise layers shaped like mobilenet_v2's (96-192 channels, stride 1
+# and 2; a 5x5 one of 240 channels: no difference, nor with fewer channel vectors).
+VECTOR_INPUT_PIXELS = 3
 # Pixels per block at most of a fused int8 layer of one channel vector: avx512vnni's register fit, 15
 # (15 accumulators, 15 broadcasts), measured 1.8x slower than 12 (8, 10 and 16 within 15 % of 12) on
 # resnet8's 32x32x16 layers.
@@ -454,22 +440,17 @@ def choose_blocks(
     takes its accumulators and a broadcast, and one weight vector is left (avx2: 3x4 instead of 2x4,
     squeezenet1_1 and regnet_x_400mf 1.07x-1.13x faster; 6x2, 12 accumulators and 6 broadcasts,
     spilled three accumulators every reduction step). Where each channel vector multiplies its own
-    input vector (`vector_inputs`, a depthwise Conv) nothing is shared across a pixel's channels:
-    fused, a block is VECTOR_INPUT_PIXELS pixels of one channel vector where the layer has more than
-    MAX_CHANNEL_BLOCK channel vectors and rows of at least VECTOR_INPUT_ROW pixels; else, with 4
-    channel vectors, at most FEW_VECTOR_INPUT_PIXELS pixels (in narrow rows most pixels are border
-    columns, where a block of one channel vector is a chain of dependent multiply-adds).
+    input vector (`vector_inputs`, a depthwise Conv) nothing is shared across a pixel's channels and
+    the compiler loads those inputs ahead as it does broadcasts: fused, with 4 channel vectors, at most
+    VECTOR_INPUT_PIXELS pixels (what avx2's 16 registers give anyway; avx512's 32 would give 6).
     Where the pixel loop is shorter than the registers allow and sits in a loop of `rows`, the block
     takes whole rows, as many as fit: each weight vector then serves the pixels of several rows
     (resnet18's layer4, 3x3 pixels, avx512: 6x4, two rows, 1.07x faster than 3x4; 9x3 spills)."""
     extent, vectors = shape
-    along_row = fused and vector_inputs and vectors > MAX_CHANNEL_BLOCK and extent >= VECTOR_INPUT_ROW
-    channels = 1 if along_row else channel_block(vectors)
+    channels = channel_block(vectors)
     fit = (registers - 1) // (channels + 1) if fused else (registers - RESERVED) // channels
-    if along_row:
-        fit = VECTOR_INPUT_PIXELS
-    elif fused and vector_inputs and channels == MAX_CHANNEL_BLOCK - 1:
-        fit = min(fit, FEW_VECTOR_INPUT_PIXELS)
+    if fused and vector_inputs and channels == MAX_CHANNEL_BLOCK - 1:
+        fit = min(fit, VECTOR_INPUT_PIXELS)
     pixels = max(1, min(extent, fit))
     if pixels == extent and rows > 1 and fit >= 2 * extent:
         pixels = extent * min(rows, fit // extent)
