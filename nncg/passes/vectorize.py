@@ -90,8 +90,8 @@ def vectorize(program: Program, target: Target) -> Program:
         if kernel.op == "Band" and kernel.name in integer:
             floats = {b.name for b in program.buffers if b.dtype == DType.FLOAT32}
             scratch = {b.name for b in program.role(BufferRole.INTERNAL) if b.dtype in (DType.INT16, DType.INT32)}
-            fused = target.fma or target.fma_in_double
-            body = _mark_band_stages(kernel.body, widths, floats, scratch if target.int16_dots else set(), fused)
+            int16 = scratch if target.int16_dots else set()
+            body = _mark_band_stages(kernel.body, widths, floats, int16, _fused_ops_vectorise(target))
         else:
             body = mark_vector_loop(kernel.body, widths)
         overlaps = any(
@@ -129,6 +129,11 @@ INTEGER_OPS = (
 FUSED_OPS = ("QLinearAdd", "QLinearMul")
 
 
+def _fused_ops_vectorise(target: Target) -> bool:
+    """Whether FUSED_OPS (run whole, or an int8 band kernel's QLinearAdd stages) vectorise on `target`."""
+    return target.fma or target.fma_in_double
+
+
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
     """One of INTEGER_OPS on a target with integer vectors, a QLinearAdd on one with a fused
     multiply-add as well, or an integer Winograd (int16 scratch) on one with Target.int16_dots,
@@ -136,7 +141,7 @@ def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
-    ops = INTEGER_OPS + (FUSED_OPS if target.fma or target.fma_in_double else ())
+    ops = INTEGER_OPS + (FUSED_OPS if _fused_ops_vectorise(target) else ())
     ops += (WINOGRAD_OP,) if target.int16_dots else ()
     return target.integer_vectors and kernel.op in ops and not fixed
 
