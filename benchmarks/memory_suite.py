@@ -20,7 +20,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from nncg.bench.benchmark import BenchResult, Timing, benchmark_variants
+from nncg.bench.benchmark import BenchResult, Timing, benchmark_variants, paired_ratio
 from nncg.bench.peak import measure_peaks
 from nncg.lowering.band_plan import MEMORY_MODES
 from nncg.safe_text import markdown_text
@@ -60,8 +60,8 @@ class MemoryRow:
 
     @property
     def ratio(self) -> float:
-        """Latency relative to speed's, both medians of the same interleaved run."""
-        return self.result.nncg_us / self.speed.nncg_us
+        """Latency relative to speed's: the median of the per-batch ratios of the same interleaved run."""
+        return paired_ratio(self.result.batch_us, self.speed.batch_us)
 
     @property
     def arena_cut(self) -> float:
@@ -151,7 +151,8 @@ def section_markdown(
         "- The settings and onnxruntime are timed in turn within each batch, so the ratios are steadier than",
         "  the absolute µs; the speed again rows show how much two builds of the same C differ.",
         "- NNCG untuned defaults (unroll auto) at `--memory speed|balanced|min`; NNCG µs: the median of",
-        f"  {batches} batches of >= 20 ms each; x speed: that median over speed's, same run; ORT µs: onnxruntime",
+        f"  {batches} batches of >= 20 ms each; x speed: the median of the per-batch ratios of this setting's time",
+        "  to speed's, same run (a slow spell of the machine slows both and cancels); ORT µs: onnxruntime",
         "  (one thread, IOBinding), timed in the same run: one figure for all the settings.",
         "- arena B: NAME_ARENA_BYTES; arena cut: speed's arena over this one; layer bound B: the most one layer",
         "  computed whole needs; activations B: every activation side by side, no reuse. Both leave scratch",
