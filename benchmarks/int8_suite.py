@@ -51,6 +51,7 @@ from .suite import (
     markdown_table,
     measured_peaks,
     model_path,
+    over_runs,
     peaks_text,
     ratio_range,
     repeated,
@@ -272,10 +273,8 @@ def speed_targets(rows: list[Int8Row]) -> str:
     best: dict[str, float] = {}
     for r in measured:
         best[r.model] = max(best.get(r.model, 0.0), statistics.median(r.vs_ort))
-    runs = runs_of(measured)
-    over = f"medians of {runs} runs" if runs > 1 else "one run"
     return (
-        f"- Issue 16's targets ({over}): ssse3 int8 >= {SSSE3_VS_FLOAT}x NNCG's ssse3 float: "
+        f"- Issue 16's targets ({over_runs(runs_of(measured))}): ssse3 int8 >= {SSSE3_VS_FLOAT}x NNCG's ssse3 float: "
         f"{_met(ssse3, SSSE3_VS_FLOAT)}; "
         f"best x86 target >= {BEST_VS_ORT}x onnxruntime int8: {_met(best, BEST_VS_ORT)}."
     )
@@ -313,7 +312,7 @@ def section_markdown(
         "  onnxruntime on the same QDQ model (batch 1, one thread, all graph optimisations, IOBinding); float µs:",
         "  NNCG's C of the float model on the same target. The three are timed interleaved, µs medians of the",
         "  batches; vs ORT int8 and int8 vs float: the medians of the per-batch ratios ORT int8 time / int8 time and",
-        "  float time / int8 time (a batch times the three seconds apart, so a slow spell of the machine cancels).",
+        "  float time / int8 time (a batch times the three within seconds, so a slow spell of the machine cancels).",
         *runs_lines(runs_of(rows), "ratios", "vs ORT range and vs float range"),
         f"- max steps / identical: NNCG's int8 outputs against that onnxruntime session on {ERROR_INPUTS} seeded",
         "  inputs, in quantisation steps of each output (its DequantizeLinear's scale). The final Softmax is",

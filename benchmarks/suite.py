@@ -91,15 +91,19 @@ def merged_row(same: list[Row]) -> Row:
     if failed or len(same) == 1:
         return (failed or same)[0]
     results = [row.result for row in same]
+    return replace(same[0], result=median_result(results), speedups=tuple(r.speedup for r in results))
+
+
+def median_result(results: list[BenchResult]) -> BenchResult:
+    """The first of a model's results of several runs with the medians over the runs of its µs and speed-up."""
 
     def median(field: str) -> float:
         return statistics.median(getattr(r, field) for r in results)
 
-    summary = replace(
+    return replace(
         results[0], nncg_us=median("nncg_us"), ort_bound_us=median("ort_bound_us"), ort_run_us=median("ort_run_us"),
         speedup=median("speedup"), batch_us=(),
     )  # fmt: skip
-    return replace(same[0], result=summary, speedups=tuple(r.speedup for r in results))
 
 
 def ratio_range(ratios: Sequence[float]) -> str:
@@ -193,6 +197,11 @@ SPEEDUP_COLUMN = (
 def runs_of(rows: list[Row]) -> int:
     """How many runs the rows are medians of (0: a single run, kept as measured)."""
     return max((len(row.speedups) for row in rows), default=0)
+
+
+def over_runs(runs: int) -> str:
+    """What a threshold line's ratios are: `one run` or `medians of N runs`."""
+    return f"medians of {runs} runs" if runs > 1 else "one run"
 
 
 def runs_lines(runs: int, ratios: str = "speed-up", ranges: str = "range") -> list[str]:

@@ -4,7 +4,7 @@ import shutil
 from dataclasses import replace
 
 from benchmarks.int8_suite import Build, Int8Row, int8_table, merged_int8_row, speed_targets
-from benchmarks.memory_suite import MemoryRow, memory_table, run_memory_suite, section_markdown
+from benchmarks.memory_suite import MemoryRow, memory_table, merged_memory_row, run_memory_suite, section_markdown
 from benchmarks.real_suite import select_cases
 from benchmarks.suite import (
     Row,
@@ -162,7 +162,8 @@ def test_memory_suite_runs_the_int8_model_of_a_name():
 def test_memory_table_escapes_the_plan():
     speed = replace(PLAIN, plan="every layer computed whole")
     banded = replace(PLAIN, plan="'a|b<i>'..'c' in bands of 1 output row(s)", arena_bytes=500)
-    table = memory_table([MemoryRow("m", "avx2", "speed", speed, speed), MemoryRow("m", "avx2", "min", banded, speed)])
+    table = memory_table([MemoryRow("m", "avx2", "speed", speed, speed, ratios=(1.0,)),
+                          MemoryRow("m", "avx2", "min", banded, speed, ratios=(1.0,))])  # fmt: skip
     lines = table.splitlines()
     assert all(line.count("|") - line.count("\\|") == lines[0].count("|") for line in lines)
     assert "'a\\|b\\<i\\>'" in lines[-1] and "| 2.00x |" in lines[-1]
@@ -231,3 +232,23 @@ def test_int8_targets_count_the_median_ratio_of_several_runs():
     assert (cells["vs ORT int8"], cells["vs ORT range"]) == ("1.20x", "1.10-1.30x")
     assert (cells["int8 vs float"], cells["vs float range"]) == ("1.85x", "1.70-1.90x")
     assert "range" not in int8_table([int8_row("ssse3", 1.2, 1.7)])
+
+
+def test_memory_rows_of_several_runs_count_issue_18s_target_with_the_median_ratio():
+    """balanced at 1.25x, 1.40x and 1.28x speed's latency over three runs: the median 1.28x meets <= 1.3x (the
+    second run alone misses it); the table gets an x speed range column, a failed model keeps its row."""
+    speed, balanced = replace(PLAIN, arena_bytes=4000), replace(PLAIN, arena_bytes=1000)
+    runs = iter([
+        [MemoryRow("m", "avx2", "speed", speed, speed, ratios=(1.0,)),
+         MemoryRow("m", "avx2", "balanced", replace(balanced, nncg_us=10.0 * ratio), speed, ratios=(ratio,)),
+         MemoryRow("x", "avx2", "balanced", None, None, "broken")]
+        for ratio in (1.25, 1.40, 1.28)
+    ])  # fmt: skip
+    rows = repeated(3, lambda: next(runs), merged_memory_row, progress=lambda _: None)
+    assert rows[1].ratios == (1.25, 1.40, 1.28) and rows[1].ratio == 1.28 and rows[1].result.nncg_us == 12.8
+    text = section_markdown(rows, PEAKS, cpu=0, date="2026-01-01", batches=2, command="python3 -m x")
+    assert "Against issue 18's targets (medians of 3 runs):" in text and "Measured 3 times (--runs 3" in text
+    assert "- m / avx2 / balanced: 1.28x speed's latency, 4.00x less arena (meets <= 1.3x and >= 2x)" in text
+    table = [line for line in text.splitlines() if line.startswith("| ")]
+    assert "| x speed | x speed range | ORT µs |" in table[0] and "| 1.28x | 1.25-1.40x |" in table[2]
+    assert all(line.count("|") == table[0].count("|") for line in table)
