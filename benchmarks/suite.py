@@ -176,20 +176,21 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
         "  algorithm, block shapes and unroll budgets from `--tune`, timed on this core); onnxruntime:",
         "  batch 1, one intra-op thread, all graph optimisations; `ORT µs` with IOBinding, `ORT run µs` through",
         "  `InferenceSession.run`. Medians of 15 batches of >= 20 ms each, NNCG and onnxruntime interleaved.",
-        f"- {SPEEDUP_COLUMN}; GFLOP/s = 2 x MACs / NNCG µs; % peak of the ISA the target uses.",
-        *runs_lines(runs_of(rows)),
+        f"- {SPEEDUP_COLUMN}.",
+        "- GFLOP/s = 2 x MACs / NNCG µs; % peak of the ISA the target uses.",
         "  MACs are those of direct convolution, so GFLOP/s and % peak are effective rates: the 3x3 convs that",
         "  run as Winograd F(2x2,3x3) execute 2.25x fewer multiplies (plus the transforms' adds).",
         "- text + rodata go to flash; RAM is bss, which holds the static arena (arena B: activations placed by",
         "  the memory plan; activations B: all activation buffers without reuse); gen s / cc s: C generation and",
         "  compile time.",
+        *runs_lines(runs_of(rows)),
         "",
     ]
     return "\n".join(lines) + "\n" + results_table(rows)
 
 
 SPEEDUP_COLUMN = (
-    "speed-up: the median of the per-batch ratios ORT time / NNCG time (each batch times both seconds apart, so a\n"
+    "speed-up: the median of the per-batch ratios ORT time / NNCG time (a batch times both within seconds, so a\n"
     "  slow spell of the machine cancels; it can differ from ORT µs / NNCG µs)"
 )
 
