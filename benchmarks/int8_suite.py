@@ -9,11 +9,10 @@ Each model is quantised with nncg.quantize's defaults (uint8 activations, per-ch
 weights with --reduce-range) on seeded standard-normal calibration inputs. Per target, the int8 C, the
 float C and onnxruntime on the QDQ model (batch 1, one thread, all graph optimisations) are timed
 interleaved, medians as benchmarks/suite.py times (nncg.bench), ratios the medians of the per-batch ratios;
---runs N measures all of it N times and reports the medians over the runs and the ratios' ranges. Errors are in
-quantisation steps of each
-output against that onnxruntime session, on seeded inputs. The Cortex-M4 builds (tests/cross_helpers.py:
-arm-none-eabi-gcc -Os, run in qemu-system-arm) give flash and RAM from arm-none-eabi-size and the stack's
-deepest use. Writes the "int8" section of benchmarks/RESULTS.md.
+--runs N measures all of it N times and reports the medians over the runs and the ratios' ranges. Errors are
+in quantisation steps of each output against that onnxruntime session, on seeded inputs. The Cortex-M4
+builds (tests/cross_helpers.py: arm-none-eabi-gcc -Os, run in qemu-system-arm) give flash and RAM from
+arm-none-eabi-size and the stack's deepest use. Writes the "int8" section of benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations
