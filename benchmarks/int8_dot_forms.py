@@ -6,6 +6,7 @@ interleaved on one input, NNCG's float C and the int8 C of
   pairs7 / quads7: the same model quantised with onnxruntime's reduce_range (7-bit weights: every layer
                    proven).
 Every variant is checked against onnxruntime on the timed input (0 steps expected) before it is timed.
+µs: medians of the batches; float / X: the median of the per-batch ratios.
 
     python3 -m benchmarks.int8_dot_forms [--models resnet8 ...] [--targets ssse3 avx2] [--cpu 0] [--batches 11]
 """
@@ -14,13 +15,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import statistics
 import tempfile
 from dataclasses import replace
 from pathlib import Path
 
 import nncg
 from nncg.backends import BACKENDS
-from nncg.bench.benchmark import interleaved_medians, pinned
+from nncg.bench.benchmark import interleaved_samples, paired_ratio, pinned
 from nncg.bench.harness import CompiledHarness
 from nncg.bench.onnxruntime_timer import OnnxruntimeTimer
 from nncg.quant_steps import compare_steps
@@ -56,7 +58,8 @@ def variants(name: str, target: str) -> dict[str, tuple]:
     }
 
 
-def measure(name: str, target: str, cpu, batches: int) -> dict[str, float]:
+def measure(name: str, target: str, cpu, batches: int) -> dict[str, list[float]]:
+    """Each variant's µs per inference in each batch (the batches pair up across variants)."""
     cc = find_c_compiler(None)
     compiled = variants(name, target)
     inputs = random_inputs(compiled["float"][0].inputs, seed=0)
@@ -68,11 +71,11 @@ def measure(name: str, target: str, cpu, batches: int) -> dict[str, float]:
                     ort = OnnxruntimeTimer(qdq, [p.name for p in c.inputs], inputs)
                     steps = compare_steps(qdq, [(harnesses[label].outputs(), ort.outputs())])
                     assert steps.max_steps == 0, (name, target, label, steps)
-            medians = interleaved_medians({k: h.run for k, h in harnesses.items()}, batches, 0.02)
+            samples = interleaved_samples({k: h.run for k, h in harnesses.items()}, batches, 0.02)
         finally:
             for harness in harnesses.values():
                 harness.close()
-    return {label: seconds * 1e6 for label, seconds in medians.items()}
+    return {label: [s * 1e6 for s in seconds] for label, seconds in samples.items()}
 
 
 def main(argv=None) -> None:
@@ -89,9 +92,9 @@ def main(argv=None) -> None:
     for name in args.models:
         for target in args.targets:
             us = measure(name, target, args.cpu, args.batches)
-            times = " | ".join(f"{us[k]:.1f}" for k in labels)
-            ratios = " | ".join(f"{us['float'] / us[k]:.2f}x" for k in labels)
-            print(f"| {name} | {target} | {us['float']:.1f} | {times} | {ratios} |", flush=True)
+            times = " | ".join(f"{statistics.median(us[k]):.1f}" for k in labels)
+            ratios = " | ".join(f"{paired_ratio(us['float'], us[k]):.2f}x" for k in labels)
+            print(f"| {name} | {target} | {statistics.median(us['float']):.1f} | {times} | {ratios} |", flush=True)
 
 
 if __name__ == "__main__":

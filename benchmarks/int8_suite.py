@@ -3,15 +3,16 @@ onnxruntime running the same QDQ model and against NNCG's own float C, per x86 t
 Cortex-M4 builds, int8 next to float.
 
     python3 -m benchmarks.int8_suite [--models dscnn ...] [--targets ansi-c ssse3 avx2 avx512 avx512vnni] [--cpu 0]
-                                     [--batches 15] [--no-cortex-m4] [--reduce-range]
+                                     [--batches 15] [--runs 3] [--no-cortex-m4] [--reduce-range]
 
 Each model is quantised with nncg.quantize's defaults (uint8 activations, per-channel int8 weights; 7-bit
 weights with --reduce-range) on seeded standard-normal calibration inputs. Per target, the int8 C, the
 float C and onnxruntime on the QDQ model (batch 1, one thread, all graph optimisations) are timed
-interleaved, medians as benchmarks/suite.py times (nncg.bench). Errors are in quantisation steps of each
-output against that onnxruntime session, on seeded inputs. The Cortex-M4 builds (tests/cross_helpers.py:
-arm-none-eabi-gcc -Os, run in qemu-system-arm) give flash and RAM from arm-none-eabi-size and the stack's
-deepest use. Writes the "int8" section of benchmarks/RESULTS.md.
+interleaved, medians as benchmarks/suite.py times (nncg.bench), ratios the medians of the per-batch ratios;
+--runs N measures all of it N times and reports the medians over the runs and the ratios' ranges. Errors are
+in quantisation steps of each output against that onnxruntime session, on seeded inputs. The Cortex-M4
+builds (tests/cross_helpers.py: arm-none-eabi-gcc -Os, run in qemu-system-arm) give flash and RAM from
+arm-none-eabi-size and the stack's deepest use. Writes the "int8" section of benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations
@@ -20,16 +21,17 @@ import argparse
 import datetime
 import shlex
 import shutil
+import statistics
 import sys
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import onnx
 
 import nncg
-from nncg.bench.benchmark import interleaved_medians, pinned
+from nncg.bench.benchmark import interleaved_samples, paired_ratio, pinned
 from nncg.bench.harness import CompiledHarness
 from nncg.bench.onnxruntime_timer import OnnxruntimeTimer
 from nncg.bench.peak import TARGET_ISA, host_targets
@@ -41,13 +43,18 @@ from nncg.verify import build_model, find_c_compiler, random_inputs
 from .suite import (
     MLPERF_TINY,
     ROOT,
+    RUNS_HELP,
     cpu_model,
     first_line,
     higher_peaks,
     markdown_table,
     measured_peaks,
     model_path,
+    over_runs,
     peaks_text,
+    ratio_range,
+    repeated,
+    runs_lines,
     write_section,
 )
 
@@ -83,6 +90,8 @@ class Int8Row:
     int8_us: float = 0.0
     float_us: float = 0.0
     ort_us: float = 0.0  # onnxruntime on the QDQ model, IOBinding
+    vs_ort: tuple[float, ...] = ()  # each run's ORT int8 over int8: the median of the per-batch ratios
+    vs_float: tuple[float, ...] = ()  # each run's float over int8, the same way
     errors: Comparison | None = None
     int8: Build | None = None
     float: Build | None = None
@@ -119,14 +128,16 @@ def measure(name: str, qdq: onnx.ModelProto, target: str, *, cpu, batches: int, 
         try:
             ort = OnnxruntimeTimer(qdq, [p.name for p in int8.inputs], inputs)
             timers = {"int8": harnesses[0].run, "float": harnesses[1].run, "ort": ort.run_bound}
-            medians = interleaved_medians(timers, batches, min_batch_seconds)
+            samples = interleaved_samples(timers, batches, min_batch_seconds)
         finally:
             for harness in harnesses:
                 harness.close()
         errors = error_steps(qdq, int8, ort, cc, Path(tmp, "errors"))
+    us = {key: statistics.median(seconds) * 1e6 for key, seconds in samples.items()}
     return Int8Row(
-        name, target, medians["int8"] * 1e6, medians["float"] * 1e6, medians["ort"] * 1e6, errors,
-        build_of(int8, harnesses[0]), build_of(floats, harnesses[1]),
+        name, target, us["int8"], us["float"], us["ort"], (paired_ratio(samples["ort"], samples["int8"]),),
+        (paired_ratio(samples["float"], samples["int8"]),), errors, build_of(int8, harnesses[0]),
+        build_of(floats, harnesses[1]),
     )  # fmt: skip
 
 
@@ -145,29 +156,55 @@ def run_int8_suite(
     return rows
 
 
-def ratio(a: float, b: float) -> str:
-    return f"{a / b:.2f}x"
+def merged_int8_row(same: list[Int8Row]) -> Int8Row:
+    """A model and target over several runs: µs the medians over the runs, the ratios each run's; a run
+    that failed stands for all. Errors and sizes are the first run's (the same C on the same inputs)."""
+    failed = [row for row in same if row.errors is None]
+    if failed or len(same) == 1:
+        return (failed or same)[0]
+
+    def median(field: str) -> float:
+        return statistics.median(getattr(row, field) for row in same)
+
+    return replace(
+        same[0], int8_us=median("int8_us"), float_us=median("float_us"), ort_us=median("ort_us"),
+        vs_ort=tuple(r for row in same for r in row.vs_ort), vs_float=tuple(r for row in same for r in row.vs_float),
+    )  # fmt: skip
+
+
+def runs_of(rows: list[Int8Row]) -> int:
+    return max((len(row.vs_ort) for row in rows), default=0)
+
+
+def ratio_cell(ratios: tuple[float, ...]) -> str:
+    """The median over the runs of a paired ratio."""
+    return f"{statistics.median(ratios):.2f}x"
 
 
 INT8_COLUMNS = (
     "model", "target", "int8 µs", "ORT int8 µs", "vs ORT int8", "float µs", "int8 vs float", "max steps", "identical",
     "arena B int8 / float", "weights B int8 / float", "text B", "rodata B",
 )  # fmt: skip
+RANGE_COLUMNS = {"vs ORT int8": "vs ORT range", "int8 vs float": "vs float range"}  # after the ratio, several runs
 
 
 def int8_table(rows: list[Int8Row]) -> str:
-    return markdown_table(INT8_COLUMNS, [int8_cells(row) for row in rows])
+    ranges = runs_of(rows) > 1
+    columns = [name for c in INT8_COLUMNS for name in (c, RANGE_COLUMNS.get(c) if ranges else None) if name]
+    return markdown_table(columns, [int8_cells(row, ranges) for row in rows])
 
 
-def int8_cells(row: Int8Row) -> list[str]:
+def int8_cells(row: Int8Row, ranges: bool = False) -> list[str]:
+    """The row's cells; `ranges`: each ratio followed by its range over the runs."""
     if row.errors is None:
         return [row.model, row.target, row.problem]
     i, f = row.int8, row.float
+    vs_ort = [ratio_cell(row.vs_ort), *([ratio_range(row.vs_ort)] if ranges else [])]
+    vs_float = [ratio_cell(row.vs_float), *([ratio_range(row.vs_float)] if ranges else [])]
     return [
-        row.model, row.target, f"{row.int8_us:.2f}", f"{row.ort_us:.2f}", ratio(row.ort_us, row.int8_us),
-        f"{row.float_us:.2f}", ratio(row.float_us, row.int8_us), f"{row.errors.max_steps:g}",
-        f"{100 * row.errors.identical:.1f} % of {row.errors.elements}", f"{i.arena:,} / {f.arena:,}",
-        f"{i.weights:,} / {f.weights:,}", f"{i.text:,}", f"{i.rodata:,}",
+        row.model, row.target, f"{row.int8_us:.2f}", f"{row.ort_us:.2f}", *vs_ort, f"{row.float_us:.2f}", *vs_float,
+        f"{row.errors.max_steps:g}", f"{100 * row.errors.identical:.1f} % of {row.errors.elements}",
+        f"{i.arena:,} / {f.arena:,}", f"{i.weights:,} / {f.weights:,}", f"{i.text:,}", f"{i.rodata:,}",
     ]  # fmt: skip
 
 
@@ -228,14 +265,16 @@ BEST_VS_ORT = 1.5
 
 
 def speed_targets(rows: list[Int8Row]) -> str:
-    """Issue 16's speed targets against the measured ratios, per model (reported, never asserted)."""
+    """Issue 16's speed targets against the measured ratios (over several runs their medians), per model
+    (reported, never asserted)."""
     measured = [r for r in rows if r.errors is not None]
-    ssse3 = {r.model: r.float_us / r.int8_us for r in measured if r.target == "ssse3"}
+    ssse3 = {r.model: statistics.median(r.vs_float) for r in measured if r.target == "ssse3"}
     best: dict[str, float] = {}
     for r in measured:
-        best[r.model] = max(best.get(r.model, 0.0), r.ort_us / r.int8_us)
+        best[r.model] = max(best.get(r.model, 0.0), statistics.median(r.vs_ort))
     return (
-        f"- Issue 16's targets: ssse3 int8 >= {SSSE3_VS_FLOAT}x NNCG's ssse3 float: {_met(ssse3, SSSE3_VS_FLOAT)}; "
+        f"- Issue 16's targets ({over_runs(runs_of(measured))}): ssse3 int8 >= {SSSE3_VS_FLOAT}x NNCG's ssse3 float: "
+        f"{_met(ssse3, SSSE3_VS_FLOAT)}; "
         f"best x86 target >= {BEST_VS_ORT}x onnxruntime int8: {_met(best, BEST_VS_ORT)}."
     )
 
@@ -270,8 +309,10 @@ def section_markdown(
         + f" on {CALIBRATION_SAMPLES}",
         f"  standard-normal calibration inputs (seed {CALIBRATION_SEED}). int8 µs: NNCG's int8 C; ORT int8 µs:",
         "  onnxruntime on the same QDQ model (batch 1, one thread, all graph optimisations, IOBinding); float µs:",
-        "  NNCG's C of the float model on the same target. The three are timed interleaved, medians of the",
-        "  batches; vs ORT int8 = ORT int8 µs / int8 µs, int8 vs float = float µs / int8 µs.",
+        "  NNCG's C of the float model on the same target. The three are timed interleaved, µs medians of the",
+        "  batches; vs ORT int8 and int8 vs float: the medians of the per-batch ratios ORT int8 time / int8 time and",
+        "  float time / int8 time (a batch times the three within seconds, so a slow spell of the machine cancels).",
+        *runs_lines(runs_of(rows), "ratios", "vs ORT range and vs float range"),
         f"- max steps / identical: NNCG's int8 outputs against that onnxruntime session on {ERROR_INPUTS} seeded",
         "  inputs, in quantisation steps of each output (its DequantizeLinear's scale). The final Softmax is",
         "  onnxruntime's QLinearSoftmax arithmetic in NNCG too (tests/test_int8_softmax.py).",
@@ -297,6 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--targets", nargs="+", default=host_targets(), choices=list(TARGET_ISA))
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
+    parser.add_argument("--runs", type=int, default=1, help=RUNS_HELP)
     parser.add_argument("--no-cortex-m4", action="store_true", help="skip the Cortex-M4 builds and runs")
     parser.add_argument("--note", default="", help="a line for the section, e.g. the machine's load")
     parser.add_argument(
@@ -306,7 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     before = measured_peaks(args.cpu)
     models = {name: quantized_model(name, args.reduce_range) for name in args.models}
-    rows = run_int8_suite(models, args.targets, cpu=args.cpu, batches=args.batches)
+    rows = repeated(args.runs, lambda: run_int8_suite(models, args.targets, cpu=args.cpu, batches=args.batches),
+                    merged_int8_row)  # fmt: skip
     peaks = higher_peaks(before, measured_peaks(args.cpu))
     helpers = None if args.no_cortex_m4 else cross_helpers()
     m4_rows = cortex_m4_rows(helpers, models) if helpers else {}

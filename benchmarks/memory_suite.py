@@ -1,14 +1,15 @@
 """The memory suite: each model at every --memory setting, latency against the arena it needs (issue 18).
 
     python3 -m benchmarks.memory_suite [--models robot ...] [--targets ssse3 avx2] [--cpu 0] [--batches 15] [--int8]
+                                       [--runs 3]
 
 For the paper's models and the MLPerf-Tiny-shaped ones, per x86 target, the three settings (speed, balanced,
 min) and onnxruntime (one thread) are timed in one interleaved run (nncg.bench.benchmark_variants), so each
 setting's latency ratio to speed's is measured side by side. Next to it: the arena (NAME_ARENA_BYTES), the
 layer-by-layer bound and all activations side by side (nncg.compiler.memory_figures), the plan and the error
 against onnxruntime. With --int8, each model also quantised as the int8 suite quantises it (rows "NAME int8",
-its errors against onnxruntime on the QDQ model). Writes the "memory" section of benchmarks/RESULTS.md and
-prints it.
+its errors against onnxruntime on the QDQ model). --runs N measures all of it N times and reports the medians
+over the runs and the ratios' ranges. Writes the "memory" section of benchmarks/RESULTS.md and prints it.
 """
 
 from __future__ import annotations
@@ -16,11 +17,12 @@ from __future__ import annotations
 import argparse
 import datetime
 import shlex
+import statistics
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from nncg.bench.benchmark import BenchResult, Timing, benchmark_variants
+from nncg.bench.benchmark import BenchResult, Timing, benchmark_variants, paired_ratio
 from nncg.bench.peak import measure_peaks
 from nncg.lowering.band_plan import MEMORY_MODES
 from nncg.safe_text import markdown_text
@@ -30,12 +32,18 @@ from .suite import (
     MLPERF_TINY,
     PAPER,
     ROOT,
+    RUNS_HELP,
     cpu_model,
     higher_peaks,
     measured_peaks,
+    median_result,
     model_path,
+    over_runs,
     peaks_text,
     problem_text,
+    ratio_range,
+    repeated,
+    runs_lines,
     write_section,
 )
 
@@ -57,11 +65,13 @@ class MemoryRow:
     result: BenchResult | None
     speed: BenchResult | None  # the same model and target at --memory speed, timed in the same run
     problem: str = ""
+    # Each run's latency relative to speed's: the median of the per-batch ratios of the same interleaved run.
+    ratios: tuple[float, ...] = ()
 
     @property
     def ratio(self) -> float:
-        """Latency relative to speed's, both medians of the same interleaved run."""
-        return self.result.nncg_us / self.speed.nncg_us
+        """The median over the runs of the latency relative to speed's."""
+        return statistics.median(self.ratios)
 
     @property
     def arena_cut(self) -> float:
@@ -91,8 +101,27 @@ def run_memory_suite(
             except Exception as exc:  # noqa: BLE001 - one model's failure is a row, not an abort
                 rows += [MemoryRow(model, target, s, None, None, problem_text(exc)) for s in SETTINGS]
                 continue
-            rows += [MemoryRow(model, target, s, results[s], results["speed"]) for s in SETTINGS]
+            speed = results["speed"]
+            for s in SETTINGS:
+                ratio = paired_ratio(results[s].batch_us, speed.batch_us)
+                rows.append(MemoryRow(model, target, s, results[s], speed, ratios=(ratio,)))
     return rows
+
+
+def merged_memory_row(same: list[MemoryRow]) -> MemoryRow:
+    """A model, target and setting over several runs: µs the medians over the runs, the ratios each run's;
+    a run that failed stands for all."""
+    failed = [row for row in same if row.result is None]
+    if failed or len(same) == 1:
+        return (failed or same)[0]
+    return replace(
+        same[0], result=median_result([row.result for row in same]), speed=median_result([row.speed for row in same]),
+        ratios=tuple(r for row in same for r in row.ratios),
+    )  # fmt: skip
+
+
+def runs_of(rows: list[MemoryRow]) -> int:
+    return max((len(row.ratios) for row in rows), default=0)
 
 
 HEADER = (
@@ -102,15 +131,20 @@ HEADER = (
 
 
 def memory_table(rows: list[MemoryRow]) -> str:
-    lines = [HEADER, "|" + "---|" * HEADER.count(" | ") + "---|"]
+    """The rows' table; with an x speed range column when they are medians of several runs."""
+    ranges = runs_of(rows) > 1
+    header = HEADER.replace(" x speed |", " x speed | x speed range |") if ranges else HEADER
+    separators = header.count(" | ")
+    lines = [header, "|" + "---|" * separators + "---|"]
     for row in rows:
         head = f"| {row.model} | {row.target} | {row.setting} |"
         r = row.result
         if r is None:
-            lines.append(f"{head} {markdown_text(row.problem, PLAN_LIMIT)} |" + " |" * 9)
+            lines.append(f"{head} {markdown_text(row.problem, PLAN_LIMIT)} |" + " |" * (separators - 3))
             continue
+        ratio = f"{row.ratio:.2f}x" + (f" | {ratio_range(row.ratios)}" if ranges else "")
         lines.append(
-            f"{head} {r.nncg_us:.2f} | {row.ratio:.2f}x | {r.ort_bound_us:.2f} | {r.arena_bytes:,} "
+            f"{head} {r.nncg_us:.2f} | {ratio} | {r.ort_bound_us:.2f} | {r.arena_bytes:,} "
             f"| {row.arena_cut:.2f}x | {r.layer_bound_bytes:,} | {r.all_activation_bytes:,} | {r.max_abs_err:.1e} "
             f"| {r.max_rel_err:.1e} | {markdown_text(r.plan, PLAN_LIMIT)} |"
         )
@@ -151,8 +185,10 @@ def section_markdown(
         "- The settings and onnxruntime are timed in turn within each batch, so the ratios are steadier than",
         "  the absolute µs; the speed again rows show how much two builds of the same C differ.",
         "- NNCG untuned defaults (unroll auto) at `--memory speed|balanced|min`; NNCG µs: the median of",
-        f"  {batches} batches of >= 20 ms each; x speed: that median over speed's, same run; ORT µs: onnxruntime",
+        f"  {batches} batches of >= 20 ms each; x speed: the median of the per-batch ratios of this setting's time",
+        "  to speed's, same run (a slow spell of the machine slows both and cancels); ORT µs: onnxruntime",
         "  (one thread, IOBinding), timed in the same run: one figure for all the settings.",
+        *runs_lines(runs_of(rows), "x speed", "x speed range"),
         "- arena B: NAME_ARENA_BYTES; arena cut: speed's arena over this one; layer bound B: the most one layer",
         "  computed whole needs; activations B: every activation side by side, no reuse. Both leave scratch",
         "  buffers (Winograd's) out, which the arena holds: speed's arena can exceed them.",
@@ -161,7 +197,7 @@ def section_markdown(
         "  of the others' ratios (balanced and min print the same C as speed where their plan is speed's).",
         "",
         memory_table(rows),
-        "Against issue 18's targets:",
+        f"Against issue 18's targets ({over_runs(runs_of(rows))}):",
         "",
         *target_lines(rows),
         "",
@@ -177,12 +213,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
     parser.add_argument("--note", default="", help="a line for the section, e.g. the machine's load")
+    parser.add_argument("--runs", type=int, default=1, help=RUNS_HELP)
     parser.add_argument("--int8", action="store_true", help="each model quantised too (the int8 suite's QDQ model)")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)
     before = measured_peaks(args.cpu)
     models = [*args.models, *(name + INT8 for name in args.models if args.int8)]
-    rows = run_memory_suite(models, args.targets, cpu=args.cpu, batches=args.batches, peaks=before)
+    rows = repeated(args.runs, lambda: run_memory_suite(models, args.targets, cpu=args.cpu, batches=args.batches,
+                    peaks=before), merged_memory_row)  # fmt: skip
     peaks = higher_peaks(before, measured_peaks(args.cpu))
     command = shlex.join(["python3", "-m", "benchmarks.memory_suite", *argv])
     date = datetime.date.today().isoformat()

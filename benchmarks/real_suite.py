@@ -1,13 +1,15 @@
 """The real-size benchmark suite: torchvision architectures and a Keras NHWC model, NNCG against onnxruntime.
 
     python3 -m benchmarks.real_suite [--models resnet18 ...] [--targets avx512] [--cpu 0] [--batches 15]
-                                     [--size 96] [--profile [--cpu-time]]
+                                     [--size 96] [--runs 3] [--profile [--cpu-time]]
 
 Models (benchmarks/real_models.py) are exported when missing (needs torch: pip install -e .[bench]), compiled
 with NNCG's untuned defaults (unroll auto; weights in NAME.weights above 4 MiB) and timed as benchmarks/suite.py
 times its models: one onnxruntime thread, interleaved, medians, % of the measured peak. The table replaces the
 "real-models" section of benchmarks/RESULTS.md (the small-model table stays) and the chart is redrawn from all
-tables. Models NNCG cannot compile are listed with the reason. --profile prints each model's per-layer times
+tables. Models NNCG cannot compile are listed with the reason. --runs N measures every model and target N
+times (all of them once, then again) and reports the medians and the speed-up's range over the runs.
+--profile prints each model's per-layer times
 (with --cpu-time in the thread's CPU time, which leaves out the time other processes hold the core).
 """
 
@@ -24,14 +26,20 @@ from nncg.bench.peak import TARGET_ISA
 from .real_models import DEFAULT_CASES, MODELS, case_name, ensure
 from .suite import (
     ROOT,
+    RUNS_HELP,
+    SPEEDUP_COLUMN,
     Row,
     cpu_model,
     first_line,
     higher_peaks,
     measured_peaks,
+    merged_row,
     peaks_text,
+    repeated,
     results_table,
     run_suite,
+    runs_lines,
+    runs_of,
     with_peaks,
     write_section,
 )
@@ -61,6 +69,8 @@ def section_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str, b
         "  10 classes) in NHWC with tf2onnx's Transposes around every conv (benchmarks/nhwc_model.py).",
         "- NNCG untuned defaults (unroll auto; weights auto: NAME.weights above 4 MiB). Columns as in the table",
         f"  above; medians of {batches} batches of >= 20 ms each, NNCG and onnxruntime (one thread) interleaved.",
+        f"- {SPEEDUP_COLUMN}.",
+        *runs_lines(runs_of(rows)),
         "",
     ]
     return "\n".join(lines) + "\n" + results_table(rows)
@@ -85,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
     parser.add_argument("--size", type=int, help="input height and width of every model (default: 96 and 224)")
+    parser.add_argument("--runs", type=int, default=1, help=RUNS_HELP)
     parser.add_argument("--profile", action="store_true", help="also print each model's per-layer profile")
     parser.add_argument(
         "--cpu-time", action="store_true",
@@ -94,8 +105,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     cases = select_cases(args.models, args.size)
     before = measured_peaks(args.cpu)
-    rows = run_suite(list(cases), args.targets, cpu=args.cpu, batches=args.batches, peaks=before,
-                     path_of=lambda name: ensure(*cases[name]))  # fmt: skip
+
+    def measure() -> list[Row]:
+        return run_suite(list(cases), args.targets, cpu=args.cpu, batches=args.batches, peaks=before,
+                         path_of=lambda name: ensure(*cases[name]))  # fmt: skip
+
+    rows = repeated(args.runs, measure, merged_row)
     peaks = higher_peaks(before, measured_peaks(args.cpu))
     rows = with_peaks(rows, peaks)
     section = section_markdown(rows, peaks, args.cpu, datetime.date.today().isoformat(), args.batches)

@@ -1,10 +1,12 @@
 """The benchmark suite: every model x every target, NNCG against onnxruntime and the hardware peak.
 
-    python3 -m benchmarks.suite [--cpu 0] [--tune] [--targets ansi-c ssse3] [--models ball robot]
+    python3 -m benchmarks.suite [--cpu 0] [--tune] [--targets ansi-c ssse3] [--models ball robot] [--runs 3]
 
 writes benchmarks/RESULTS.md (the table, the machine's CPU, the date; sections other suites added, such as
 benchmarks/real_suite.py's, are kept) and benchmarks/results.png (speed-up over onnxruntime and % of peak per
 model and target, of every table in RESULTS.md). Models NNCG cannot compile yet are listed, not hidden.
+With --runs N the whole suite is measured N times; each row shows the medians over the runs and the range
+of the run's speed-ups.
 """
 
 from __future__ import annotations
@@ -13,7 +15,9 @@ import argparse
 import datetime
 import platform
 import re
+import statistics
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -40,6 +44,7 @@ class Row:
     result: BenchResult | None
     problem: str = ""  # why there is no result (an unsupported operator, ...)
     unroll: str = "auto"
+    speedups: tuple[float, ...] = ()  # each run's speed-up, when the suite ran several times (result: medians)
 
 
 def run_suite(
@@ -66,6 +71,44 @@ def run_suite(
             except Exception as exc:  # noqa: BLE001 - a C compiler or export failure on one model: report, go on
                 rows.append(Row(model, target, None, problem_text(exc), unroll=level))
     return rows
+
+
+def repeated(runs: int, measure: Callable[[], list], merge: Callable[[list], object], progress=print) -> list:
+    """`measure` (the rows of one run of a suite) `runs` times, each row merged with its namesakes of
+    the other runs (same models and targets in the same order)."""
+    measured = []
+    for run in range(runs):
+        if runs > 1:
+            progress(f"run {run + 1} of {runs}")
+        measured.append(measure())
+    return [merge(list(same)) for same in zip(*measured, strict=True)]
+
+
+def merged_row(same: list[Row]) -> Row:
+    """A model and target over several runs: µs and speed-up the medians over the runs, `speedups` each
+    run's; a run that failed stands for all (a model fails the same way each time)."""
+    failed = [row for row in same if row.result is None]
+    if failed or len(same) == 1:
+        return (failed or same)[0]
+    results = [row.result for row in same]
+    return replace(same[0], result=median_result(results), speedups=tuple(r.speedup for r in results))
+
+
+def median_result(results: list[BenchResult]) -> BenchResult:
+    """The first of a model's results of several runs with the medians over the runs of its µs and speed-up."""
+
+    def median(field: str) -> float:
+        return statistics.median(getattr(r, field) for r in results)
+
+    return replace(
+        results[0], nncg_us=median("nncg_us"), ort_bound_us=median("ort_bound_us"), ort_run_us=median("ort_run_us"),
+        speedup=median("speedup"), batch_us=(),
+    )  # fmt: skip
+
+
+def ratio_range(ratios: Sequence[float]) -> str:
+    """The lowest and highest of a ratio's runs, as `1.46-1.58x`."""
+    return f"{min(ratios):.2f}-{max(ratios):.2f}x"
 
 
 def problem_text(exc: Exception) -> str:
@@ -133,15 +176,43 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
         "  algorithm, block shapes and unroll budgets from `--tune`, timed on this core); onnxruntime:",
         "  batch 1, one intra-op thread, all graph optimisations; `ORT µs` with IOBinding, `ORT run µs` through",
         "  `InferenceSession.run`. Medians of 15 batches of >= 20 ms each, NNCG and onnxruntime interleaved.",
-        "- speed-up = ORT µs / NNCG µs; GFLOP/s = 2 x MACs / NNCG time; % peak of the ISA the target uses.",
+        f"- {SPEEDUP_COLUMN}.",
+        "- GFLOP/s = 2 x MACs / NNCG µs; % peak of the ISA the target uses.",
         "  MACs are those of direct convolution, so GFLOP/s and % peak are effective rates: the 3x3 convs that",
         "  run as Winograd F(2x2,3x3) execute 2.25x fewer multiplies (plus the transforms' adds).",
         "- text + rodata go to flash; RAM is bss, which holds the static arena (arena B: activations placed by",
         "  the memory plan; activations B: all activation buffers without reuse); gen s / cc s: C generation and",
         "  compile time.",
+        *runs_lines(runs_of(rows)),
         "",
     ]
     return "\n".join(lines) + "\n" + results_table(rows)
+
+
+SPEEDUP_COLUMN = (
+    "speed-up: the median of the per-batch ratios ORT time / NNCG time (a batch times both within seconds, so a\n"
+    "  slow spell of the machine cancels; it can differ from ORT µs / NNCG µs)"
+)
+
+
+def runs_of(rows: list[Row]) -> int:
+    """How many runs the rows are medians of (0: a single run, kept as measured)."""
+    return max((len(row.speedups) for row in rows), default=0)
+
+
+def over_runs(runs: int) -> str:
+    """What a threshold line's ratios are: `one run` or `medians of N runs`."""
+    return f"medians of {runs} runs" if runs > 1 else "one run"
+
+
+def runs_lines(runs: int, ratios: str = "speed-up", ranges: str = "range") -> list[str]:
+    """The note on a table of several runs: what its figures and its range columns are."""
+    if runs < 2:
+        return []
+    return [
+        f"- Measured {runs} times (--runs {runs}, all models and targets each time): µs and {ratios} are the medians",
+        f"  over the runs; {ranges}: the lowest and highest run's value.",
+    ]
 
 
 RESULT_COLUMNS = (
@@ -151,7 +222,13 @@ RESULT_COLUMNS = (
 
 
 def results_table(rows: list[Row]) -> str:
-    return markdown_table(RESULT_COLUMNS, [result_cells(row) for row in rows])
+    """The rows' table; with a range column after speed-up when they are medians of several runs."""
+    if runs_of(rows) < 2:
+        return markdown_table(RESULT_COLUMNS, [result_cells(row) for row in rows])
+    at = RESULT_COLUMNS.index("speed-up") + 1
+    cells = [result_cells(row) for row in rows]
+    cells = [[*c[:at], ratio_range(row.speedups), *c[at:]] if row.result else c for c, row in zip(cells, rows)]
+    return markdown_table([*RESULT_COLUMNS[:at], "range", *RESULT_COLUMNS[at:]], cells)
 
 
 def result_cells(row: Row) -> list[str]:
@@ -259,6 +336,9 @@ def write_results(out_dir: Path, document: str) -> Path:
     return results
 
 
+RUNS_HELP = "measure every model and target this many times; report the medians over the runs and their range"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=PAPER + MLPERF_TINY)
@@ -267,9 +347,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     parser.add_argument("--tune", action="store_true", help="tune every model per layer first (nncg-onnx --tune)")
+    parser.add_argument("--runs", type=int, default=1, help=RUNS_HELP)
     args = parser.parse_args(argv)
     before = measured_peaks(args.cpu)
-    rows = run_suite(args.models, args.targets, cpu=args.cpu, peaks=before, tuned=args.tune)
+
+    def measure() -> list[Row]:
+        return run_suite(args.models, args.targets, cpu=args.cpu, peaks=before, tuned=args.tune)
+
+    rows = repeated(args.runs, measure, merged_row)
     peaks = higher_peaks(before, measured_peaks(args.cpu))
     rows = with_peaks(rows, peaks)
     today = datetime.date.today().isoformat()

@@ -16,6 +16,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from .bench.benchmark import SPEEDUP_NOTE
 from .bench.harness import ObjectSizes, object_sizes
 from .bench.macs import node_macs
 from .compiler import CompiledModel, CompileRecord, memory_figures
@@ -405,6 +406,7 @@ def _html_measurements(measurements: Measurements, images: dict[str, bytes]) -> 
         parts += [
             "<h2>Benchmark</h2>",
             _html_table(BENCHMARK_HEADER, _benchmark_cells(measurements.benchmark)),
+            f"<p>{html_text(SPEEDUP_NOTE)}</p>",
             _html_image(images["benchmark"], "NNCG and onnxruntime times"),
         ]
     if measurements.profile:
@@ -484,7 +486,8 @@ def _md_measurements(measurements: Measurements) -> list[str]:
             markdown_text(_verify_verdict(report)), "",
         ]  # fmt: skip
     if measurements.benchmark is not None:
-        lines += ["## Benchmark", "", _md_table(BENCHMARK_HEADER, _benchmark_cells(measurements.benchmark)), ""]
+        table = _md_table(BENCHMARK_HEADER, _benchmark_cells(measurements.benchmark))
+        lines += ["## Benchmark", "", table, "", markdown_text(SPEEDUP_NOTE), ""]
     if measurements.profile:
         lines += ["## Profile", "", _md_table(PROFILE_HEADER, _profile_cells(measurements.profile)), ""]
     return lines

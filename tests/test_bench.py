@@ -3,13 +3,22 @@
 import io
 import math
 import re
+import statistics
 from pathlib import Path
 
 import onnxruntime
 import pytest
 from helpers import nncg_onnx
 
-from nncg.bench.benchmark import BenchResult, benchmark, format_profile, format_results, interleaved_medians, profile
+from nncg.bench.benchmark import (
+    BenchResult,
+    benchmark,
+    format_profile,
+    format_results,
+    interleaved_samples,
+    paired_ratio,
+    profile,
+)
 from nncg.bench.harness import ObjectSizes
 from nncg.bench.macs import total_macs
 from nncg.bench.progress import progress_bar
@@ -28,9 +37,9 @@ def test_macs_of_the_ball_network():
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
 def test_benchmark_result_is_well_formed(target):
     r = benchmark(BALL, target=target, **FAST)
-    for value in (r.nncg_us, r.ort_bound_us, r.ort_run_us, r.gflops, r.generate_seconds, r.compile_seconds):
+    for value in (r.nncg_us, r.ort_bound_us, r.ort_run_us, r.speedup, r.gflops, r.generate_seconds, r.compile_seconds):
         assert math.isfinite(value) and value > 0
-    assert r.speedup == pytest.approx(r.ort_bound_us / r.nncg_us)
+    assert len(r.batch_us) == 3 and r.nncg_us == sorted(r.batch_us)[1]  # the median batch
     assert r.percent_of_peak == pytest.approx(100 * r.gflops / 10.0)
     assert r.max_rel_err < 1e-4 and r.macs == total_macs(import_onnx(BALL))
     assert r.sizes.text > 0 and r.sizes.bss >= r.arena_bytes > 0 and r.peak_isa == "sse"
@@ -80,7 +89,8 @@ def test_cli_benchmark_and_profile_print_their_tables(tmp_path):
 def result_at(percent: float | None, version: str = "1.2.3") -> BenchResult:
     """A result whose GFLOP/s are `percent` of a 10 GFLOP/s peak (None: no peak known); no timing."""
     return BenchResult(
-        model="m", target="avx2", nncg_us=2.0, ort_bound_us=4.0, ort_run_us=5.0, max_abs_err=0.0, max_rel_err=0.0,
+        model="m", target="avx2", nncg_us=2.0, ort_bound_us=4.0, ort_run_us=5.0, speedup=2.0, max_abs_err=0.0,
+        max_rel_err=0.0,
         sizes=ObjectSizes(1, 1, 0, 1), macs=int(percent or 1) * 100, peak_isa="avx2-fma",
         peak_gflops=None if percent is None else 10.0, generate_seconds=0.1, compile_seconds=0.1, ort_version=version,
     )  # fmt: skip
@@ -115,13 +125,40 @@ def test_progress_bar_draws_on_a_terminal_only(monkeypatch):
 
 
 def test_interleaved_timing_is_quiet_when_stderr_is_not_a_terminal(capsys):
-    medians = interleaved_medians({"a": lambda calls: 1.0, "b": lambda calls: 2.0}, batches=4, min_seconds=0.5)
-    assert medians == {"a": 1.0, "b": 2.0}
+    samples = interleaved_samples({"a": lambda calls: 1.0, "b": lambda calls: 2.0}, batches=4, min_seconds=0.5)
+    assert samples == {"a": [1.0] * 4, "b": [2.0] * 4}
     assert capsys.readouterr().err == ""
+
+
+def test_a_paired_ratio_cancels_a_slow_spell_a_ratio_of_medians_does_not():
+    # ORT's and NNCG's seconds in five batches, ORT 2x slower with some noise of its own per batch
+    ort, nncg = [2.4, 1.6, 2.0, 2.0, 2.0], [1.0] * 5
+    assert paired_ratio(ort, nncg) == 2.0 and statistics.median(ort) / statistics.median(nncg) == 2.0
+    slow = [1.0, 1.0, 1.0, 3.0, 3.0]  # the machine 3x slower for the last two batches, both timers
+    ort_slow, nncg_slow = [t * s for t, s in zip(ort, slow)], [t * s for t, s in zip(nncg, slow)]
+    assert paired_ratio(ort_slow, nncg_slow) == pytest.approx(2.0)
+    assert statistics.median(ort_slow) / statistics.median(nncg_slow) == pytest.approx(2.4)
+
+
+def test_a_paired_ratio_pairs_samples_of_one_run_only():
+    with pytest.raises(ValueError):
+        paired_ratio([1.0, 2.0], [1.0])
+
+
+def test_interleaved_samples_pair_up_by_batch():
+    # a machine 5x slower from the third batch on (the 7th timer call: two calibrate, two a batch)
+    timer_calls = iter(range(100))
+
+    def timer(seconds_per_call: float):
+        return lambda calls: calls * seconds_per_call * (1.0 if next(timer_calls) < 6 else 5.0)
+
+    samples = interleaved_samples({"a": timer(1.0), "b": timer(2.0)}, batches=5, min_seconds=0.5)
+    assert samples == {"a": [1.0, 1.0, 5.0, 5.0, 5.0], "b": [2.0, 2.0, 10.0, 10.0, 10.0]}
+    assert paired_ratio(samples["b"], samples["a"]) == 2.0
 
 
 def test_interleaved_batches_rotate_the_order():
     order = []
     timers = {key: (lambda calls, key=key: order.append(key) or 1.0) for key in "abc"}
-    interleaved_medians(timers, batches=3, min_seconds=0.5)
+    interleaved_samples(timers, batches=3, min_seconds=0.5)
     assert "".join(order) == "abc" + "abcbcacab"  # calibration, then each batch starting one later

@@ -170,7 +170,7 @@ def test_measurements_get_their_sections_and_plots(hostile_compiled, tmp_path):
     stats = (ErrorStat(HOSTILE_NAMES[0], (1, 5, 6, 7), 1e-7, 2e-7),)
     verify = VerifyReport(compiled.name, "ansi-c", stats, 1e-4, 0)
     bench = BenchResult(
-        compiled.name, "ansi-c", 10.0, 20.0, 30.0, 1e-7, 2e-7, ObjectSizes(1, 2, 3, 4), compiled.macs,
+        compiled.name, "ansi-c", 10.0, 20.0, 30.0, 2.0, 1e-7, 2e-7, ObjectSizes(1, 2, 3, 4), compiled.macs,
         "sse", None, 0.1, 0.2,
     )  # fmt: skip
     layers = [LayerTime(k.name, 1.5 + i, 10.0, 0) for i, k in enumerate(compiled.record.program.kernels)]

@@ -1,6 +1,7 @@
 """`--benchmark` and `--profile`: NNCG's generated C against onnxruntime on the same model and inputs,
 measured interleaved (A B A B ...) so the ratio holds while the machine drifts, and against the
-peak of the instruction set the target uses."""
+peak of the instruction set the target uses. Every ratio is paired: the median over batches of the
+two timers' ratio within a batch (paired_ratio), as a batch's timers run seconds apart."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import os
 import statistics
 import tempfile
 import time
+from collections.abc import Sequence
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +31,7 @@ class BenchResult:
     nncg_us: float  # median µs per inference
     ort_bound_us: float  # onnxruntime, IOBinding
     ort_run_us: float  # onnxruntime, InferenceSession.run
+    speedup: float  # ORT (IOBinding) over NNCG: the median of the per-batch ratios (paired_ratio)
     max_abs_err: float
     max_rel_err: float
     sizes: ObjectSizes
@@ -44,10 +47,7 @@ class BenchResult:
     plan: str = ""  # the layers run in bands (--memory, --ram-budget)
     ort_version: str = ""  # onnxruntime's, as the report names the opponent
     ort_threads: int = THREADS
-
-    @property
-    def speedup(self) -> float:
-        return self.ort_bound_us / self.nncg_us
+    batch_us: tuple[float, ...] = ()  # NNCG's µs per inference in each batch, to pair with variants of its run
 
     @property
     def gflops(self) -> float:
@@ -79,9 +79,10 @@ def calibrate(timer, min_seconds: float) -> int:
     return calls
 
 
-def interleaved_medians(timers: dict, batches: int, min_seconds: float) -> dict[str, float]:
-    """Median seconds per call of each timer, batches run in turn A B C B C A C A B ... (a progress
-    bar on a terminal): the order rotates so no timer always runs after the same one."""
+def interleaved_samples(timers: dict, batches: int, min_seconds: float) -> dict[str, list[float]]:
+    """Seconds per call of each timer in each batch, batches run in turn A B C B C A C A B ... (a progress
+    bar on a terminal): the order rotates so no timer always runs after the same one. Sample i of every
+    timer comes from batch i, so paired_ratio can set them against each other."""
     calls = {key: calibrate(timer, min_seconds) for key, timer in timers.items()}
     samples: dict[str, list[float]] = {key: [] for key in timers}
     keys = list(timers)
@@ -90,7 +91,13 @@ def interleaved_medians(timers: dict, batches: int, min_seconds: float) -> dict[
             for key in keys[batch % len(keys) :] + keys[: batch % len(keys)]:
                 samples[key].append(timers[key](calls[key]) / calls[key])
             bar.update()
-    return {key: statistics.median(values) for key, values in samples.items()}
+    return samples
+
+
+def paired_ratio(numerator: Sequence[float], denominator: Sequence[float]) -> float:
+    """The median of numerator[i] / denominator[i], samples of the same batches: a slow spell of the
+    machine lasting a batch or more slows both of a pair and cancels, where it moves a ratio of medians."""
+    return statistics.median(n / d for n, d in zip(numerator, denominator, strict=True))
 
 
 def benchmark(
@@ -151,11 +158,11 @@ def benchmark_variants(
         ort = OnnxruntimeTimer(proto, [p.name for p in first.inputs], inputs)
         timers = {("nncg", name): harness.run for name, harness in harnesses.items()}
         timers |= {"ort_bound": ort.run_bound, "ort_run": ort.run_plain}
-        medians = interleaved_medians(timers, timing.batches, timing.min_batch_seconds)
+        samples = interleaved_samples(timers, timing.batches, timing.min_batch_seconds)
         names = [p.name for p in first.outputs]
         stats = {name: compare(harness.outputs(), ort.outputs(), names) for name, harness in harnesses.items()}
     return {
-        name: _result(build, medians["nncg", name], medians, stats[name], harnesses[name], peak, ort.version)
+        name: _result(build, samples["nncg", name], samples, stats[name], harnesses[name], peak, ort.version)
         for name, build in builds.items()
     }
 
@@ -175,7 +182,7 @@ def _generate(model, target: str, unroll, **options):
     return compiled, time.perf_counter() - start
 
 
-def _result(build, nncg_seconds, medians, stats, harness, peak, ort_version) -> BenchResult:
+def _result(build, nncg_samples, samples, stats, harness, peak, ort_version) -> BenchResult:
     from .peak import TARGET_ISA
 
     compiled, generate_seconds = build
@@ -183,9 +190,10 @@ def _result(build, nncg_seconds, medians, stats, harness, peak, ort_version) -> 
     return BenchResult(
         model=compiled.name,
         target=compiled.target,
-        nncg_us=nncg_seconds * 1e6,
-        ort_bound_us=medians["ort_bound"] * 1e6,
-        ort_run_us=medians["ort_run"] * 1e6,
+        nncg_us=statistics.median(nncg_samples) * 1e6,
+        ort_bound_us=statistics.median(samples["ort_bound"]) * 1e6,
+        ort_run_us=statistics.median(samples["ort_run"]) * 1e6,
+        speedup=paired_ratio(samples["ort_bound"], nncg_samples),
         max_abs_err=max(s.max_abs for s in stats),
         max_rel_err=max(s.max_rel for s in stats),
         sizes=harness.sizes,
@@ -200,6 +208,7 @@ def _result(build, nncg_seconds, medians, stats, harness, peak, ort_version) -> 
         all_activation_bytes=figures.all_activation_bytes,
         plan=figures.plan,
         ort_version=ort_version,
+        batch_us=tuple(seconds * 1e6 for seconds in nncg_samples),
     )
 
 
@@ -261,6 +270,9 @@ def pinned(cpu: int | None):
         os.sched_setaffinity(0, before)
 
 
+SPEEDUP_NOTE = "speed-up: the median of the per-batch ratios ORT µs / NNCG µs (µs: medians of the batches)"
+
+
 def format_results(results: list[BenchResult]) -> str:
     header = (
         "model",
@@ -288,6 +300,7 @@ def format_results(results: list[BenchResult]) -> str:
             str(r.activation_bytes),
         ))  # fmt: skip
     notes = [f"ORT: {opponent}" for opponent in dict.fromkeys(_opponent(r) for r in results)]
+    notes.append(SPEEDUP_NOTE)
     notes += [f"memory plan of {r.model}: {r.plan}" for r in results if r.plan]
     if any(r.effective_peak for r in results):
         notes.append("effective: above 100 % as GFLOP/s count direct convolution's multiply-adds; Winograd does fewer")
