@@ -18,7 +18,7 @@ import onnx
 
 from . import __version__
 from .arguments import check_compile_arguments, check_write_arguments
-from .backends import get_backend
+from .backends import get_backend, get_target
 from .backends.weights import external_weights, weights_blob
 from .bench.macs import macs_by_layer
 from .cmake import CMAKE_LISTS, cmake_file
@@ -223,7 +223,7 @@ def memory_figures(compiled: CompiledModel) -> MemoryFigures | None:
         return None
     lower = next(spec for spec in parse_pipeline(compiled.pipeline) if spec.name == "lower")
     params = dict(lower.params)
-    plan = plan_layers(graph, params.get("memory", "speed"), int(params.get("budget", 0)), compiled.target)
+    plan = plan_layers(graph, params.get("memory", "speed"), int(params.get("budget", 0)), get_target(compiled.target))
     return MemoryFigures(layer_bound_bytes(graph), whole_activation_bytes(graph), describe_plan(plan.groups))
 
 

@@ -10,6 +10,7 @@ from test_bands import PEDESTRIAN, RESNET8, ROBOT, lowered_graph
 
 import nncg
 import nncg.lowering
+from nncg.backends import get_target
 from nncg.ir.kinds import ConvAlgorithm
 from nncg.lowering import band_plan
 from nncg.lowering.bands import BandGroup, geometry
@@ -117,7 +118,7 @@ def test_balanced_halves_the_arena_of_winograd_models(model, target):
     compiled = nncg.compile(model, target=target, memory="balanced")
     assert 2 * compiled.arena_bytes <= speed.arena_bytes
     graph = lowered_graph(model, target)
-    assert any(g.winograd for g in band_plan.plan_layers(graph, "balanced", 0, target).groups)
+    assert any(g.winograd for g in band_plan.plan_layers(graph, "balanced", 0, get_target(target)).groups)
     if target == "avx2":
         check_against_onnxruntime(onnx.load(model), compiled)
 

@@ -233,7 +233,7 @@ def test_depthwise_runs_in_place_where_the_budget_needs_it(target, kernel, pads)
     speed = nncg.compile(model, target=target)
     compiled = nncg.compile(model, target=target, ram_budget=IN_PLACE_BUDGET)
     graph = lowered_graph(model, target)
-    assert band_plan.plan_layers(graph, "speed", IN_PLACE_BUDGET, target).in_place == {graph.nodes[1].name}
+    assert band_plan.plan_layers(graph, "speed", IN_PLACE_BUDGET, get_target(target)).in_place == {graph.nodes[1].name}
     assert band_kernels(compiled) == 0
     assert (speed.arena_bytes, compiled.arena_bytes) == (262_144, 155_648 + 1024 * 4 * (pads[0] - 1))
     check_against_onnxruntime(model, compiled, sanitize=target == "ansi-c")
@@ -257,15 +257,15 @@ def test_in_place_depthwise_reads_back_per_layer_and_is_left_out_where_it_does_n
     report = verify_per_layer(model, "ansi-c", ram_budget=IN_PLACE_BUDGET, sanitize=True)
     assert report.ok, report.format()
     graph = lowered_graph(model, "ssse3")
-    assert not band_plan.plan_layers(graph, "speed", 300_000, "ssse3").in_place  # fits without it
-    assert not band_plan.plan_layers(graph, "speed", 0, "ssse3").in_place
+    assert not band_plan.plan_layers(graph, "speed", 300_000, get_target("ssse3")).in_place  # fits without it
+    assert not band_plan.plan_layers(graph, "speed", 0, get_target("ssse3")).in_place
 
 
 def test_a_plan_runs_no_layer_both_in_bands_and_in_place():
     graph = lowered_graph(depthwise_peak_model(3, [1, 1, 1, 1]), "ssse3")
     for memory in band_plan.MEMORY_MODES:
         for budget in (0, IN_PLACE_BUDGET, 100_000):
-            plan = plan_layers(graph, memory, budget, "ssse3")
+            plan = plan_layers(graph, memory, budget, get_target("ssse3"))
             assert not plan.in_place & {name for group in plan.groups for name in group.nodes}
 
 
@@ -282,7 +282,7 @@ def _plans(graph, target):
     """(bytes, estimated latency) of the fastest plan under every memory bound, and speed's."""
     steps = band_plan.candidate_steps(graph, band_costs(target))
     plans = (band_plan._cheapest(len(graph.nodes), steps, bound) for bound in sorted({s.bytes for s in steps}))
-    speed = band_plan.plan_steps(graph, "speed", 0, target)
+    speed = band_plan.plan_steps(graph, "speed", 0, get_target(target))
     return [_figures(p) for p in plans if p], _figures(speed)
 
 
@@ -299,7 +299,7 @@ def test_balanced_is_the_fastest_plan_with_half_the_arena_within_the_latency_bou
     plans, (speed_bytes, speed_time) = _plans(graph, target)
     fast = [(size, time) for size, time in plans if time <= speed_time * band_plan.BALANCED_LATENCY]
     cut = [(time, size) for size, time in fast if size <= speed_bytes / band_plan.BALANCED_CUT]
-    size, time = _figures(band_plan.plan_steps(graph, "balanced", 0, target))
+    size, time = _figures(band_plan.plan_steps(graph, "balanced", 0, get_target(target)))
     assert time <= speed_time * band_plan.BALANCED_LATENCY
     if cut:
         assert size <= speed_bytes / band_plan.BALANCED_CUT and time == min(cut)[0]
@@ -319,7 +319,7 @@ def test_balanced_halves_the_arena_where_a_plan_is_fast_enough():
 def test_plans_are_priced_for_the_target():
     """ball: bands cost less on scalar C than on avx2, so balanced cuts deeper there; compile hands
     lower its target, and the report names the plan priced for it."""
-    plans = {t: plan_layers(lowered_graph(BALL, t), "balanced", 0, t).groups for t in ("ansi-c", "avx2")}
+    plans = {t: plan_layers(lowered_graph(BALL, t), "balanced", 0, get_target(t)).groups for t in ("ansi-c", "avx2")}
     assert plans["ansi-c"] != plans["avx2"]
     for target, groups in plans.items():
         compiled = nncg.compile(BALL, target=target, memory="balanced")

@@ -5,6 +5,9 @@ with onnxruntime running the same quantized model."""
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
+
 import numpy as np
 import onnx
 import pytest
@@ -17,7 +20,10 @@ from test_cross_targets import require
 
 import nncg
 from nncg import lowering
+from nncg.backends import get_target
 from nncg.compiler import memory_figures
+from nncg.ir.applicability import fused_ops_vectorise
+from nncg.lowering import band_plan
 from nncg.lowering.band_plan import BandPlan, plan_layers, plan_steps
 from nncg.lowering.bands import BandGroup, geometry
 
@@ -122,6 +128,21 @@ def test_every_int8_kind_streams_in_one_group(chain):
     assert {n.op for n in graph.nodes} >= kinds
     assert geometry(graph, whole_chain(graph, 1)) is not None
     assert plan_layers(graph, "min").groups  # the plan takes the head, where the image is largest
+
+
+def test_requantised_adds_are_priced_as_the_vectorize_pass_runs_them(chain):
+    """The planner asks the vectorize pass's rule (fused_ops_vectorise): on a target whose QLinearAdds stay
+    scalar (no FMA, none in double) each of its elements costs the target's lanes, whole and in bands."""
+    graph, avx2 = lowered_graph(chain, "avx2"), get_target("avx2")
+    scalar_adds = replace(avx2, fma=False)
+    assert fused_ops_vectorise(avx2) and not fused_ops_vectorise(scalar_adds)
+    vector, scalar = (band_plan.candidate_steps(graph, band_plan.target_costs(t)) for t in (avx2, scalar_adds))
+    add = next(i for i, node in enumerate(graph.nodes) if node.op == "QLinearAdd")
+    extra = (avx2.lanes - 1) * math.prod(graph.shape(graph.nodes[add].outputs[0]))
+    assert extra > 0 and len(vector) == len(scalar)
+    for v, s in zip(vector, scalar):
+        assert (v.start, v.stop, v.group, v.bytes) == (s.start, s.stop, s.group, s.bytes)
+        assert s.cost == pytest.approx(v.cost + (extra if v.start <= add < v.stop else 0))
 
 
 @pytest.mark.parametrize("rows", [1, 2, 3, 8])
@@ -238,13 +259,13 @@ def test_balanced_bands_int8_convs_in_vectors(target):
     arithmetic, every channel unrolled, had doubled the kernel's code past the instruction cache)."""
     skip_unless_host_runs(target)
     qdq = quantized(repository_model(MODELS["resnet8"]))
-    graph = lowered_graph(qdq, target)
-    assert plan_layers(graph, "balanced", target=target).groups
+    graph, planned = lowered_graph(qdq, target), get_target(target)
+    assert plan_layers(graph, "balanced", target=planned).groups
     speed = nncg.compile(qdq, target=target, memory="speed")
     balanced = nncg.compile(qdq, target=target, memory="balanced")
     assert speed.source.count(INTEGER_WINOGRAD) == 4 and "Winograd kept" in memory_figures(balanced).plan
     for compiled, memory in ((speed, "speed"), (balanced, "balanced")):  # in plan-memory's 64-byte alignment
-        assert compiled.arena_bytes == -(-max(step.bytes for step in plan_steps(graph, memory, 0, target)) // 64) * 64
+        assert compiled.arena_bytes == -(-max(step.bytes for step in plan_steps(graph, memory, 0, planned)) // 64) * 64
     assert speed.arena_bytes > memory_figures(speed).layer_bound_bytes  # the scratch on top of the activations
     assert balanced.arena_bytes < speed.arena_bytes
     assert_banded_dots(balanced, target)
@@ -311,7 +332,7 @@ def test_balanced_bands_the_input_quantize_in_vectors(name, target):
     qdq = quantized(repository_model(MODELS[name]))
     graph = lowered_graph(qdq, target)
     ops = {n.name: n.op for n in graph.nodes}
-    groups = plan_layers(graph, "balanced", target=target).groups
+    groups = plan_layers(graph, "balanced", target=get_target(target)).groups
     assert groups and ops[groups[0].nodes[0]] == "QuantizeLinear"
     speed = nncg.compile(qdq, target=target, memory="speed")
     balanced = nncg.compile(qdq, target=target, memory="balanced")
@@ -350,7 +371,7 @@ def in_place_plan(model: onnx.ModelProto):
     """ansi-c's plan under the budget: the QuantizeLinear and first layer in bands, the depthwise in place;
     every target's in-place code is tested with this plan."""
     graph = lowered_graph(model, "ansi-c")
-    plan = plan_layers(graph, "speed", IN_PLACE_BUDGET, "ansi-c")
+    plan = plan_layers(graph, "speed", IN_PLACE_BUDGET, get_target("ansi-c"))
     assert plan.in_place == {depthwise_layer(graph)}
     return plan
 
@@ -381,5 +402,5 @@ def test_int8_depthwise_runs_in_place_on_neon(depthwise_peak, monkeypatch):
 
 def test_int8_depthwise_stays_apart_where_it_does_not_pay(depthwise_peak):
     graph = lowered_graph(depthwise_peak, "ssse3")
-    assert not plan_layers(graph, "speed", 70_000, "ssse3").in_place  # speed fits
-    assert not plan_layers(graph, "min", 0, "ssse3").in_place  # bands take less
+    assert not plan_layers(graph, "speed", 70_000, get_target("ssse3")).in_place  # speed fits
+    assert not plan_layers(graph, "min", 0, get_target("ssse3")).in_place  # bands take less

@@ -15,7 +15,7 @@ import onnx
 from ..backends import get_target
 from ..bench import peak
 from ..errors import NncgError
-from ..ir.applicability import cache_block_applies, panel_packing_applies
+from ..ir.applicability import cache_block_applies, depthwise_blocks_apply, panel_packing_applies
 from ..options import CompileOptions
 from ..passes.register_block import block_candidates, blockable
 from ..passes.unroll import CODE_BUDGET
@@ -172,8 +172,9 @@ def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
 
 
 def _cache_block_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[str, tuple[int, int]]:
-    """Panels and input-channel blocks for some of the layers cache-block applies to: any legal shape,
-    not only what --tune times (fuzz models are small: the cost model would block none of them)."""
+    """Panels and input-channel blocks, or a depthwise Conv's channel blocks, for some of the layers
+    cache-block applies to: any legal shape, not only what --tune times (fuzz models are small: the
+    cost model would block none of them)."""
     pipeline = options.pipeline() or _base(options)
     if "cache-block" not in pipeline:
         return {}
@@ -181,7 +182,11 @@ def _cache_block_choices(d: Draw, model: onnx.ModelProto, options: Options) -> d
     out = {}
     for node in graph.nodes:
         conv = cache_block_applies(graph, node)
-        if not (conv or panel_packing_applies(graph, node)) or not d.chance(0.5):
+        depthwise = depthwise_blocks_apply(graph, node)
+        if not (conv or depthwise or panel_packing_applies(graph, node)) or not d.chance(0.5):
+            continue
+        if depthwise:  # channels a block, the last block the rest
+            out[node.name] = (d.int(1, graph.shape(node.outputs[0])[1]), 0)
             continue
         columns = graph.shape(node.outputs[0])[1 if conv else -1]
         c_in = graph.shape(node.inputs[1])[1]

@@ -7,6 +7,18 @@ import math
 
 from .graph import ConvAttrs, DenseAttrs, Graph, Node
 from .kinds import ConvAlgorithm, VectorAxis
+from .target import Target
+
+# onnxruntime computes QLinearAdd in float fused multiply-adds (lowering/quantized_add.py), which vectors
+# of a target with FMA do too, or, without, in double (Target.fma_in_double); QLinearMul's float32 sum
+# is an Fma by 1 (passes/vectorize.py _product_then_sum)
+FUSED_OPS = ("QLinearAdd", "QLinearMul")
+
+
+def fused_ops_vectorise(target: Target) -> bool:
+    """Whether FUSED_OPS vectorise on `target`, run whole or as an int8 band kernel's stages: the vectorize
+    pass's rule, and what the band planner prices them by (lowering/band_plan.py)."""
+    return target.integer_vectors and (target.fma or target.fma_in_double)
 
 
 def winograd_applies(graph: Graph, node: Node) -> bool:

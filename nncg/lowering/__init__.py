@@ -176,7 +176,7 @@ def lower(
     `fixed` (integers only, see lowering/requantize.py)."""
     name = program_name(function_name or graph.name)
     ctx = LoweringContext(graph, name, halos, requantize)
-    plan = plan_layers(graph, memory, budget, target and target.name)
+    plan = plan_layers(graph, memory, budget, target)
     groups = {group.nodes[0]: group for group in plan.groups}
     by_name = {node.name: node for node in graph.nodes}
     banded = {name for group in plan.groups for name in group.nodes}

@@ -58,7 +58,13 @@ buffer byte by byte (lowering/quantized.py). On mobilenet_v1_025 int8 (96x96x3 i
 QuantizeLinear in its group took 1.007x speed's instructions on ssse3 (gcc -O2; clang: 1.019x) and 1.015x on
 avx2 (clang), fewer than the same plan with the QuantizeLinear run whole (1.010x, 1.027x, 1.027x; callgrind Ir,
 `python3 -m benchmarks.int8_band_costs --quantize [--cc clang]`); quantised element by element at a stride of C
-before: 1.14x, 1.08x, 1.09x, and latency 1.43x (ssse3) / 2.07x (avx2)."""
+before: 1.14x, 1.08x, 1.09x, and latency 1.43x (ssse3) / 2.07x (avx2).
+
+A requantised add (QLinearAdd) costs 1 per element where it vectorises and the target's lanes
+(`fused_element`; not measured) where it stays scalar, whole and in bands alike: one rule decides both for the
+vectorize pass (ir/applicability.py fused_ops_vectorise), and band_plan.target_costs asks it. Every vector
+target vectorises them today and scalar C has 1 lane, so no plan changed; band adds left scalar while whole
+ones vectorised is what had made resnet8's avx2 band kernel 132 KB (above)."""
 
 from __future__ import annotations
 
@@ -79,6 +85,7 @@ class BandCosts:
     integer_banded: float  # an int8 Conv in a group of bands against run whole, both in the target's dots
     integer_winograd: float  # an int8 Conv run whole as integer Winograd against direct (in bands: direct)
     kept_banded: float = 0.0  # an integer Winograd Conv kept in bands against run whole (0: integer_banded)
+    fused_element: float = 1.0  # a requantised add, per element: 1 vectorised, scalar its lanes (target_costs)
 
 
 SCALAR = BandCosts(

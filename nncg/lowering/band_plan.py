@@ -22,9 +22,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+from ..ir.applicability import FUSED_OPS, fused_ops_vectorise
 from ..ir.graph import Graph, Node
 from ..ir.kinds import DType, VectorAxis
 from ..ir.ops import IR_OPS
+from ..ir.target import Target
 from ..safe_text import shown
 from .band_costs import BandCosts, band_costs
 from .bands import POINTWISE, WINDOWED, BandGroup, geometry, row_bytes, streamable, window_attrs
@@ -74,9 +76,9 @@ class BandPlan:
     in_place: frozenset[str] = frozenset()
 
 
-def plan_layers(graph: Graph, memory: str = "speed", budget: int = 0, target: str | None = None) -> BandPlan:
-    """The plan for `memory`; `budget` (bytes, 0: none) takes precedence over it, and `target` (a
-    backend's name) prices the plans. A budget no plan meets gets the `min` plan (the driver then
+def plan_layers(graph: Graph, memory: str = "speed", budget: int = 0, target: Target | None = None) -> BandPlan:
+    """The plan for `memory`; `budget` (bytes, 0: none) takes precedence over it, and `target` prices
+    the plans (target_costs). A budget no plan meets gets the `min` plan (the driver then
     refuses with its arena); `speed` without a budget runs every layer whole."""
     if memory == "speed" and not budget:
         return BandPlan()
@@ -87,12 +89,12 @@ def plan_layers(graph: Graph, memory: str = "speed", budget: int = 0, target: st
     )
 
 
-def plan_steps(graph: Graph, memory: str, budget: int, target: str | None) -> list[Step]:
+def plan_steps(graph: Graph, memory: str, budget: int, target: Target | None) -> list[Step]:
     """The steps of the plan plan_layers chooses (for `speed`: every layer whole). The candidates are
     the fastest plan under every memory bound, from the steps without in-place depthwise Convs and,
     where a model has some, from the steps with them (their tensors counted with the rows they are
     stored down, wherever they are live: an estimate on the safe side)."""
-    costs, count = band_costs(target), len(graph.nodes)
+    costs, count = target_costs(target), len(graph.nodes)
     exact = candidate_steps(graph, costs)
     speed = [s for s in exact if s.group is None]
     if memory == "speed" and not budget:
@@ -106,6 +108,15 @@ def plan_steps(graph: Graph, memory: str, budget: int, target: str | None) -> li
     if memory == "balanced" and not budget:
         return _balanced(plans, speed)
     return min(plans, key=lambda p: (_bytes(p), _cost(p), _in_place(p)))
+
+
+def target_costs(target: Target | None) -> BandCosts:
+    """The band costs of `target` (None: band_costs's default), with its requantised adds priced as the
+    vectorize pass runs them: vectorised (1 per element) or scalar (its lanes: BandCosts.fused_element)."""
+    costs = band_costs(target and target.name)
+    if target is None or fused_ops_vectorise(target):
+        return costs
+    return replace(costs, fused_element=float(target.lanes))
 
 
 def _balanced(plans: list[list[Step]], speed: list[Step]) -> list[Step]:
@@ -215,7 +226,7 @@ def _band_step(
             return costs.integer_banded if j - i > 1 else 1.0
         return banded * (costs.winograd if node.name in geo.winograd else 1.0)
 
-    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in graph.nodes[i:j])
+    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n, costs) for n in graph.nodes[i:j])
     cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.bytes(i, j, geo.internal) + lines, cost, lines)
 
@@ -254,13 +265,15 @@ def _whole_time(graph: Graph, node: Node, costs: BandCosts) -> float:
         macs *= costs.integer_winograd if node.op == "QLinearConv" else costs.winograd
     elif macs and (node.cache_blocked or node.vectorises_pixels):
         macs *= costs.blocked
-    return macs + _window_work(graph, node)
+    return macs + _window_work(graph, node, costs)
 
 
-def _window_work(graph: Graph, node: Node) -> int:
-    """A pooling layer's window reads, or an elementwise int8 op's one per element, whole or in bands alike."""
+def _window_work(graph: Graph, node: Node, costs: BandCosts) -> float:
+    """A pooling layer's window reads, or an elementwise int8 op's one per element (a requantised add's
+    BandCosts.fused_element), whole or in bands alike: one rule vectorises both (fused_ops_vectorise)."""
     if node.op in POINTWISE:
-        return math.prod(graph.shape(node.outputs[0]))
+        elements = math.prod(graph.shape(node.outputs[0]))
+        return elements * costs.fused_element if node.op in FUSED_OPS else elements
     if node.op not in WINDOWED or node.op in CONVS:
         return 0
     return math.prod(graph.shape(node.outputs[0])) * math.prod(window_attrs(node).kernel)

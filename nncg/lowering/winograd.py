@@ -136,17 +136,12 @@ class WinogradNests(ABC):
         self.c_out, self.c_in = ctx.graph.shape(node.inputs[1])[:2]
         self.width = width
         self.out = ctx.output(node.outputs[0], channels_last(4))
-        chunking = self.resolved_chunking(node, chunking)
+        chunking = resolved_chunking(node, chunking)
         self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, chunking)
         tiles = self.grid.chunk_tiles
         self.block = block_width(width, self.c_out, chunking)
         self.v = scratch(f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in))
         self.m = scratch(f"m_{node.name}", (PATCH * PATCH, tiles, self.block))
-
-    @staticmethod
-    def resolved_chunking(node: Node, chunking: Chunking | None) -> Chunking:
-        """The chunking the nests run: `chunking`, or the op's when run whole (WHOLE_CHUNKS)."""
-        return chunking or WHOLE_CHUNKS[node.op]
 
     def input_value(self, load: Load) -> Expr:
         """A patch value as the input transform sums it."""
@@ -351,10 +346,15 @@ class TileAt:
     channel: Affine
 
 
+def resolved_chunking(node: Node, chunking: Chunking | None = None) -> Chunking:
+    """The chunking a layer's nests run: `chunking`, or the op's when run whole (WHOLE_CHUNKS)."""
+    return chunking or WHOLE_CHUNKS[node.op]
+
+
 def scratch_bytes(graph: Graph, node: Node) -> int:
-    """The bytes of a Winograd layer's two scratch buffers run whole, in chunks of its op's
-    WHOLE_CHUNKS (what the band planner counts)."""
-    return sum(_scratch_sizes(graph, node, WHOLE_CHUNKS[node.op]))
+    """The bytes of a Winograd layer's two scratch buffers run whole (resolved_chunking: what the
+    nests allocate, and what the band planner counts)."""
+    return sum(_scratch_sizes(graph, node, resolved_chunking(node)))
 
 
 def _scratch_sizes(graph: Graph, node: Node, chunking: Chunking) -> tuple[int, int]:

@@ -34,6 +34,7 @@ from .winograd import (
     blocked_filters,
     emit_band,
     emit_layer,
+    resolved_chunking,
     scratch_buffer,
 )
 
@@ -77,7 +78,7 @@ class _IntegerLayer(WinogradNests):
     def __init__(self, ctx: LoweringContext, node: Node, chunking: Chunking | None = None, shared: dict | None = None):
         attrs: QConvAttrs = node.attrs
         c_out = ctx.graph.shape(node.inputs[1])[0]
-        block = block_width(c_out, c_out, self.resolved_chunking(node, chunking))
+        block = block_width(c_out, c_out, resolved_chunking(node, chunking))
         self.u_blocked = block < c_out  # blocked_filters keeps a single block whole
         filters = blocked_filters(integer_filters(ctx.graph.constants[node.inputs[1]]), block)
         self.u = ctx.add_constant(f"u_{node.name}", filters)

@@ -32,6 +32,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..ir.analysis import is_accumulator, vector_instructions
+from ..ir.applicability import FUSED_OPS, fused_ops_vectorise
 from ..ir.dtypes import buffer_dtypes, is_integer_kernel
 from ..ir.kinds import BufferRole, DType, LoopKind
 from ..ir.loops import (
@@ -91,7 +92,7 @@ def vectorize(program: Program, target: Target) -> Program:
             floats = {b.name for b in program.buffers if b.dtype == DType.FLOAT32}
             scratch = {b.name for b in program.role(BufferRole.INTERNAL) if b.dtype in (DType.INT16, DType.INT32)}
             int16 = scratch if target.int16_dots else set()
-            body = _mark_band_stages(kernel.body, widths, floats, int16, _fused_ops_vectorise(target))
+            body = _mark_band_stages(kernel.body, widths, floats, int16, fused_ops_vectorise(target))
         else:
             body = mark_vector_loop(kernel.body, widths)
         overlaps = any(
@@ -123,15 +124,6 @@ INTEGER_OPS = (
     "QLinearAveragePool",
     "Band",
 )
-# onnxruntime computes QLinearAdd in float fused multiply-adds (lowering/quantized_add.py), which vectors
-# of a target with FMA do too, or, without, in double (Target.fma_in_double); QLinearMul's float32 sum
-# is an Fma by 1 (_product_then_sum); the other int8 kernels stay scalar
-FUSED_OPS = ("QLinearAdd", "QLinearMul")
-
-
-def _fused_ops_vectorise(target: Target) -> bool:
-    """Whether FUSED_OPS (run whole, or an int8 band kernel's QLinearAdd stages) vectorise on `target`."""
-    return target.fma or target.fma_in_double
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
@@ -141,7 +133,7 @@ def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
-    ops = INTEGER_OPS + (FUSED_OPS if _fused_ops_vectorise(target) else ())
+    ops = INTEGER_OPS + (FUSED_OPS if fused_ops_vectorise(target) else ())
     ops += (WINOGRAD_OP,) if target.int16_dots else ()
     return target.integer_vectors and kernel.op in ops and not fixed
 
