@@ -35,6 +35,7 @@ from nncg.bench.benchmark import interleaved_samples, paired_ratio, pinned
 from nncg.bench.harness import CompiledHarness
 from nncg.bench.onnxruntime_timer import OnnxruntimeTimer
 from nncg.bench.peak import TARGET_ISA, host_targets
+from nncg.cli import positive_number
 from nncg.compiler import CompiledModel
 from nncg.ir.kinds import BufferRole
 from nncg.quant_steps import Comparison, compare_steps
@@ -337,8 +338,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", nargs="+", default=MLPERF_TINY, choices=MLPERF_TINY)
     parser.add_argument("--targets", nargs="+", default=host_targets(), choices=list(TARGET_ISA))
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
-    parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
-    parser.add_argument("--runs", type=int, default=1, help=RUNS_HELP)
+    parser.add_argument(
+        "--batches", type=positive_number, default=15, help="timed batches per model and target (median)"
+    )
+    parser.add_argument("--runs", type=positive_number, default=1, help=RUNS_HELP)
     parser.add_argument("--no-cortex-m4", action="store_true", help="skip the Cortex-M4 builds and runs")
     parser.add_argument("--note", default="", help="a line for the section, e.g. the machine's load")
     parser.add_argument(

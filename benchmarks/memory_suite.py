@@ -24,6 +24,7 @@ from pathlib import Path
 
 from nncg.bench.benchmark import BenchResult, Timing, benchmark_variants, paired_ratio
 from nncg.bench.peak import measure_peaks
+from nncg.cli import positive_number
 from nncg.lowering.band_plan import MEMORY_MODES
 from nncg.safe_text import markdown_text
 
@@ -211,9 +212,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", nargs="+", default=PAPER + MLPERF_TINY)
     parser.add_argument("--targets", nargs="+", default=["ssse3", "avx2"], help="x86 targets (default: ssse3 avx2)")
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
-    parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
+    parser.add_argument(
+        "--batches", type=positive_number, default=15, help="timed batches per model and target (median)"
+    )
     parser.add_argument("--note", default="", help="a line for the section, e.g. the machine's load")
-    parser.add_argument("--runs", type=int, default=1, help=RUNS_HELP)
+    parser.add_argument("--runs", type=positive_number, default=1, help=RUNS_HELP)
     parser.add_argument("--int8", action="store_true", help="each model quantised too (the int8 suite's QDQ model)")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)

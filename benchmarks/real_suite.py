@@ -22,6 +22,7 @@ from pathlib import Path
 from nncg.backends import BACKENDS
 from nncg.bench.benchmark import format_profile, profile
 from nncg.bench.peak import TARGET_ISA
+from nncg.cli import positive_number
 
 from .real_models import DEFAULT_CASES, MODELS, case_name, ensure
 from .suite import (
@@ -93,9 +94,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", nargs="+", choices=MODELS, help="default: every model (at 96, two at 224 too)")
     parser.add_argument("--targets", nargs="+", default=sorted(t for t in BACKENDS if t in TARGET_ISA))
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
-    parser.add_argument("--batches", type=int, default=15, help="timed batches per model and target (median)")
+    parser.add_argument(
+        "--batches", type=positive_number, default=15, help="timed batches per model and target (median)"
+    )
     parser.add_argument("--size", type=int, help="input height and width of every model (default: 96 and 224)")
-    parser.add_argument("--runs", type=int, default=1, help=RUNS_HELP)
+    parser.add_argument("--runs", type=positive_number, default=1, help=RUNS_HELP)
     parser.add_argument("--profile", action="store_true", help="also print each model's per-layer profile")
     parser.add_argument(
         "--cpu-time", action="store_true",

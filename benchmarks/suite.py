@@ -24,6 +24,7 @@ from pathlib import Path
 from nncg.backends import BACKENDS
 from nncg.bench.benchmark import BenchResult, benchmark, pinned
 from nncg.bench.peak import TARGET_ISA, measure_peaks
+from nncg.cli import positive_number
 from nncg.errors import NncgError
 from nncg.tune import tune
 
@@ -347,7 +348,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     parser.add_argument("--tune", action="store_true", help="tune every model per layer first (nncg-onnx --tune)")
-    parser.add_argument("--runs", type=int, default=1, help=RUNS_HELP)
+    parser.add_argument("--runs", type=positive_number, default=1, help=RUNS_HELP)
     args = parser.parse_args(argv)
     before = measured_peaks(args.cpu)
 
