@@ -29,7 +29,7 @@ def lower_concat(ctx: LoweringContext, node: Node) -> None:
             shifted = [i + offset if d == attrs.axis else i for d, i in enumerate(idx)]
             return Store(out.buffer, out.at(shifted), Load(src.buffer, src.at(idx)))
 
-        body += box_nest(src.shape, out.order, copy)
+        body += box_nest(src.shape, out.order, copy, src.order)
         offset += src.shape[attrs.axis]
     if body:
         ctx.emit(node.name, node.op, tuple(body))

@@ -24,7 +24,7 @@ def lower_gather(ctx: LoweringContext, node: Node) -> None:
             return Store(out.buffer, out.at(written), Load(x.buffer, x.at(read)))
 
         extents = tuple(count if d == axis else n for d, n in enumerate(out.shape))
-        body += box_nest(extents, out.order, copy)
+        body += box_nest(extents, out.order, copy, x.order)
     ctx.emit(node.name, node.op, tuple(body))
 
 

@@ -42,7 +42,8 @@ def lower_pad(ctx: LoweringContext, node: Node) -> None:
     value = Load(ctx.ref(node.inputs[1]).buffer, Affine()) if len(node.inputs) > 1 else literal
     body: list[Stmt] = []
     for box in itertools.product(*per_dim):
-        body += box_nest([s.length for s in box], out.order, _filler(x, out, box, value))
+        reads = all(s.src_start is not None for s in box)
+        body += box_nest([s.length for s in box], out.order, _filler(x, out, box, value), x.order if reads else None)
     ctx.emit(node.name, node.op, tuple(body))
 
 

@@ -6,6 +6,7 @@ output names the same buffer); otherwise a copy kernel writes the elements in ro
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 
 from ..ir.graph import Node
@@ -68,7 +69,11 @@ def _reshape_groups(src: tuple[int, ...], dst: tuple[int, ...]) -> list[tuple[li
 
 def copy_nest(src: TensorRef, dst: TensorRef) -> tuple[Stmt, ...]:
     """dst[idx] = src[idx] over the logical index space, in the destination's memory order."""
-    return box_nest(src.shape, dst.order, lambda idx: Store(dst.buffer, dst.at(idx), Load(src.buffer, src.at(idx))))
+
+    def copy(idx: list[Affine]) -> Store:
+        return Store(dst.buffer, dst.at(idx), Load(src.buffer, src.at(idx)))
+
+    return box_nest(src.shape, dst.order, copy, src.order)
 
 
 def copy_order(ctx: LoweringContext, value: str, order: tuple[int, ...]) -> tuple[int, ...]:
@@ -77,12 +82,64 @@ def copy_order(ctx: LoweringContext, value: str, order: tuple[int, ...]) -> tupl
     return row_major(len(order)) if ctx.graph.is_graph_output(value) else tuple(order)
 
 
-def box_nest(extents, order, stmt: Callable[[list[Affine]], Stmt]) -> tuple[Stmt, ...]:
+# Elements per side of a layout-changing copy's tile. An 8x8 tile is unrolled whole and the C
+# compiler stores it as 8 row vectors; 16x16 stays scalar and was 3.5x slower (loaded, silu0 avx512).
+TILE = 8
+
+
+def box_nest(extents, order, stmt: Callable[[list[Affine]], Stmt], read_order=None) -> tuple[Stmt, ...]:
     """stmt(idx) for every logical index idx < extents, loops in `order` (outermost first; the
-    destination's memory order keeps the innermost store contiguous). All loops are parallel."""
+    destination's memory order keeps the innermost store contiguous). All loops are parallel.
+
+    `read_order` is the memory order of the tensor stmt reads (logical dims of idx, outermost first).
+    When its innermost dim differs from `order`'s, the loads would stride across a cache line per
+    element; both innermost dims are then tiled (tiled_nest)."""
     names = dim_vars(len(extents))
+    write, read = _innermost(extents, order), _innermost(extents, read_order or order)
+    if write != read and write is not None and read is not None:
+        return tiled_nest(extents, order, stmt, read, write)
 
     def body(env: dict[str, Affine]) -> tuple[Stmt, ...]:
         return (stmt([env[v] for v in names]),)
 
     return nest([(names[d], extents[d]) for d in order], body, parallel=True)
+
+
+def _innermost(extents, order) -> int | None:
+    """The innermost dim of `order` with more than one element (None: there is none)."""
+    return next((d for d in reversed(order) if extents[d] > 1), None)
+
+
+def tiled_nest(extents, order, stmt: Callable[[list[Affine]], Stmt], read: int, write: int) -> tuple[Stmt, ...]:
+    """box_nest's loops for a copy whose loads are contiguous along dim `read` and stores along dim
+    `write`: the other dims in `order`, then TILE x TILE tiles of (read, write), so each tile reads
+    and writes whole runs of cache lines that stay in L1. Where an extent is no multiple of TILE, a tail
+    nest covers the rest (one nest per combination of whole tiles and tail over the two dims)."""
+    names = dim_vars(len(extents))
+    outer = [(names[d], extents[d]) for d in order if d not in (read, write)]
+
+    def tiles(env: dict[str, Affine]) -> tuple[Stmt, ...]:
+        body: list[Stmt] = []
+        for read_part, write_part in itertools.product(_tile_parts(extents[read]), _tile_parts(extents[write])):
+            parts = {read: read_part, write: write_part}
+            loops = [(names[d] + "t", parts[d][0]) for d in (read, write)]
+            loops += [(names[d], parts[d][1]) for d in (read, write)]
+
+            def element(inner: dict[str, Affine], parts=parts) -> tuple[Stmt, ...]:
+                idx = [env.get(name, Affine()) for name in names]
+                for d, (_, size, start) in parts.items():
+                    idx[d] = inner[names[d] + "t"] * size + inner[names[d]] + start
+                return (stmt(idx),)
+
+            body += nest(loops, element, parallel=True)
+        return tuple(body)
+
+    return nest(outer, tiles, parallel=True)
+
+
+def _tile_parts(extent: int) -> list[tuple[int, int, int]]:
+    """(tiles, tile size, start) covering range(extent): the whole TILE-sized tiles, then the tail."""
+    whole, tail = divmod(extent, TILE)
+    if not whole:
+        return [(1, extent, 0)]
+    return [(whole, TILE, 0)] + ([(1, tail, whole * TILE)] if tail else [])

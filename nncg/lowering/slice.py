@@ -39,4 +39,4 @@ def strided_copy(src: TensorRef, dst: TensorRef, starts, steps) -> tuple[Stmt, .
         at = [i * step + start for i, start, step in zip(idx, starts, steps)]
         return Store(dst.buffer, dst.at(idx), Load(src.buffer, src.at(at)))
 
-    return box_nest(dst.shape, dst.order, copy)
+    return box_nest(dst.shape, dst.order, copy, src.order)

@@ -17,9 +17,10 @@ def lower_transpose(ctx: LoweringContext, node: Node) -> None:
     x = ctx.ref(node.inputs[0])
     value = node.outputs[0]
     shape = ctx.graph.shape(value)
+    position = {src: dst for dst, src in enumerate(attrs.perm)}  # output dim of each input dim
+    x_order = tuple(position[d] for d in x.order)  # x's memory order in output dims
     if not ctx.graph.is_graph_output(value):
-        position = {src: dst for dst, src in enumerate(attrs.perm)}  # output dim of each input dim
-        ctx.refs[value] = TensorRef(x.buffer, shape, tuple(position[d] for d in x.order))
+        ctx.refs[value] = TensorRef(x.buffer, shape, x_order)
         return
     out = ctx.output(value, row_major(len(shape)))
 
@@ -29,4 +30,4 @@ def lower_transpose(ctx: LoweringContext, node: Node) -> None:
             at[src] = idx[dst]
         return Store(out.buffer, out.at(idx), Load(x.buffer, x.at(at)))
 
-    ctx.emit(node.name, node.op, box_nest(shape, out.order, copy))
+    ctx.emit(node.name, node.op, box_nest(shape, out.order, copy, x_order))
