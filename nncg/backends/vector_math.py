@@ -204,21 +204,22 @@ def _sigmoid(b: _Body) -> str:
     # e / (1 + e) below 0, 1 / (1 + e) above, e = exp(-|x|): exp never overflows, and the tiny
     # results of very negative x (down to the denormals) are as accurate as e. e is exp's algorithm
     # cut to what a non-positive argument needs (a sigmoid is in every SiLU epilogue, so each
-    # operation counts): no upper clamp, and 2^n, n in [-150, 0], as the one normal factor
-    # 2^(n + 64) times 2^-64, the second product rounding once.
+    # operation counts): no upper clamp, exp(r) by one Horner chain, and 2^n, n in [-150, 0], as the
+    # normal 2^(n + 64): numerator and denominator are both 2^64 times theirs (exact), so the
+    # division alone rounds, to a denormal where the sigmoid is one.
     a = b.let("a", b.op("max", b.c(EXP_LOW), b.masked("x", SIGN, "|")))  # -|x|; a NaN stays
     t = b.let("t", b.fma(a, b.c(LOG2E), b.c(ROUNDER)))
     n = b.let("n", b.op("-", t, b.c(ROUNDER)))
     r = b.let("r", b.fma(n, b.c(-LN2_LO), b.fma(n, b.c(-LN2_HI), a)))
-    p = b.let("p", b.op("+", b.fma(b.horner(r, EXP_P), b.op("*", r, r), r), b.c(1.0)))
     biased = b.i("-", a=b.i("from_float", a=t), b=b.ibits(SIGMOID_SCALE_BITS))  # n + 127 + 64
     scale = b.i("to_float", a=b.i("<<", a=biased, n="23"))
-    e = b.let("e", b.op("*", b.op("*", p, scale), b.c(2.0**-64)))
+    e = b.let("e", b.op("*", b.horner(r, (*EXP_P, 1.0, 1.0)), scale))  # 2^64 exp(-|x|)
+    one = b.c(2.0**64)
     if b.w.blends:
-        numerator = b.select("<", "x", b.c(0.0), e, b.c(1.0))
-    else:  # e <= 1: a max with a 0-or-1 step is one operation less than and, andnot and or of e and 1
-        numerator = b.op("max", e, b.select(">=", "x", b.c(0.0), b.c(1.0), b.c(0.0)))
-    return b.op("/", numerator, b.op("+", b.c(1.0), e))
+        numerator = b.select("<", "x", b.c(0.0), e, one)
+    else:  # e <= 2^64: a max with a 0-or-2^64 step is one operation less than and, andnot and or
+        numerator = b.op("max", e, b.select(">=", "x", b.c(0.0), one, b.c(0.0)))
+    return b.op("/", numerator, b.op("+", one, e))
 
 
 def _erf(b: _Body) -> str:
