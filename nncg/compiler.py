@@ -223,7 +223,8 @@ def memory_figures(compiled: CompiledModel) -> MemoryFigures | None:
         return None
     lower = next(spec for spec in parse_pipeline(compiled.pipeline) if spec.name == "lower")
     params = dict(lower.params)
-    plan = plan_layers(graph, params.get("memory", "speed"), int(params.get("budget", 0)), get_target(compiled.target))
+    memory, budget = params.get("memory", "speed"), int(params.get("budget", 0))
+    plan = plan_layers(graph, memory, budget, get_target(compiled.target), params.get("requantize", "float"))
     return MemoryFigures(layer_bound_bytes(graph), whole_activation_bytes(graph), describe_plan(plan.groups))
 
 

@@ -14,7 +14,7 @@ import nncg
 from nncg.backends import BACKENDS, get_target
 from nncg.frontend import import_onnx
 from nncg.lowering import band_plan
-from nncg.lowering.band_costs import COSTS, band_costs
+from nncg.lowering.band_costs import COSTS
 from nncg.lowering.band_plan import layer_bound_bytes, plan_layers
 from nncg.lowering.bands import BandGroup, geometry
 from nncg.passes import PassManager, default_pipeline
@@ -280,7 +280,7 @@ def test_speed_is_the_default_and_plans_nothing():
 
 def _plans(graph, target):
     """(bytes, estimated latency) of the fastest plan under every memory bound, and speed's."""
-    steps = band_plan.candidate_steps(graph, band_costs(target))
+    steps = band_plan.candidate_steps(graph, band_plan.StepCosts(get_target(target)))
     plans = (band_plan._cheapest(len(graph.nodes), steps, bound) for bound in sorted({s.bytes for s in steps}))
     speed = band_plan.plan_steps(graph, "speed", 0, get_target(target))
     return [_figures(p) for p in plans if p], _figures(speed)

@@ -6,6 +6,7 @@ with onnxruntime running the same quantized model."""
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -136,13 +137,39 @@ def test_requantised_adds_are_priced_as_the_vectorize_pass_runs_them(chain):
     graph, avx2 = lowered_graph(chain, "avx2"), get_target("avx2")
     scalar_adds = replace(avx2, fma=False)
     assert fused_ops_vectorise(avx2) and not fused_ops_vectorise(scalar_adds)
-    vector, scalar = (band_plan.candidate_steps(graph, band_plan.target_costs(t)) for t in (avx2, scalar_adds))
+    vector, scalar = (band_plan.candidate_steps(graph, band_plan.StepCosts(t)) for t in (avx2, scalar_adds))
     add = next(i for i, node in enumerate(graph.nodes) if node.op == "QLinearAdd")
     extra = (avx2.lanes - 1) * math.prod(graph.shape(graph.nodes[add].outputs[0]))
     assert extra > 0 and len(vector) == len(scalar)
     for v, s in zip(vector, scalar):
         assert (v.start, v.stop, v.group, v.bytes) == (s.start, s.stop, s.group, s.bytes)
         assert s.cost == pytest.approx(v.cost + (extra if v.start <= add < v.stop else 0))
+
+
+def kernel_sources(source: str) -> dict[str, str]:
+    """Each kernel's C by its name (the comment above it)."""
+    headers = re.finditer(r"^/\* (\S+): \w+ \*/$", source, re.MULTILINE)
+    return {m.group(1): source[m.end() : source.index("\n}\n", m.end())] for m in headers}
+
+
+def test_fixed_requantisation_is_priced_as_the_vectorize_pass_runs_it(chain, monkeypatch):
+    """Under requantize=fixed an int8 kernel that requantises in the fixed-point form stays scalar (the
+    vectorize pass's rule, integer_kernel_vectorises): the planner prices a layer run whole, and a band
+    kernel, scalar (the target's lanes an element) exactly where the pass leaves its kernel scalar."""
+    target = get_target("avx2")
+    graph, costs = lowered_graph(chain, "avx2"), band_plan.StepCosts(target, "fixed")
+
+    def vectorised(requantize: str) -> set[str]:
+        kernels = kernel_sources(nncg.compile(chain, target="avx2", requantize=requantize).source)
+        return {name for name, c in kernels.items() if re.search(r"_mm(256)?_", c)}
+
+    fixed, floats = vectorised("fixed"), vectorised("float")  # lookups and tiny layers: scalar either way
+    priced = {n.name for n in graph.nodes if n.name in floats and costs.of(graph, [n]).element == 1}
+    assert fixed == priced and floats - fixed
+    monkeypatch.setattr(lowering, "plan_layers", whole_chain_plan(2))
+    assert re.search(r"_mm(256)?_", band_source(nncg.compile(chain, target="avx2", requantize="fixed"))) is None
+    assert costs.of(graph, graph.nodes[:-1]).element == target.lanes
+    assert band_plan.StepCosts(target).of(graph, graph.nodes[:-1]).element == 1  # the float form vectorises
 
 
 @pytest.mark.parametrize("rows", [1, 2, 3, 8])

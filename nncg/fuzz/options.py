@@ -15,7 +15,12 @@ import onnx
 from ..backends import get_target
 from ..bench import peak
 from ..errors import NncgError
-from ..ir.applicability import cache_block_applies, depthwise_blocks_apply, panel_packing_applies
+from ..ir.applicability import (
+    cache_block_applies,
+    depthwise_blocks_apply,
+    group_panels_apply,
+    panel_packing_applies,
+)
 from ..options import CompileOptions
 from ..passes.register_block import block_candidates, blockable
 from ..passes.unroll import CODE_BUDGET
@@ -171,27 +176,33 @@ def _pixel_candidates(model: onnx.ModelProto, options: Options) -> list[str]:
     return list(tuning_candidates(model, pipeline, "vectorize-pixels", get_target(options.target)))
 
 
-def _cache_block_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[str, tuple[int, int]]:
+def _cache_block_choices(d: Draw, model: onnx.ModelProto, options: Options) -> dict[str, tuple[int, int] | str]:
     """Panels and input-channel blocks, or a depthwise Conv's channel blocks, for some of the layers
     cache-block applies to: any legal shape, not only what --tune times (fuzz models are small: the
-    cost model would block none of them)."""
+    cost model would block none of them). A grouped Conv, which the cost model always blocks, one
+    group a panel, is now and then left unblocked (off)."""
     pipeline = options.pipeline() or _base(options)
     if "cache-block" not in pipeline:
         return {}
     graph = ir_before(model, pipeline, "cache-block", get_target(options.target))
     out = {}
     for node in graph.nodes:
-        conv = cache_block_applies(graph, node)
+        grouped = group_panels_apply(graph, node)
+        conv = grouped or cache_block_applies(graph, node)
         depthwise = depthwise_blocks_apply(graph, node)
         if not (conv or depthwise or panel_packing_applies(graph, node)) or not d.chance(0.5):
             continue
         if depthwise:  # channels a block, the last block the rest
             out[node.name] = (d.int(1, graph.shape(node.outputs[0])[1]), 0)
             continue
+        if grouped and d.chance(0.3):
+            out[node.name] = "off"
+            continue
         columns = graph.shape(node.outputs[0])[1 if conv else -1]
-        c_in = graph.shape(node.inputs[1])[1]
+        c_in = graph.shape(node.inputs[1])[1]  # of a group
         block = d.pick([b for b in range(1, c_in + 1) if c_in % b == 0]) if conv else 0
-        out[node.name] = (d.int(1, columns), block)
+        panel = columns // node.attrs.group if grouped else d.int(1, columns)  # a grouped Conv's panel: its group
+        out[node.name] = (panel, block)
     return out
 
 

@@ -4,6 +4,7 @@ carries it out and the tuner that times it, so each reads the same rule from one
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 from .graph import ConvAttrs, DenseAttrs, Graph, Node
 from .kinds import ConvAlgorithm, VectorAxis
@@ -19,6 +20,26 @@ def fused_ops_vectorise(target: Target) -> bool:
     """Whether FUSED_OPS vectorise on `target`, run whole or as an int8 band kernel's stages: the vectorize
     pass's rule, and what the band planner prices them by (lowering/band_plan.py)."""
     return target.integer_vectors and (target.fma or target.fma_in_double)
+
+
+# The ops whose kernels requantise their int32 results in the form lower's `requantize` chooses
+# (lowering/requantize.py Scales); the other int8 ops requantise in float whatever the form (QLinearAdd's
+# fused multiply-adds, QuantizeLinear's quotient)
+SCALED_OPS = ("QLinearConv", "QLinearDense", "QLinearGlobalAveragePool")
+
+
+def integer_kernel_vectorises(target: Target, fixed_point: bool) -> bool:
+    """Whether an int8 kernel vectorises on `target`: with integer vectors, unless it requantises in the
+    fixed-point form (`fixed_point`: a band kernel if any of its stages does), which no backend has in
+    vectors. The vectorize pass's rule (it finds a RequantizeFixed in the kernel), and what the band
+    planner prices int8 layers and band kernels by (requantises_fixed; lowering/band_plan.py)."""
+    return target.integer_vectors and not fixed_point
+
+
+def requantises_fixed(ops: Iterable[str], requantize: str) -> bool:
+    """Whether the kernel computing `ops` (a layer's op, or a band group's) requantises in the fixed-point
+    form, under lower's `requantize`."""
+    return requantize == "fixed" and any(op in SCALED_OPS for op in ops)
 
 
 def winograd_applies(graph: Graph, node: Node) -> bool:

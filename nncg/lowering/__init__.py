@@ -171,12 +171,12 @@ def lower(
     but for the other layers gcc's code came out as often slower as faster (robot avx2 -2 %,
     pedestrian ssse3 +23 %). true: for every padded Conv; false: never. `memory` (speed, balanced,
     min) and `budget` (bytes; 0: none) choose the layers run in bands (see band_plan.py), priced for
-    `target` (None: 4-lane vector figures). `requantize`:
+    `target` (None: 4-lane vector figures) under `requantize`, which is
     how the integer ops of an int8 model scale their results, `float` (onnxruntime's arithmetic) or
     `fixed` (integers only, see lowering/requantize.py)."""
     name = program_name(function_name or graph.name)
     ctx = LoweringContext(graph, name, halos, requantize)
-    plan = plan_layers(graph, memory, budget, target)
+    plan = plan_layers(graph, memory, budget, target, requantize)
     groups = {group.nodes[0]: group for group in plan.groups}
     by_name = {node.name: node for node in graph.nodes}
     banded = {name for group in plan.groups for name in group.nodes}

@@ -22,13 +22,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from ..ir.applicability import FUSED_OPS, fused_ops_vectorise
+from ..ir.applicability import FUSED_OPS, fused_ops_vectorise, integer_kernel_vectorises, requantises_fixed
 from ..ir.graph import Graph, Node
 from ..ir.kinds import DType, VectorAxis
 from ..ir.ops import IR_OPS
 from ..ir.target import Target
 from ..safe_text import shown
-from .band_costs import BandCosts, band_costs
+from .band_costs import SCALAR, BandCosts, band_costs
 from .bands import POINTWISE, WINDOWED, BandGroup, geometry, row_bytes, streamable, window_attrs
 from .conv import conv_extras
 from .halo import conv_halos
@@ -76,25 +76,27 @@ class BandPlan:
     in_place: frozenset[str] = frozenset()
 
 
-def plan_layers(graph: Graph, memory: str = "speed", budget: int = 0, target: Target | None = None) -> BandPlan:
+def plan_layers(
+    graph: Graph, memory: str = "speed", budget: int = 0, target: Target | None = None, requantize: str = "float"
+) -> BandPlan:
     """The plan for `memory`; `budget` (bytes, 0: none) takes precedence over it, and `target` prices
-    the plans (target_costs). A budget no plan meets gets the `min` plan (the driver then
-    refuses with its arena); `speed` without a budget runs every layer whole."""
+    the plans under lower's `requantize` (StepCosts). A budget no plan meets gets the `min` plan (the driver
+    then refuses with its arena); `speed` without a budget runs every layer whole."""
     if memory == "speed" and not budget:
         return BandPlan()
-    steps = plan_steps(graph, memory, budget, target)
+    steps = plan_steps(graph, memory, budget, target, requantize)
     return BandPlan(
         tuple(s.group for s in steps if s.group is not None),
         frozenset(graph.nodes[s.start].name for s in steps if s.in_place),
     )
 
 
-def plan_steps(graph: Graph, memory: str, budget: int, target: Target | None) -> list[Step]:
+def plan_steps(graph: Graph, memory: str, budget: int, target: Target | None, requantize: str = "float") -> list[Step]:
     """The steps of the plan plan_layers chooses (for `speed`: every layer whole). The candidates are
     the fastest plan under every memory bound, from the steps without in-place depthwise Convs and,
     where a model has some, from the steps with them (their tensors counted with the rows they are
     stored down, wherever they are live: an estimate on the safe side)."""
-    costs, count = target_costs(target), len(graph.nodes)
+    costs, count = StepCosts(target, requantize), len(graph.nodes)
     exact = candidate_steps(graph, costs)
     speed = [s for s in exact if s.group is None]
     if memory == "speed" and not budget:
@@ -117,6 +119,32 @@ def target_costs(target: Target | None) -> BandCosts:
     if target is None or fused_ops_vectorise(target):
         return costs
     return replace(costs, fused_element=float(target.lanes))
+
+
+class StepCosts:
+    """What a step costs on `target` (None: band_costs's default) under lower's `requantize`: a layer or
+    band kernel at target_costs, but an int8 one that stays scalar (integer_kernel_vectorises: one that
+    requantises in the fixed-point form, or any on scalar C) at scalar C's int8 figures, each of its MACs
+    and elements at the target's lanes (`element`) as a scalar add's (fused_element)."""
+
+    def __init__(self, target: Target | None, requantize: str = "float"):
+        self.target, self.requantize = target, requantize
+        self.vector = target_costs(target)
+        lanes = float(target.lanes) if target else 1.0
+        integer = {k: getattr(SCALAR, k) for k in ("integer_banded", "integer_winograd", "kept_banded")}
+        self.scalar = replace(self.vector, **integer, fused_element=1.0, element=lanes)
+
+    def of(self, graph: Graph, nodes: list[Node]) -> BandCosts:
+        """The costs of the kernel computing `nodes` (a layer, or a group of bands)."""
+        if self.target is None or not any(_integer(graph, node) for node in nodes):
+            return self.vector
+        fixed = requantises_fixed([node.op for node in nodes], self.requantize)
+        return self.vector if integer_kernel_vectorises(self.target, fixed) else self.scalar
+
+
+def _integer(graph: Graph, node: Node) -> bool:
+    """An int8 layer: it reads or writes integer values (the vectorize pass's integer kernels)."""
+    return any(graph.dtype(value) != DType.FLOAT32 for value in (*node.inputs, *node.outputs) if value)
 
 
 def _balanced(plans: list[list[Step]], speed: list[Step]) -> list[Step]:
@@ -164,14 +192,14 @@ def describe_plan(groups: tuple[BandGroup, ...]) -> str:
     )
 
 
-def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> list[Step]:
+def candidate_steps(graph: Graph, costs: StepCosts, in_place: bool = False) -> list[Step]:
     """Every layer run whole, and every group that can run in bands at each height; with `in_place`,
     also every depthwise Conv that can run in place, its input and output counted as stored for it."""
     live = _Liveness(graph, in_place)
     steps = [
         Step(
             i, i + 1, None, live.whole(i) + _scratch(graph, node) + _output_copy(graph, node),
-            _whole_time(graph, node, costs),
+            _whole_time(graph, node, costs.of(graph, [node])),
         )
         for i, node in enumerate(graph.nodes)
     ]  # fmt: skip
@@ -195,7 +223,7 @@ def candidate_steps(graph: Graph, costs: BandCosts, in_place: bool = False) -> l
 
 
 def _band_step(
-    graph: Graph, live: _Liveness, costs: BandCosts, i: int, j: int, rows: int, winograd: str
+    graph: Graph, live: _Liveness, step_costs: StepCosts, i: int, j: int, rows: int, winograd: str
 ) -> Step | None:
     """The group of nodes [i, j) in bands of `rows`, its Winograd layers as `winograd` says
     (WINOGRAD_VARIANTS; None where that keeps none, or for one layer alone: it would be the layer
@@ -217,6 +245,7 @@ def _band_step(
         for v in geo.internal
     )
     runs = sum(geo.runs(0, geo.rows[n.outputs[0]].level) for n in graph.nodes[i:j])  # of the layers per band
+    costs = step_costs.of(graph, graph.nodes[i:j])
     banded = costs.banded if j - i > 1 else 1.0  # one layer alone: its direct nest under a band loop
 
     def per_mac(node: Node) -> float:
@@ -227,7 +256,7 @@ def _band_step(
         return banded * (costs.winograd if node.name in geo.winograd else 1.0)
 
     work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n, costs) for n in graph.nodes[i:j])
-    cost = work + geo.bands * (costs.per_band * runs + costs.shift * shifted)
+    cost = work * costs.element + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.bytes(i, j, geo.internal) + lines, cost, lines)
 
 
@@ -265,7 +294,7 @@ def _whole_time(graph: Graph, node: Node, costs: BandCosts) -> float:
         macs *= costs.integer_winograd if node.op == "QLinearConv" else costs.winograd
     elif macs and (node.cache_blocked or node.vectorises_pixels):
         macs *= costs.blocked
-    return macs + _window_work(graph, node, costs)
+    return (macs + _window_work(graph, node, costs)) * costs.element
 
 
 def _window_work(graph: Graph, node: Node, costs: BandCosts) -> float:

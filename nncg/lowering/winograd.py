@@ -138,10 +138,10 @@ class WinogradNests(ABC):
         self.out = ctx.output(node.outputs[0], channels_last(4))
         chunking = resolved_chunking(node, chunking)
         self.grid = TileGrid(self.out.shape[2:], self.attrs.pads_begin, self.x.spatial_ranges, chunking)
-        tiles = self.grid.chunk_tiles
-        self.block = block_width(width, self.c_out, chunking)
-        self.v = scratch(f"v_{node.name}", (PATCH * PATCH, tiles, self.c_in))
-        self.m = scratch(f"m_{node.name}", (PATCH * PATCH, tiles, self.block))
+        v_shape, m_shape = scratch_shapes(self.out.shape[2:], self.c_in, self.c_out, width, chunking)
+        self.block = m_shape[-1]
+        self.v = scratch(f"v_{node.name}", v_shape)
+        self.m = scratch(f"m_{node.name}", m_shape)
 
     def input_value(self, load: Load) -> Expr:
         """A patch value as the input transform sums it."""
@@ -274,9 +274,8 @@ class _Layer(WinogradNests):
     def __init__(
         self, ctx: LoweringContext, node: Node, chunking: Chunking | None, shared: dict[str, str] | None = None
     ):
-        attrs: ConvAttrs = node.attrs
         c_out = ctx.graph.shape(node.inputs[1])[0]
-        width = max(c_out, attrs.gemm_channels)
+        width = gemm_width(ctx.graph, node)
         filters = transformed_filters(ctx.graph.constants[node.inputs[1]])
         filters = np.pad(filters, ((0, 0), (0, 0), (0, width - c_out)))  # padded channels compute zeros
         self.u = ctx.add_constant(f"u_{node.name}", filters)
@@ -360,10 +359,25 @@ def scratch_bytes(graph: Graph, node: Node) -> int:
 def _scratch_sizes(graph: Graph, node: Node, chunking: Chunking) -> tuple[int, int]:
     """The bytes of V and M of a chunk of `chunking`, each in its SCRATCH_DTYPES type."""
     c_out, c_in = graph.shape(node.inputs[1])[:2]
-    width = max(c_out, node.attrs.gemm_channels) if isinstance(node.attrs, ConvAttrs) else c_out
-    tiles = chunk_tiles(graph.shape(node.outputs[0])[2:], chunking)[1]
-    v, m = SCRATCH_DTYPES[node.op]
-    return PATCH * PATCH * tiles * c_in * v.bytes, PATCH * PATCH * tiles * block_width(width, c_out, chunking) * m.bytes
+    shapes = scratch_shapes(graph.shape(node.outputs[0])[2:], c_in, c_out, gemm_width(graph, node), chunking)
+    return tuple(math.prod(shape) * dtype.bytes for shape, dtype in zip(shapes, SCRATCH_DTYPES[node.op]))
+
+
+def scratch_shapes(
+    out_hw: tuple[int, int], c_in: int, c_out: int, width: int, chunking: Chunking
+) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+    """The shapes of V (input channels) and M (a block of the GEMMs' `width` output channels) for a
+    chunk of `chunking`'s tiles (chunk_tiles, as TileGrid walks them): what WinogradNests allocates
+    and the band planner counts."""
+    tiles = chunk_tiles(out_hw, chunking)[1]
+    return (PATCH * PATCH, tiles, c_in), (PATCH * PATCH, tiles, block_width(width, c_out, chunking))
+
+
+def gemm_width(graph: Graph, node: Node) -> int:
+    """The output channels a Winograd layer's GEMMs compute: a float layer's padded to its
+    gemm_channels, an integer one's its own."""
+    c_out = graph.shape(node.inputs[1])[0]
+    return max(c_out, node.attrs.gemm_channels) if isinstance(node.attrs, ConvAttrs) else c_out
 
 
 def blocked_filters(u: np.ndarray, block: int) -> np.ndarray:

@@ -32,7 +32,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..ir.analysis import is_accumulator, vector_instructions
-from ..ir.applicability import FUSED_OPS, fused_ops_vectorise
+from ..ir.applicability import FUSED_OPS, fused_ops_vectorise, integer_kernel_vectorises
 from ..ir.dtypes import buffer_dtypes, is_integer_kernel
 from ..ir.kinds import BufferRole, DType, LoopKind
 from ..ir.loops import (
@@ -127,15 +127,15 @@ INTEGER_OPS = (
 
 
 def _integer_vectorizable(kernel: Kernel, target: Target) -> bool:
-    """One of INTEGER_OPS on a target with integer vectors, a QLinearAdd on one with a fused
-    multiply-add as well, or an integer Winograd (int16 scratch) on one with Target.int16_dots,
-    requantised in the float form."""
+    """One of INTEGER_OPS, a QLinearAdd on a target with a fused multiply-add, or an integer Winograd
+    (int16 scratch) on one with Target.int16_dots, where integer_kernel_vectorises: integer vectors and
+    no fixed-point requantisation in the kernel."""
     fixed = any(
         isinstance(e, RequantizeFixed) for s in walk_stmts(kernel.body) for t in stmt_exprs(s) for e in walk_exprs(t)
     )
     ops = INTEGER_OPS + (FUSED_OPS if fused_ops_vectorise(target) else ())
     ops += (WINOGRAD_OP,) if target.int16_dots else ()
-    return target.integer_vectors and kernel.op in ops and not fixed
+    return integer_kernel_vectorises(target, fixed) and kernel.op in ops
 
 
 # ---------------------------------------------------------------------------- choice
