@@ -24,7 +24,7 @@ import shutil
 import statistics
 import sys
 import tempfile
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +41,7 @@ from nncg.ir.kinds import BufferRole
 from nncg.quant_steps import Comparison, compare_steps
 from nncg.verify import build_model, find_c_compiler, random_inputs
 
+from .runs import merged_runs, runs_of
 from .suite import (
     MLPERF_TINY,
     ROOT,
@@ -158,23 +159,12 @@ def run_int8_suite(
 
 
 def merged_int8_row(same: list[Int8Row]) -> Int8Row:
-    """A model and target over several runs: µs the medians over the runs, the ratios each run's; a run
-    that failed stands for all. Errors and sizes are the first run's (the same C on the same inputs)."""
-    failed = [row for row in same if row.errors is None]
-    if failed or len(same) == 1:
-        return (failed or same)[0]
-
-    def median(field: str) -> float:
-        return statistics.median(getattr(row, field) for row in same)
-
-    return replace(
-        same[0], int8_us=median("int8_us"), float_us=median("float_us"), ort_us=median("ort_us"),
-        vs_ort=tuple(r for row in same for r in row.vs_ort), vs_float=tuple(r for row in same for r in row.vs_float),
+    """A model and target over several runs (runs.merged_runs): µs the medians over the runs, the ratios each
+    run's. Errors and sizes are the first run's (the same C on the same inputs)."""
+    return merged_runs(
+        same, lambda row: row.errors is not None, medians=("int8_us", "float_us", "ort_us"),
+        per_run={"vs_ort": lambda row: row.vs_ort, "vs_float": lambda row: row.vs_float},
     )  # fmt: skip
-
-
-def runs_of(rows: list[Int8Row]) -> int:
-    return max((len(row.vs_ort) for row in rows), default=0)
 
 
 def ratio_cell(ratios: tuple[float, ...]) -> str:
@@ -190,7 +180,7 @@ RANGE_COLUMNS = {"vs ORT int8": "vs ORT range", "int8 vs float": "vs float range
 
 
 def int8_table(rows: list[Int8Row]) -> str:
-    ranges = runs_of(rows) > 1
+    ranges = runs_of(rows, "vs_ort") > 1
     columns = [name for c in INT8_COLUMNS for name in (c, RANGE_COLUMNS.get(c) if ranges else None) if name]
     return markdown_table(columns, [int8_cells(row, ranges) for row in rows])
 
@@ -273,8 +263,9 @@ def speed_targets(rows: list[Int8Row]) -> str:
     best: dict[str, float] = {}
     for r in measured:
         best[r.model] = max(best.get(r.model, 0.0), statistics.median(r.vs_ort))
+    runs = over_runs(runs_of(measured, "vs_ort"))
     return (
-        f"- Issue 16's targets ({over_runs(runs_of(measured))}): ssse3 int8 >= {SSSE3_VS_FLOAT}x NNCG's ssse3 float: "
+        f"- Issue 16's targets ({runs}): ssse3 int8 >= {SSSE3_VS_FLOAT}x NNCG's ssse3 float: "
         f"{_met(ssse3, SSSE3_VS_FLOAT)}; "
         f"best x86 target >= {BEST_VS_ORT}x onnxruntime int8: {_met(best, BEST_VS_ORT)}."
     )
@@ -313,7 +304,7 @@ def section_markdown(
         "  NNCG's C of the float model on the same target. The three are timed interleaved, µs medians of the",
         "  batches; vs ORT int8 and int8 vs float: the medians of the per-batch ratios ORT int8 time / int8 time and",
         "  float time / int8 time (a batch times the three within seconds, so a slow spell of the machine cancels).",
-        *runs_lines(runs_of(rows), "ratios", "vs ORT range and vs float range"),
+        *runs_lines(runs_of(rows, "vs_ort"), "ratios", "vs ORT range and vs float range"),
         f"- max steps / identical: NNCG's int8 outputs against that onnxruntime session on {ERROR_INPUTS} seeded",
         "  inputs, in quantisation steps of each output (its DequantizeLinear's scale). The final Softmax is",
         "  onnxruntime's QLinearSoftmax arithmetic in NNCG too (tests/test_int8_softmax.py).",

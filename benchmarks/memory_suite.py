@@ -19,7 +19,7 @@ import datetime
 import shlex
 import statistics
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from nncg.bench.benchmark import BenchResult, Timing, benchmark_variants, paired_ratio
@@ -29,6 +29,7 @@ from nncg.lowering.band_plan import MEMORY_MODES
 from nncg.safe_text import markdown_text
 
 from .int8_suite import quantized_model
+from .runs import merged_runs, runs_of
 from .suite import (
     MLPERF_TINY,
     PAPER,
@@ -37,7 +38,6 @@ from .suite import (
     cpu_model,
     higher_peaks,
     measured_peaks,
-    median_result,
     model_path,
     over_runs,
     peaks_text,
@@ -110,19 +110,14 @@ def run_memory_suite(
 
 
 def merged_memory_row(same: list[MemoryRow]) -> MemoryRow:
-    """A model, target and setting over several runs: µs the medians over the runs, the ratios each run's;
-    a run that failed stands for all."""
-    failed = [row for row in same if row.result is None]
-    if failed or len(same) == 1:
-        return (failed or same)[0]
-    return replace(
-        same[0], result=median_result([row.result for row in same]), speed=median_result([row.speed for row in same]),
-        ratios=tuple(r for row in same for r in row.ratios),
-    )  # fmt: skip
-
-
-def runs_of(rows: list[MemoryRow]) -> int:
-    return max((len(row.ratios) for row in rows), default=0)
+    """A model, target and setting over several runs (runs.merged_runs): µs the medians over the runs, the
+    ratios each run's."""
+    return merged_runs(
+        same,
+        lambda row: row.result is not None,
+        results=("result", "speed"),
+        per_run={"ratios": lambda row: row.ratios},
+    )
 
 
 HEADER = (
@@ -133,7 +128,7 @@ HEADER = (
 
 def memory_table(rows: list[MemoryRow]) -> str:
     """The rows' table; with an x speed range column when they are medians of several runs."""
-    ranges = runs_of(rows) > 1
+    ranges = runs_of(rows, "ratios") > 1
     header = HEADER.replace(" x speed |", " x speed | x speed range |") if ranges else HEADER
     separators = header.count(" | ")
     lines = [header, "|" + "---|" * separators + "---|"]
@@ -189,7 +184,7 @@ def section_markdown(
         f"  {batches} batches of >= 20 ms each; x speed: the median of the per-batch ratios of this setting's time",
         "  to speed's, same run (a slow spell of the machine slows both and cancels); ORT µs: onnxruntime",
         "  (one thread, IOBinding), timed in the same run: one figure for all the settings.",
-        *runs_lines(runs_of(rows), "x speed", "x speed range"),
+        *runs_lines(runs_of(rows, "ratios"), "x speed", "x speed range"),
         "- arena B: NAME_ARENA_BYTES; arena cut: speed's arena over this one; layer bound B: the most one layer",
         "  computed whole needs; activations B: every activation side by side, no reuse. Both leave scratch",
         "  buffers (Winograd's) out, which the arena holds: speed's arena can exceed them.",
@@ -198,7 +193,7 @@ def section_markdown(
         "  of the others' ratios (balanced and min print the same C as speed where their plan is speed's).",
         "",
         memory_table(rows),
-        f"Against issue 18's targets ({over_runs(runs_of(rows))}):",
+        f"Against issue 18's targets ({over_runs(runs_of(rows, 'ratios'))}):",
         "",
         *target_lines(rows),
         "",

@@ -25,6 +25,7 @@ from nncg.bench.peak import TARGET_ISA
 from nncg.cli import positive_number
 
 from .real_models import DEFAULT_CASES, MODELS, case_name, ensure
+from .runs import runs_of
 from .suite import (
     ROOT,
     RUNS_HELP,
@@ -40,7 +41,6 @@ from .suite import (
     results_table,
     run_suite,
     runs_lines,
-    runs_of,
     with_peaks,
     write_section,
 )
@@ -71,7 +71,7 @@ def section_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str, b
         "- NNCG untuned defaults (unroll auto; weights auto: NAME.weights above 4 MiB). Columns as in the table",
         f"  above; medians of {batches} batches of >= 20 ms each, NNCG and onnxruntime (one thread) interleaved.",
         f"- {SPEEDUP_COLUMN}.",
-        *runs_lines(runs_of(rows)),
+        *runs_lines(runs_of(rows, "speedups")),
         "",
     ]
     return "\n".join(lines) + "\n" + results_table(rows)

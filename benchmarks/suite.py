@@ -15,7 +15,6 @@ import argparse
 import datetime
 import platform
 import re
-import statistics
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -27,6 +26,8 @@ from nncg.bench.peak import TARGET_ISA, measure_peaks
 from nncg.cli import positive_number
 from nncg.errors import NncgError
 from nncg.tune import tune
+
+from .runs import merged_runs, runs_of
 
 ROOT = Path(__file__).resolve().parent.parent
 PAPER = ["ball", "pedestrian", "robot"]
@@ -86,24 +87,11 @@ def repeated(runs: int, measure: Callable[[], list], merge: Callable[[list], obj
 
 
 def merged_row(same: list[Row]) -> Row:
-    """A model and target over several runs: µs and speed-up the medians over the runs, `speedups` each
-    run's; a run that failed stands for all (a model fails the same way each time)."""
-    failed = [row for row in same if row.result is None]
-    if failed or len(same) == 1:
-        return (failed or same)[0]
-    results = [row.result for row in same]
-    return replace(same[0], result=median_result(results), speedups=tuple(r.speedup for r in results))
-
-
-def median_result(results: list[BenchResult]) -> BenchResult:
-    """The first of a model's results of several runs with the medians over the runs of its µs and speed-up."""
-
-    def median(field: str) -> float:
-        return statistics.median(getattr(r, field) for r in results)
-
-    return replace(
-        results[0], nncg_us=median("nncg_us"), ort_bound_us=median("ort_bound_us"), ort_run_us=median("ort_run_us"),
-        speedup=median("speedup"), batch_us=(),
+    """A model and target over several runs (runs.merged_runs): µs and speed-up the medians over the runs,
+    `speedups` each run's."""
+    return merged_runs(
+        same, lambda row: row.result is not None, results=("result",),
+        per_run={"speedups": lambda row: (row.result.speedup,)},
     )  # fmt: skip
 
 
@@ -184,7 +172,7 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
         "- text + rodata go to flash; RAM is bss, which holds the static arena (arena B: activations placed by",
         "  the memory plan; activations B: all activation buffers without reuse); gen s / cc s: C generation and",
         "  compile time.",
-        *runs_lines(runs_of(rows)),
+        *runs_lines(runs_of(rows, "speedups")),
         "",
     ]
     return "\n".join(lines) + "\n" + results_table(rows)
@@ -194,11 +182,6 @@ SPEEDUP_COLUMN = (
     "speed-up: the median of the per-batch ratios ORT time / NNCG time (a batch times both within seconds, so a\n"
     "  slow spell of the machine cancels; it can differ from ORT µs / NNCG µs)"
 )
-
-
-def runs_of(rows: list[Row]) -> int:
-    """How many runs the rows are medians of (0: a single run, kept as measured)."""
-    return max((len(row.speedups) for row in rows), default=0)
 
 
 def over_runs(runs: int) -> str:
@@ -224,7 +207,7 @@ RESULT_COLUMNS = (
 
 def results_table(rows: list[Row]) -> str:
     """The rows' table; with a range column after speed-up when they are medians of several runs."""
-    if runs_of(rows) < 2:
+    if runs_of(rows, "speedups") < 2:
         return markdown_table(RESULT_COLUMNS, [result_cells(row) for row in rows])
     at = RESULT_COLUMNS.index("speed-up") + 1
     cells = [result_cells(row) for row in rows]

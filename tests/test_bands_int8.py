@@ -164,12 +164,13 @@ def test_fixed_requantisation_is_priced_as_the_vectorize_pass_runs_it(chain, mon
         return {name for name, c in kernels.items() if re.search(r"_mm(256)?_", c)}
 
     fixed, floats = vectorised("fixed"), vectorised("float")  # lookups and tiny layers: scalar either way
-    priced = {n.name for n in graph.nodes if n.name in floats and costs.of(graph, [n]).element == 1}
+    priced = {n.name for n in graph.nodes if n.name in floats and costs.of(graph, [n]).element(n) == 1}
     assert fixed == priced and floats - fixed
     monkeypatch.setattr(lowering, "plan_layers", whole_chain_plan(2))
     assert re.search(r"_mm(256)?_", band_source(nncg.compile(chain, target="avx2", requantize="fixed"))) is None
-    assert costs.of(graph, graph.nodes[:-1]).element == target.lanes
-    assert band_plan.StepCosts(target).of(graph, graph.nodes[:-1]).element == 1  # the float form vectorises
+    band = graph.nodes[:-1]
+    assert all(costs.of(graph, band).element(n) == target.lanes for n in band)
+    assert band_plan.StepCosts(target).of(graph, band).element(band[0]) == 1  # the float form vectorises
 
 
 @pytest.mark.parametrize("rows", [1, 2, 3, 8])

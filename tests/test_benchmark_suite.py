@@ -1,11 +1,12 @@
 """The benchmark suite's report and chart are produced and well formed on a tiny run (no timing claims)."""
 
 import shutil
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from benchmarks.int8_suite import Build, Int8Row, int8_table, merged_int8_row, speed_targets
 from benchmarks.memory_suite import MemoryRow, memory_table, merged_memory_row, run_memory_suite, section_markdown
 from benchmarks.real_suite import select_cases
+from benchmarks.runs import median_result, merged_runs, runs_of
 from benchmarks.suite import (
     Row,
     higher_peaks,
@@ -252,3 +253,29 @@ def test_memory_rows_of_several_runs_count_issue_18s_target_with_the_median_rati
     table = [line for line in text.splitlines() if line.startswith("| ")]
     assert "| x speed | x speed range | ORT µs |" in table[0] and "| 1.28x | 1.25-1.40x |" in table[2]
     assert all(line.count("|") == table[0].count("|") for line in table)
+
+
+@dataclass(frozen=True)
+class FakeRow:
+    model: str
+    us: float = 0.0
+    ratios: tuple[float, ...] = ()
+    problem: str = ""
+
+
+def merged_fake(same: list[FakeRow]) -> FakeRow:
+    return merged_runs(same, lambda row: not row.problem, medians=("us",), per_run={"ratios": lambda row: row.ratios})
+
+
+def test_runs_merge_to_median_times_and_every_runs_ratios():
+    """runs.merged_runs, which every suite's --runs uses: µs fields the medians, ratio fields each run's in run
+    order, a failed run standing for all, a single run kept as measured; BenchResults merged by median_result."""
+    runs = [FakeRow("m", 3.0, (1.1,)), FakeRow("m", 1.0, (1.3,)), FakeRow("m", 2.0, (1.2,))]
+    merged = merged_fake(runs)
+    assert merged == FakeRow("m", 2.0, (1.1, 1.3, 1.2)) and runs_of([merged, runs[0]], "ratios") == 3
+    failed = FakeRow("m", problem="broken")
+    assert merged_fake([runs[0], failed]) is failed and merged_fake(runs[:1]) is runs[0]
+    assert runs_of([], "ratios") == 0 and runs_of([FakeRow("m")], "ratios") == 0
+    results = [replace(PLAIN, nncg_us=us, speedup=s) for us, s in ((12.0, 1.5), (10.0, 2.0), (11.0, 1.0))]
+    median = median_result(results)
+    assert (median.nncg_us, median.speedup, median.ort_bound_us, median.batch_us) == (11.0, 1.5, 20.0, ())

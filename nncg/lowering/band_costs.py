@@ -60,18 +60,16 @@ avx2 (clang), fewer than the same plan with the QuantizeLinear run whole (1.010x
 `python3 -m benchmarks.int8_band_costs --quantize [--cc clang]`); quantised element by element at a stride of C
 before: 1.14x, 1.08x, 1.09x, and latency 1.43x (ssse3) / 2.07x (avx2).
 
-A requantised add (QLinearAdd) costs 1 per element where it vectorises and the target's lanes
-(`fused_element`; not measured) where it stays scalar, whole and in bands alike: one rule decides both for the
-vectorize pass (ir/applicability.py fused_ops_vectorise), and band_plan.target_costs asks it. Every vector
-target vectorises them today and scalar C has 1 lane, so no plan changed; band adds left scalar while whole
-ones vectorised is what had made resnet8's avx2 band kernel 132 KB (above).
-
-Under requantize=fixed an int8 kernel that requantises in the fixed-point form (a QLinearConv, QLinearDense or
-QLinearGlobalAveragePool run whole, or a band kernel with one among its stages) stays scalar: no backend has that
-form in vectors (ir/applicability.py integer_kernel_vectorises, the vectorize pass's rule). band_plan.StepCosts
-prices such a kernel at scalar C's int8 figures, each MAC and element at the target's lanes (`element`; not
-measured). Only fixed-point plans change: mobilenet_v1_025 int8 balanced on ssse3, avx2 and avx512 takes
-22,912 B instead of 27,648 (resnet8 and dscnn keep theirs)."""
+Work the vectorize pass leaves in scalar C costs the target's lanes a MAC and element (not measured), whole and
+in bands alike, by one rule (band_plan.StepCosts, asking ir/applicability.py what the pass asks). A requantised
+add (QLinearAdd) stays scalar where fused_ops_vectorise says so, run whole or as a band kernel's stage (its
+convolutions still vectorised): every vector target vectorises them today and scalar C has 1 lane, so no plan
+changed; band adds left scalar while whole ones vectorised is what had made resnet8's avx2 band kernel 132 KB
+(above). Under requantize=fixed an int8 kernel that requantises in the fixed-point form (a QLinearConv,
+QLinearDense or QLinearGlobalAveragePool run whole, or a band kernel with one among its stages) stays scalar as
+a whole: no backend has that form in vectors (integer_kernel_vectorises). It is priced at scalar C's int8
+figures, every MAC and element at the lanes. Only fixed-point plans change: mobilenet_v1_025 int8 balanced on
+ssse3, avx2 and avx512 takes 22,912 B instead of 27,648 (resnet8 and dscnn keep theirs)."""
 
 from __future__ import annotations
 
@@ -92,8 +90,6 @@ class BandCosts:
     integer_banded: float  # an int8 Conv in a group of bands against run whole, both in the target's dots
     integer_winograd: float  # an int8 Conv run whole as integer Winograd against direct (in bands: direct)
     kept_banded: float = 0.0  # an integer Winograd Conv kept in bands against run whole (0: integer_banded)
-    fused_element: float = 1.0  # a requantised add, per element: 1 vectorised, scalar its lanes (target_costs)
-    element: float = 1.0  # every MAC and element of an int8 kernel: 1 vectorised, scalar its lanes (StepCosts)
 
 
 SCALAR = BandCosts(

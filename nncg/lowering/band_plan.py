@@ -112,34 +112,46 @@ def plan_steps(graph: Graph, memory: str, budget: int, target: Target | None, re
     return min(plans, key=lambda p: (_bytes(p), _cost(p), _in_place(p)))
 
 
-def target_costs(target: Target | None) -> BandCosts:
-    """The band costs of `target` (None: band_costs's default), with its requantised adds priced as the
-    vectorize pass runs them: vectorised (1 per element) or scalar (its lanes: BandCosts.fused_element)."""
-    costs = band_costs(target and target.name)
-    if target is None or fused_ops_vectorise(target):
-        return costs
-    return replace(costs, fused_element=float(target.lanes))
+@dataclass(frozen=True)
+class KernelCosts:
+    """What a kernel's work costs: the target's figures (band_costs.py; scalar C's int8 ones for an int8
+    kernel left scalar), and the ops of its layers whose work stays in scalar C (`scalar`), each of their
+    MACs and elements at the target's `lanes`."""
+
+    figures: BandCosts
+    lanes: float = 1.0
+    scalar: frozenset[str] = frozenset()
+
+    def element(self, node: Node) -> float:
+        """What one of the node's MACs or elements costs: 1 vectorised, the target's lanes scalar."""
+        return self.lanes if node.op in self.scalar else 1.0
 
 
 class StepCosts:
-    """What a step costs on `target` (None: band_costs's default) under lower's `requantize`: a layer or
-    band kernel at target_costs, but an int8 one that stays scalar (integer_kernel_vectorises: one that
-    requantises in the fixed-point form, or any on scalar C) at scalar C's int8 figures, each of its MACs
-    and elements at the target's lanes (`element`) as a scalar add's (fused_element)."""
+    """What a step costs on `target` (None: band_costs's default) under lower's `requantize`. One rule,
+    the vectorize pass's: work left in scalar C costs the target's lanes a MAC and element. That is every
+    layer of an int8 kernel that stays scalar (integer_kernel_vectorises: one that requantises in the
+    fixed-point form, or any on scalar C), priced at scalar C's int8 figures, and a requantised add
+    (FUSED_OPS) on a target where those do not vectorise (fused_ops_vectorise): run whole, or as a stage of
+    a band kernel whose convolutions still vectorise (vectorize.py _mark_band_stages)."""
 
     def __init__(self, target: Target | None, requantize: str = "float"):
         self.target, self.requantize = target, requantize
-        self.vector = target_costs(target)
+        figures = band_costs(target and target.name)
         lanes = float(target.lanes) if target else 1.0
+        fused = frozenset(FUSED_OPS) if target is not None and not fused_ops_vectorise(target) else frozenset()
+        self.vector = KernelCosts(figures, lanes, fused)
         integer = {k: getattr(SCALAR, k) for k in ("integer_banded", "integer_winograd", "kept_banded")}
-        self.scalar = replace(self.vector, **integer, fused_element=1.0, element=lanes)
+        self.scalar_figures = replace(figures, **integer)
 
-    def of(self, graph: Graph, nodes: list[Node]) -> BandCosts:
+    def of(self, graph: Graph, nodes: list[Node]) -> KernelCosts:
         """The costs of the kernel computing `nodes` (a layer, or a group of bands)."""
         if self.target is None or not any(_integer(graph, node) for node in nodes):
             return self.vector
         fixed = requantises_fixed([node.op for node in nodes], self.requantize)
-        return self.vector if integer_kernel_vectorises(self.target, fixed) else self.scalar
+        if integer_kernel_vectorises(self.target, fixed):
+            return self.vector
+        return KernelCosts(self.scalar_figures, self.vector.lanes, frozenset(node.op for node in nodes))
 
 
 def _integer(graph: Graph, node: Node) -> bool:
@@ -245,7 +257,8 @@ def _band_step(
         for v in geo.internal
     )
     runs = sum(geo.runs(0, geo.rows[n.outputs[0]].level) for n in graph.nodes[i:j])  # of the layers per band
-    costs = step_costs.of(graph, graph.nodes[i:j])
+    kernel = step_costs.of(graph, graph.nodes[i:j])
+    costs = kernel.figures
     banded = costs.banded if j - i > 1 else 1.0  # one layer alone: its direct nest under a band loop
 
     def per_mac(node: Node) -> float:
@@ -255,8 +268,12 @@ def _band_step(
             return costs.integer_banded if j - i > 1 else 1.0
         return banded * (costs.winograd if node.name in geo.winograd else 1.0)
 
-    work = sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n, costs) for n in graph.nodes[i:j])
-    cost = work * costs.element + geo.bands * (costs.per_band * runs + costs.shift * shifted)
+    def work(nodes: list[Node]) -> float:
+        return sum(_conv_macs(graph, n) * per_mac(n) + _window_work(graph, n) for n in nodes)
+
+    vector = work([n for n in graph.nodes[i:j] if n.op not in kernel.scalar])
+    scalar = work([n for n in graph.nodes[i:j] if n.op in kernel.scalar])  # at the lanes: KernelCosts.element
+    cost = vector + kernel.lanes * scalar + geo.bands * (costs.per_band * runs + costs.shift * shifted)
     return Step(i, j, group, live.bytes(i, j, geo.internal) + lines, cost, lines)
 
 
@@ -287,22 +304,20 @@ def _output_copy(graph: Graph, node: Node) -> int:
     return _tensor_bytes(graph, node.outputs[0]) if copied and math.prod(shape[2:]) > 1 else 0
 
 
-def _whole_time(graph: Graph, node: Node, costs: BandCosts) -> float:
+def _whole_time(graph: Graph, node: Node, kernel: KernelCosts) -> float:
     """A layer run whole: a Conv at the speed of what the graph passes chose for it."""
-    macs = _conv_macs(graph, node)
+    macs, costs = _conv_macs(graph, node), kernel.figures
     if macs and node.runs_winograd:
         macs *= costs.integer_winograd if node.op == "QLinearConv" else costs.winograd
     elif macs and (node.cache_blocked or node.vectorises_pixels):
         macs *= costs.blocked
-    return (macs + _window_work(graph, node, costs)) * costs.element
+    return (macs + _window_work(graph, node)) * kernel.element(node)
 
 
-def _window_work(graph: Graph, node: Node, costs: BandCosts) -> float:
-    """A pooling layer's window reads, or an elementwise int8 op's one per element (a requantised add's
-    BandCosts.fused_element), whole or in bands alike: one rule vectorises both (fused_ops_vectorise)."""
+def _window_work(graph: Graph, node: Node) -> float:
+    """A pooling layer's window reads, or an elementwise int8 op's one per element."""
     if node.op in POINTWISE:
-        elements = math.prod(graph.shape(node.outputs[0]))
-        return elements * costs.fused_element if node.op in FUSED_OPS else elements
+        return math.prod(graph.shape(node.outputs[0]))
     if node.op not in WINDOWED or node.op in CONVS:
         return 0
     return math.prod(graph.shape(node.outputs[0])) * math.prod(window_attrs(node).kernel)
