@@ -177,18 +177,25 @@ def measure(build: Build, workdir: Path) -> dict[str, tuple[float, np.ndarray, n
     out = {}
     for fn, y in results.items():
         ref = reference(fn, x)
-        err = ulp_errors(y, ref)
-        if build.flushes_denormals:
-            # The NEON unit reads a denormal as a zero of its sign (its comparisons may run in VFP,
-            # which does not: either reading is right), flushes a denormal result to zero, and the
-            # log of a denormal it flushed in part is at most log(FLT_MIN).
-            flushed = np.where(np.abs(x) < FLT_MIN, np.copysign(np.float32(0.0), x), x).astype(np.float32)
-            err = np.minimum(err, ulp_errors(y, reference(fn, flushed)))
-            err = np.where((np.abs(ref) < FLT_MIN) & (y == 0), 0.0, err)
-            if fn == "log":
-                err = np.where((0 < x) & (x < FLT_MIN) & (y <= np.log(FLT_MIN)), 0.0, err)
+        err = target_errors(build, fn, x, y, ref)
         out[fn] = (float(np.max(err)), x, err)
     return out
+
+
+def target_errors(build: Build, fn: str, x: np.ndarray, y: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """ULP errors of y = fn(x) against ref, as the build's FPU may compute them (also used by
+    scripts/sigmoid_sweep.py)."""
+    err = ulp_errors(y, ref)
+    if build.flushes_denormals:
+        # The NEON unit reads a denormal as a zero of its sign (its comparisons may run in VFP,
+        # which does not: either reading is right), flushes a denormal result to zero, and the
+        # log of a denormal it flushed in part is at most log(FLT_MIN).
+        flushed = np.where(np.abs(x) < FLT_MIN, np.copysign(np.float32(0.0), x), x).astype(np.float32)
+        err = np.minimum(err, ulp_errors(y, reference(fn, flushed)))
+        err = np.where((np.abs(ref) < FLT_MIN) & (y == 0), 0.0, err)
+        if fn == "log":
+            err = np.where((0 < x) & (x < FLT_MIN) & (y <= np.log(FLT_MIN)), 0.0, err)
+    return err
 
 
 def missing(build: Build) -> str | None:
