@@ -24,6 +24,7 @@ from onnx import TensorProto, helper, numpy_helper
 import nncg
 from nncg.bench.benchmark import profile
 from nncg.bench.peak import TARGET_ISA, measure_peak
+from nncg.cli import positive_number
 from nncg.verify import verify
 
 # name: (channels, height = width, kernel, stride, activations), the depthwise layers of the real-size
@@ -92,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--target", default="avx512", choices=sorted(TARGET_ISA))
     parser.add_argument("--cpu", type=int, default=0)
-    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--rounds", type=positive_number, default=3)
     parser.add_argument("--peak", type=float, help="GFLOP/s (default: measured)")
     parser.add_argument("--shapes", nargs="+", choices=SHAPES, default=list(SHAPES))
     args = parser.parse_args(argv)

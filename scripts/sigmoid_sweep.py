@@ -24,6 +24,7 @@ from test_vector_math import BUILDS, OPT, Build, reference, target_errors  # noq
 from nncg.backends import BACKENDS  # noqa: E402
 from nncg.backends.simd_needs import Needs  # noqa: E402
 from nncg.backends.vector_math import operations_used, with_callees  # noqa: E402
+from nncg.cli import positive_number  # noqa: E402
 
 CHUNK = 1 << 22  # patterns per chunk the program writes (lanes divide it)
 
@@ -101,7 +102,7 @@ def main() -> None:
     parser.add_argument("--build", default="neon-4")
     parser.add_argument("--nofma", action="store_true", help="the ARMv7 build without VFPv4")
     parser.add_argument("--fn", default="sigmoid")
-    parser.add_argument("--stride", type=int, default=1)
+    parser.add_argument("--stride", type=positive_number, default=1)
     parser.add_argument("--full", type=float, nargs=2, metavar=("LO", "HI"))
     args = parser.parse_args()
     builds = [b for b in BUILDS if b.id == args.build]
