@@ -237,21 +237,25 @@ def markdown_table(columns, rows) -> str:
 
 @dataclass(frozen=True)
 class Bar:
-    label: str
+    table: str  # the heading above the bar's table in RESULTS.md: one panel pair per table
+    model: str
+    target: str
     speedup: float
     percent_of_peak: float
 
 
 def write_chart(rows: list[Row], path: Path) -> None:
-    draw_chart([Bar(f"{r.model}\n{r.target}", r.result.speedup, r.result.percent_of_peak or 0.0)
+    draw_chart([Bar("", r.model, r.target, r.result.speedup, r.result.percent_of_peak or 0.0)
                 for r in rows if r.result is not None], path)  # fmt: skip
 
 
 def table_bars(markdown: str) -> list[Bar]:
     """The measured rows of every results table in `markdown` (RESULTS.md), so the chart shows all sections."""
-    bars, columns = [], None
+    bars, columns, heading = [], None, ""
     for line in markdown.splitlines():
         cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if line.startswith("#"):
+            heading = line.lstrip("#").strip()
         if not line.startswith("|"):
             columns = None
         elif cells[:2] == ["model", "target"]:
@@ -260,31 +264,63 @@ def table_bars(markdown: str) -> list[Bar]:
         elif columns and cells[columns["speed-up"]].endswith("x"):
             pct = cells[columns["% peak"]].split(" ")[0]
             bars.append(Bar(
-                f"{cells[columns['model']]}\n{cells[columns['target']]}", float(cells[columns["speed-up"]][:-1]),
+                heading, cells[columns["model"]], cells[columns["target"]], float(cells[columns["speed-up"]][:-1]),
                 0.0 if pct == "n/a" else float(pct),
             ))  # fmt: skip
     return bars
 
 
+BAR_INCHES = 0.16  # width per bar: the widest table sets the figure's width
+
+
 def draw_chart(bars: list[Bar], path: Path) -> None:
-    """Two bar panels: speed-up over onnxruntime, and % of peak, per model and target."""
+    """Per results table, two panels side by side: speed-up over onnxruntime and % of peak, the models along x
+    with one bar per target (one colour per target across the figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
-    labels = [bar.label for bar in bars]
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(max(6, 0.8 * len(labels) + 2), 7), sharex=True)
-    top.bar(labels, [bar.speedup for bar in bars], color="tab:blue")
-    top.axhline(1.0, color="black", linewidth=0.8)
-    top.set_ylabel("speed-up vs onnxruntime")
-    bottom.bar(labels, [bar.percent_of_peak for bar in bars], color="tab:orange")
-    bottom.set_ylabel("% of ISA peak")
-    bottom.tick_params(axis="x", labelsize=8, labelrotation=90)
-    fig.suptitle("NNCG, batch 1, one core")
-    fig.tight_layout()
+    tables = list(dict.fromkeys(bar.table for bar in bars)) or [""]
+    targets = sorted({bar.target for bar in bars})
+    colours = {t: plt.get_cmap("tab10")(i % 10) for i, t in enumerate(targets)}
+    widest = max([sum(bar.table == table for bar in bars) for table in tables] + [8])
+    fig, axes = plt.subplots(len(tables), 2, figsize=(2 * (BAR_INCHES * widest + 2), 3.4 * len(tables)), squeeze=False)
+    for (left, right), table in zip(axes, tables):
+        rows = [bar for bar in bars if bar.table == table]
+        _grouped(left, rows, colours, "speedup", "speed-up vs onnxruntime")
+        left.axhline(1.0, color="black", linewidth=0.8)
+        left.set_yscale("log")  # 0.3x and 27x in one table: a ratio reads the same above and below 1
+        left.yaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        left.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}x"))
+        left.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        _grouped(right, rows, colours, "percent_of_peak", "% of ISA peak")
+        left.set_title(table, fontsize=9, loc="left")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=colours[t]) for t in targets]
+    if targets:
+        fig.legend(handles, targets, loc="upper right", ncol=len(targets), fontsize=8)
+    fig.suptitle("NNCG, batch 1, one core", x=0.01, ha="left")
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
     fig.savefig(path, dpi=100, metadata={"Software": None})
     plt.close(fig)
+
+
+def _grouped(ax, rows: list[Bar], colours: dict, field: str, ylabel: str) -> None:
+    """Bars of `field` grouped by model along x, one per target in the group."""
+    models = list(dict.fromkeys(bar.model for bar in rows))
+    x = 0.0
+    ticks = []
+    for model in models:
+        group = [bar for bar in rows if bar.model == model]
+        ticks.append(x + (len(group) - 1) / 2)
+        for bar in group:
+            ax.bar(x, getattr(bar, field), color=colours[bar.target], width=0.9)
+            x += 1
+        x += 1  # a gap between models
+    ax.set_xticks(ticks, models, fontsize=7, rotation=60, ha="right")
+    ax.set_ylabel(ylabel, fontsize=8)
+    ax.tick_params(axis="y", labelsize=7)
 
 
 SECTION = re.compile(r"<!-- (?P<name>[\w-]+):begin -->\n.*?<!-- (?P=name):end -->\n", re.DOTALL)
