@@ -34,6 +34,8 @@ import numpy as np
 
 SEED = 0
 OPSET = 17
+CALIBRATION_SAMPLES = 16  # as benchmarks/int8_suite.py calibrates nncg.quantize
+CALIBRATION_SEED = 1234
 # name -> input shape (NHWC, or features for the autoencoder); each model has its own fixed input size.
 INPUTS = {
     "mlperf_ic_resnet8": (32, 32, 3),
@@ -151,21 +153,34 @@ def keras_model(name: str):
     return model
 
 
-def tflite_bytes(model) -> bytes:
-    """The float TFLite model, as the reference model_converter.py scripts write it."""
+def calibration_samples(name: str) -> np.ndarray:
+    """The representative dataset of the int8 conversion: seeded standard-normal inputs (no real data)."""
+    shape = (CALIBRATION_SAMPLES, 1, *INPUTS[name])
+    return np.random.default_rng(CALIBRATION_SEED).standard_normal(shape).astype(np.float32)
+
+
+def tflite_bytes(model, int8_calibration: np.ndarray | None = None) -> bytes:
+    """The float TFLite model, as the reference model_converter.py scripts write it; with `int8_calibration`
+    the full-integer one (int8 weights and activations calibrated on those inputs, float input and output)."""
     import tensorflow as tf
 
+    converter = tf.lite.TFLiteConverter.from_keras_model(model)
+    if int8_calibration is not None:
+        converter.optimizations = [tf.lite.Optimize.DEFAULT]
+        converter.representative_dataset = lambda: ([sample] for sample in int8_calibration)
+        converter.target_spec.supported_ops = [tf.lite.OpsSet.TFLITE_BUILTINS_INT8]
     with contextlib.redirect_stdout(io.StringIO()):  # Keras' export prints its signature
-        return tf.lite.TFLiteConverter.from_keras_model(model).convert()
+        return converter.convert()
 
 
-def onnx_bytes(name: str) -> bytes:
-    """The MLPerf Tiny model `name` as tf2onnx converts its float .tflite file."""
+def onnx_bytes(name: str, int8: bool = False) -> bytes:
+    """The MLPerf Tiny model `name` as tf2onnx converts its float .tflite file (with `int8`: its full-integer
+    .tflite file, which tf2onnx writes as a QDQ model)."""
     import tf2onnx
 
     from nncg.frontend.keras_export import _quiet  # tf2onnx's logging, as the Keras route silences it
 
-    data = tflite_bytes(keras_model(name))
+    data = tflite_bytes(keras_model(name), calibration_samples(name) if int8 else None)
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / f"{name}.tflite"
         path.write_bytes(data)
@@ -174,26 +189,67 @@ def onnx_bytes(name: str) -> bytes:
     return canonical_names(proto).SerializeToString()
 
 
-GENERATED = re.compile(r"^(.*)__\d+(:\d+)?$")
+GENERATED = re.compile(r"__(\d+)")
+
+
+def structural_order(graph) -> list:
+    """The nodes in post-order from the graph's outputs, each node's inputs in their order: a topological
+    order that depends on the wiring only, not on the names or on the order tf2onnx wrote the nodes in."""
+    producer = {name: node for node in graph.node for name in node.output}
+    order, seen = [], set()
+
+    def visit(value: str) -> None:
+        node = producer.get(value)
+        if node is None or id(node) in seen:
+            return
+        seen.add(id(node))
+        for name in node.input:
+            visit(name)
+        order.append(node)
+
+    for output in graph.output:
+        visit(output.name)
+    return order + [node for node in graph.node if id(node) not in seen]
+
+
+def _name_shared_dequantizes(graph) -> None:
+    """Name each DequantizeLinear of an activation after the tensor it reads: tf2onnx names it after one of
+    the tensor's consumers, whichever its set gives first (the residual Adds' inputs of a QDQ model)."""
+    constants = {tensor.name for tensor in graph.initializer}
+    kept = {value.name for value in graph.output}
+    renamed, used = {}, set()
+    for node in graph.node:
+        if node.op_type != "DequantizeLinear" or node.input[0] in constants or node.output[0] in kept:
+            continue
+        name = f"{node.input[0]}_dequant"
+        while name in used:  # two of the same tensor: numbered in structural order
+            name += "_"
+        used.add(name)
+        node.name, renamed[node.output[0]], node.output[0] = name, name, name
+    for node in graph.node:
+        node.input[:] = [renamed.get(value, value) for value in node.input]
 
 
 def canonical_names(model):
-    """`model` with tf2onnx's generated names renumbered in graph order and the initializers in order of
-    first use. tf2onnx numbers the names it makes (NAME__N) from a process-wide counter and its optimisers
-    visit sets, so the numbers and the initializers' order change from run to run; the nodes' order and
-    every value do not. Renumbering makes the file the same bytes each time."""
+    """`model` with its nodes in structural order, tf2onnx's generated names renumbered in that order and the
+    initializers in order of first use. tf2onnx numbers the names it makes (NAME__N) from a process-wide
+    counter and its optimisers visit sets, so the numbers, the nodes' order (of QDQ models) and the
+    initializers' order change from run to run; the wiring and every value do not. So the file is the same
+    bytes each time."""
     graph, renamed, first_use = model.graph, {}, {}
+    nodes = [type(node)() for node in graph.node]  # copies: ClearField drops the originals
+    for copy, node in zip(nodes, structural_order(graph)):
+        copy.CopyFrom(node)
+    graph.ClearField("node")
+    graph.node.extend(nodes)
+    _name_shared_dequantizes(graph)
 
-    def canonical(name: str) -> str:
-        match = GENERATED.match(name)
-        if not match:
-            return name
-        base = name[: len(name) - len(match.group(2) or "")]
-        if base not in renamed:
-            renamed[base] = f"{match.group(1)}__{len(renamed) + 1}"
-        return renamed[base] + (match.group(2) or "")
+    def canonical(name: str) -> str:  # every __N in the name: tf2onnx nests them (X__68_DequantizeLinear__5)
+        return GENERATED.sub(lambda match: f"__{renamed.setdefault(match.group(1), len(renamed) + 1)}", name)
 
     for node in graph.node:
+        if not node.domain:  # tf2onnx sets the default domain explicitly on some nodes, on others not
+            node.ClearField("domain")
         node.input[:] = [canonical(name) for name in node.input]
         node.output[:] = [canonical(name) for name in node.output]
         node.name = canonical(node.name)

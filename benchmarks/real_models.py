@@ -106,6 +106,19 @@ def ensure(name: str, size: int | None) -> Path:
     return path
 
 
+def ensure_int8(name: str) -> Path:
+    """The MLPerf Tiny model `name`'s full-integer TFLite conversion (a QDQ model, benchmarks/int8_suite.py),
+    converted (and checked in onnxruntime) when the file is missing."""
+    path = REAL_DIR / f"{name}_int8.onnx"
+    if not path.exists():
+        data = mlperf_tiny.onnx_bytes(name, int8=True)
+        onnx.checker.check_model(onnx.load_from_string(data))
+        run_in_onnxruntime(data)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", choices=MODELS, help="default: the suite's cases")
