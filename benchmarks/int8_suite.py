@@ -1,18 +1,23 @@
-"""The int8 benchmark: the MLPerf-Tiny-shaped models quantised by nncg.quantize, NNCG's int8 C against
-onnxruntime running the same QDQ model and against NNCG's own float C, per x86 target; and the models'
-Cortex-M4 builds, int8 next to float.
+"""The int8 benchmark: MLPerf Tiny models in int8, NNCG's int8 C against onnxruntime and NNCG's float C.
+
+The MLPerf-Tiny-shaped models quantised by nncg.quantize, and the MLPerf Tiny reference models (mlperf_*,
+benchmarks/mlperf_tiny.py) as TFLite's full-integer converter quantises them and tf2onnx converts that, NNCG's
+int8 C against onnxruntime running the same QDQ model and against NNCG's own float C, per x86 target; and the
+models' Cortex-M4 builds, int8 next to float.
 
     python3 -m benchmarks.int8_suite [--models dscnn ...] [--targets ansi-c ssse3 avx2 avx512 avx512vnni] [--cpu 0]
                                      [--batches 15] [--runs 3] [--no-cortex-m4] [--reduce-range]
 
 Each model is quantised with nncg.quantize's defaults (uint8 activations, per-channel int8 weights; 7-bit
-weights with --reduce-range) on seeded standard-normal calibration inputs. Per target, the int8 C, the
-float C and onnxruntime on the QDQ model (batch 1, one thread, all graph optimisations) are timed
-interleaved, medians as benchmarks/suite.py times (nncg.bench), ratios the medians of the per-batch ratios;
---runs N measures all of it N times and reports the medians over the runs and the ratios' ranges. Errors are
-in quantisation steps of each output against that onnxruntime session, on seeded inputs. The Cortex-M4
-builds (tests/cross_helpers.py: arm-none-eabi-gcc -Os, run in qemu-system-arm) give flash and RAM from
-arm-none-eabi-size and the stack's deepest use. Writes the "int8" section of benchmarks/RESULTS.md.
+weights with --reduce-range) on seeded standard-normal calibration inputs; the mlperf_* ones by TFLite (int8
+activations and per-channel weights, the same number of seeded standard-normal inputs as representative
+dataset, float input and output; --reduce-range does not apply to them; needs TensorFlow and tf2onnx).
+Per target, the int8 C, the float C and onnxruntime on the QDQ model (batch 1, one thread, all graph
+optimisations) are timed interleaved, medians as benchmarks/suite.py times (nncg.bench), ratios the medians
+of the per-batch ratios; --runs N measures all of it N times and reports the medians over the runs and the
+ratios' ranges. Errors are in quantisation steps of each output against that onnxruntime session, on seeded
+inputs. The Cortex-M4 builds (tests/cross_helpers.py: arm-none-eabi-gcc -Os, run in qemu-system-arm) give
+flash and RAM from arm-none-eabi-size and the stack's deepest use. Writes the "int8" section of benchmarks/RESULTS.md.
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ from nncg.ir.kinds import BufferRole
 from nncg.quant_steps import Comparison, compare_steps
 from nncg.verify import build_model, find_c_compiler, random_inputs
 
+from . import mlperf_tiny
+from .real_models import ensure, ensure_int8
 from .runs import merged_runs, runs_of
 from .suite import (
     MLPERF_TINY,
@@ -66,8 +73,19 @@ CALIBRATION_SEED = 1234  # not the timed input's seed (0): the error inputs are 
 ERROR_INPUTS = 8  # seeded inputs 1..8 for the error figures
 
 
+MODELS = [*MLPERF_TINY, *mlperf_tiny.MODELS]
+
+
+def float_path(name: str) -> Path:
+    """The float model: an MLPerf-Tiny-shaped one, or an MLPerf Tiny reference model's tf2onnx conversion."""
+    return ensure(name, None) if name in mlperf_tiny.MODELS else model_path(name)
+
+
 def quantized_model(name: str, reduce_range: bool = False) -> onnx.ModelProto:
-    """The QDQ model nncg.quantize writes from the float model and seeded standard-normal calibration inputs."""
+    """The QDQ model nncg.quantize writes from the float model and seeded standard-normal calibration inputs;
+    for an MLPerf Tiny reference model, tf2onnx's conversion of TFLite's full-integer model."""
+    if name in mlperf_tiny.MODELS:
+        return onnx.load(ensure_int8(name))
     model = onnx.load(model_path(name))
     shape = [d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim]
     samples = np.random.default_rng(CALIBRATION_SEED).standard_normal((CALIBRATION_SAMPLES, *shape), np.float32)
@@ -123,7 +141,7 @@ def measure(name: str, qdq: onnx.ModelProto, target: str, *, cpu, batches: int, 
     """The int8 C, the float C and onnxruntime on the QDQ model, timed in turn on the same input."""
     cc = find_c_compiler(None)
     int8 = nncg.compile(qdq, target=target)
-    floats = nncg.compile(model_path(name), target=target)
+    floats = nncg.compile(float_path(name), target=target)
     inputs = random_inputs(int8.inputs, seed=0)
     with pinned(cpu), tempfile.TemporaryDirectory(prefix="nncg-int8-bench-") as tmp:
         harnesses = [CompiledHarness(c, Path(tmp, kind), cc, inputs) for c, kind in ((int8, "int8"), (floats, "float"))]
@@ -238,7 +256,7 @@ def cortex_m4_rows(helpers, models: dict[str, onnx.ModelProto]) -> dict[str, dic
     rows = {}
     for name, qdq in models.items():
         try:
-            rows[name] = cortex_m4_row(helpers, model_path(name), qdq)
+            rows[name] = cortex_m4_row(helpers, float_path(name), qdq)
         except Exception as exc:  # noqa: BLE001 - a build or QEMU failure on one model: report, go on
             rows[name] = {"problem": f"failed: {type(exc).__name__}: {first_line(exc)}"}
     return rows
@@ -299,7 +317,9 @@ def section_markdown(
         "- Models: nncg.quantize's defaults (uint8 activations, per-channel int8 weights"
         + (", here 7-bit: reduce_range=True)" if reduce_range else ")")
         + f" on {CALIBRATION_SAMPLES}",
-        f"  standard-normal calibration inputs (seed {CALIBRATION_SEED}). int8 µs: NNCG's int8 C; ORT int8 µs:",
+        f"  standard-normal calibration inputs (seed {CALIBRATION_SEED}); mlperf_*: the MLPerf Tiny reference",
+        "  models (benchmarks/mlperf_tiny.py) quantised by TFLite's full-integer converter on as many seeded",
+        "  inputs, converted by tf2onnx from_tflite. int8 µs: NNCG's int8 C; ORT int8 µs:",
         "  onnxruntime on the same QDQ model (batch 1, one thread, all graph optimisations, IOBinding); float µs:",
         "  NNCG's C of the float model on the same target. The three are timed interleaved, µs medians of the",
         "  batches; vs ORT int8 and int8 vs float: the medians of the per-batch ratios ORT int8 time / int8 time and",
@@ -326,7 +346,7 @@ def section_markdown(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models", nargs="+", default=MLPERF_TINY, choices=MLPERF_TINY)
+    parser.add_argument("--models", nargs="+", default=MODELS, choices=MODELS)
     parser.add_argument("--targets", nargs="+", default=host_targets(), choices=list(TARGET_ISA))
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument(

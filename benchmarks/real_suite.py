@@ -1,14 +1,17 @@
-"""The real-size benchmark suite: torchvision architectures and a Keras NHWC model, NNCG against onnxruntime.
+"""The real-size benchmark suite: torchvision, Keras NHWC and MLPerf Tiny (tf2onnx) models, NNCG vs onnxruntime.
 
     python3 -m benchmarks.real_suite [--models resnet18 ...] [--targets avx512] [--cpu 0] [--batches 15]
                                      [--size 96] [--runs 3] [--profile [--cpu-time]]
 
-Models (benchmarks/real_models.py) are exported when missing (needs torch: pip install -e .[bench]), compiled
+Models (benchmarks/real_models.py) are exported when missing (needs torch: pip install -e .[bench]; the MLPerf
+Tiny ones, benchmarks/mlperf_tiny.py, TensorFlow and tf2onnx: the keras extra), compiled
 with NNCG's untuned defaults (unroll auto; weights in NAME.weights above 4 MiB) and timed as benchmarks/suite.py
 times its models: one onnxruntime thread, interleaved, medians, % of the measured peak. The table replaces the
 "real-models" section of benchmarks/RESULTS.md (the small-model table stays) and the chart is redrawn from all
 tables. Models NNCG cannot compile are listed with the reason. --runs N measures every model and target N
 times (all of them once, then again) and reports the medians and the speed-up's range over the runs.
+The MLPerf Tiny models (mlperf_*) have a fixed input size: they run after the others by default, --models
+selects them like any model, and --size resizes only the others (the MLPerf ones keep their own input).
 --profile prints each model's per-layer times
 (with --cpu-time in the thread's CPU time, which leaves out the time other processes hold the core).
 """
@@ -24,7 +27,7 @@ from nncg.bench.benchmark import format_profile, profile
 from nncg.bench.peak import TARGET_ISA
 from nncg.cli import positive_number
 
-from .real_models import DEFAULT_CASES, MODELS, case_name, ensure
+from .real_models import DEFAULT_CASES, MODELS, case_name, cases_at, ensure
 from .runs import runs_of
 from .suite import (
     ROOT,
@@ -48,10 +51,11 @@ from .suite import (
 SECTION = "real-models"
 
 
-def select_cases(models: list[str] | None, size: int | None) -> dict[str, tuple[str, int]]:
-    """{case name: (model, size)}: the default cases, those of `models`, or `models` at `size`."""
+def select_cases(models: list[str] | None, size: int | None) -> dict[str, tuple[str, int | None]]:
+    """{case name: (model, size)}: the default cases, those of `models`, or `models` at `size`; the
+    fixed-size models (MLPerf Tiny) always at their own input size (size None, case name = model name)."""
     if size:
-        cases = [(m, size) for m in (models or MODELS)]
+        cases = cases_at(models or MODELS, size)
     else:
         cases = [(m, s) for m, s in DEFAULT_CASES if not models or m in models]
     return {case_name(m, s): (m, s) for m, s in cases}
@@ -68,6 +72,10 @@ def section_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str, b
         "  layers and parameter counts), random weights (seed 0), exported by torch.onnx's TorchScript exporter",
         "  (opset 17, batch 1, NAME_SIZE = input SIZExSIZE); keras_mobilenet_nhwc: Keras' MobileNetV2 (alpha 0.35,",
         "  10 classes) in NHWC with tf2onnx's Transposes around every conv (benchmarks/nhwc_model.py).",
+        "- mlperf_*: the MLPerf Tiny reference models (IC ResNet-8 32x32, KWS DS-CNN 49x10, VWW MobileNetV1 0.25",
+        "  96x96, AD autoencoder 640) written in Keras as mlcommons/tiny defines them, random weights (seed 0),",
+        "  Keras -> TFLite float -> tf2onnx from_tflite (opset 17), as the reference .tflite files are converted",
+        "  (benchmarks/mlperf_tiny.py); each at its own input size.",
         "- NNCG untuned defaults (unroll auto; weights auto: NAME.weights above 4 MiB). Columns as in the table",
         f"  above; medians of {batches} batches of >= 20 ms each, NNCG and onnxruntime (one thread) interleaved.",
         f"- {SPEEDUP_COLUMN}.",
@@ -91,13 +99,22 @@ def print_profiles(cases: dict, targets: list[str], cpu: int | None, cpu_time: b
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models", nargs="+", choices=MODELS, help="default: every model (at 96, two at 224 too)")
+    parser.add_argument(
+        "--models",
+        nargs="+",
+        choices=MODELS,
+        help="default: every model (at 96, two at 224 too; mlperf_* at their own size)",
+    )
     parser.add_argument("--targets", nargs="+", default=sorted(t for t in BACKENDS if t in TARGET_ISA))
     parser.add_argument("--cpu", type=int, help="pin the measurements to this core")
     parser.add_argument(
         "--batches", type=positive_number, default=15, help="timed batches per model and target (median)"
     )
-    parser.add_argument("--size", type=int, help="input height and width of every model (default: 96 and 224)")
+    parser.add_argument(
+        "--size",
+        type=int,
+        help="input height and width of every model but the fixed-size mlperf_* ones (default: 96 and 224)",
+    )
     parser.add_argument("--runs", type=positive_number, default=1, help=RUNS_HELP)
     parser.add_argument("--profile", action="store_true", help="also print each model's per-layer profile")
     parser.add_argument(

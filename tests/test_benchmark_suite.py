@@ -72,6 +72,13 @@ def test_tuned_suite_row_uses_the_tuned_pipeline(tmp_path, monkeypatch):
 def test_suite_cases_and_results_sections():
     assert select_cases(["resnet18"], None) == {"resnet18_96": ("resnet18", 96), "resnet18_224": ("resnet18", 224)}
     assert select_cases(["squeezenet1_1"], 64) == {"squeezenet1_1_64": ("squeezenet1_1", 64)}
+    # The MLPerf Tiny models run at their own input size: by default after the others, and whatever --size says.
+    assert list(select_cases(None, None))[-4:] == [
+        "mlperf_ic_resnet8", "mlperf_kws_dscnn", "mlperf_vww_mobilenet", "mlperf_ad_autoencoder",
+    ]  # fmt: skip
+    assert select_cases(["resnet18", "mlperf_kws_dscnn"], 64) == {
+        "resnet18_64": ("resnet18", 64), "mlperf_kws_dscnn": ("mlperf_kws_dscnn", None),
+    }  # fmt: skip
     table = "| model | target | speed-up | % peak |\n|---|---|---|---|\n| a_96 | avx2 | 1.50x | 40.0 (avx2-fma) |\n"
     document = merge_section("# Benchmark results\n", "real-models", "## old\n")
     document = merge_section(document, "real-models", table)  # replaces, does not append
