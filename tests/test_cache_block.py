@@ -11,11 +11,12 @@ from test_ops import conv_model
 import nncg
 from nncg.errors import NncgError
 from nncg.frontend import import_onnx
-from nncg.ir.loops import Affine, Assign, Binary, Let, Load, LocalRef, Loop, Store
+from nncg.ir.loops import Affine, Assign, Binary, Kernel, Let, Load, LocalRef, Loop, Store
 from nncg.lowering.conv_blocked import _packed
 from nncg.passes import PassManager, default_pipeline
 from nncg.passes.cache_block import OFF, chosen_blocks, input_block, parse_layers
 from nncg.passes.register_block import jammable
+from nncg.report import layer_choices
 
 GRAPH = "drop-identity,fold-batchnorm,fuse-bias,fuse-residual,fuse-activation"
 TARGETS = ("ansi-c", "ssse3", "avx2", "avx512")
@@ -256,8 +257,15 @@ def test_cost_model_packs_a_wide_gemm_in_panels_of_one_register_block():
     # one row (a GEMV): MAX_CHANNEL_BLOCK = 5 vectors, in as many streams as (registers - 6) // 5 allow
     (gemv,) = graph_after(gemm_model(1, 512, 100), "cache-block").nodes
     assert (gemv.attrs.panel, gemv.attrs.streams) == (40, 2)
+    # 128 columns: panels of 4 vectors leave no rest (5 would leave one vector)
+    (gemv,) = graph_after(gemm_model(1, 512, 128), "cache-block").nodes
+    assert (gemv.attrs.panel, gemv.attrs.streams) == (32, 2)
     (gemv,) = graph_after(gemm_model(1, 512, 100), "cache-block", nncg.get_target("avx512")).nodes
     assert (gemv.attrs.panel, gemv.attrs.streams) == (80, 4)  # 26 // 5 = 5 streams, at most 4
+    loop = Loop("k", 1, ())
+    assert "weights packed in panels of 80 columns, each read in 4 reduction streams" in layer_choices(
+        Kernel("Gemm_0", "Dense", (loop,)), gemv, None
+    )
     assert graph_after(gemm_model(1, 16, 10), "cache-block").nodes[0].attrs.panel == 0
     with pytest.raises(NncgError, match="give its panel alone"):
         graph_after(gemm_model(1, 16, 10), "cache-block{layers=Gemm_0:8x2}")

@@ -175,8 +175,10 @@ def depthwise_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int
 
 def panel_width(graph: Graph, node: Node, target: Target) -> int:
     """The output channels one register block holds (all of them when they fit one). A GEMV's panel is
-    MAX_CHANNEL_BLOCK vectors, the most register-block jams, read in as many reduction streams as the
-    registers hold accumulators for: each stream broadcasts an x value per step (on SSE a load and a
+    MAX_CHANNEL_BLOCK vectors, the most register-block jams, or 1 or 2 fewer where that leaves no rest (a
+    rest of one vector holds few accumulators: the autoencoder's 128 columns on avx2, panels of 5 vectors
+    and a rest of 1 -> 4 panels of 4), read in as many reduction streams as the registers hold
+    accumulators for: each stream broadcasts an x value per step (on SSE a load and a
     shuffle), so few wide streams beat many narrow ones. 1280x1000 classifier, 4 streams of 2 vectors
     -> 2 streams of 5 (loaded, hand C in one process, weights from L3 / from memory): ssse3 78 -> 62 us /
     287 -> 185 us, avx2 56 -> 53 / 171 -> 148 us; avx512's 4 of 4 -> 4 of 5: 50 / 148-152 us either way."""
@@ -184,7 +186,8 @@ def panel_width(graph: Graph, node: Node, target: Target) -> int:
     vectors = -(-c_out // target.lanes)
     channels = channel_block(vectors)
     if node.op != "Conv" and reduction_streams(graph, node, 1, _accumulators(target)) > 1:
-        channels = min(vectors, MAX_CHANNEL_BLOCK)
+        whole = [v for v in range(MAX_CHANNEL_BLOCK, MAX_CHANNEL_BLOCK - 3, -1) if c_out % (v * target.lanes) == 0]
+        channels = min(vectors, whole[0] if whole else MAX_CHANNEL_BLOCK)
     return min(c_out, channels * target.lanes)
 
 
