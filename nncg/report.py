@@ -196,7 +196,8 @@ def _graph_choices(attrs) -> list[str]:
     if isinstance(attrs, QConvAttrs) and attrs.algorithm == ConvAlgorithm.WINOGRAD:
         choices.append("integer winograd F(2x2,3x3)")
     if isinstance(attrs, DenseAttrs) and attrs.panel:
-        choices.append(f"weights packed in panels of {attrs.panel} columns")
+        streams = f", each read in {attrs.streams} reduction streams" if attrs.streams > 1 else ""
+        choices.append(f"weights packed in panels of {attrs.panel} columns{streams}")
     activation = getattr(attrs, "activation", None)
     if activation is not None:
         choices.append(f"fused {activation}")

@@ -164,6 +164,16 @@ def divide_by_tensor():
     return onnx_model(nodes, inputs={"x": (1, 4, 5, 8), "d": (1, 4, 5, 8)}, initializers={"one": np.float32(1.0)})
 
 
+def gemv():
+    """A classifier at batch 1, 131 x 110 (56 KiB of weights, beyond L1): 5 panels of 5 vectors, each
+    read in 2 reduction streams, and a rest of 10 columns (2 vectors and a tail of 2)."""
+    rng = np.random.default_rng(0)
+    w = rng.standard_normal((131, 110)).astype(np.float32)
+    b = rng.standard_normal(110).astype(np.float32)
+    node = helper.make_node("Gemm", ["x", "w", "b"], ["y"])
+    return onnx_model([node], inputs={"x": (1, 131)}, initializers={"w": w, "b": b})
+
+
 # The x86 targets' vector hooks (20 channels: five NEON vectors), 21 channels for a scalar tail
 # next to the vectors (a longer tail becomes an overlapping vector), and a division.
 NEON_HOOKS = {
@@ -171,6 +181,7 @@ NEON_HOOKS = {
     "vectors_and_tail": conv_model((1, 3, 6, 7), 21, (3, 3), pads=[1, 1, 1, 1]),
     "overlapped_tail": conv_model((1, 3, 6, 7), 22, (3, 3), pads=[1, 1, 1, 1]),
     "div": divide_by_tensor(),
+    "gemv": gemv(),
 }
 # What each case must print: the hook's intrinsic or helper.
 NEON_PRINTS = {
@@ -181,6 +192,7 @@ NEON_PRINTS = {
     "vectors_and_tail": ["nncg_vfmaq_f32(", "float acc"],
     "overlapped_tail": ["nncg_vfmaq_f32("],
     "div": ["nncg_vdivq_f32(vld1q_f32("],
+    "gemv": ["acc_seg1_4 = nncg_vfmaq_f32(acc_seg1_4, vdupq_n_f32(x["],
 }
 
 

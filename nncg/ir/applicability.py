@@ -107,17 +107,20 @@ def panel_packing_applies(graph: Graph, node: Node) -> bool:
     )
 
 
-# A packed GEMV's reduction split into this many segments, read side by side (4 distant streams of a
-# weight panel keep more cache lines in flight than one: a 1280x1000 classifier from memory ran
+# A packed GEMV's reduction split into up to this many segments, read side by side (4 distant streams of
+# a weight panel keep more cache lines in flight than one: a 1280x1000 classifier from memory ran
 # 1.15x-1.2x faster on avx512), each of at least MIN_SEGMENT steps.
 GEMV_STREAMS = 4
 MIN_SEGMENT = 16
 
 
-def reduction_streams(graph: Graph, node: Node) -> int:
-    """How many segments of its reduction a panel-packed Gemm/MatMul reads at once: GEMV_STREAMS for one
-    row of x (batch 1: a GEMV, bound by streaming its weights), else 1 (rows reuse the weights)."""
+def reduction_streams(graph: Graph, node: Node, vectors: int, accumulators: int) -> int:
+    """How many segments of its reduction a panel-packed Gemm/MatMul of `vectors` accumulators a
+    segment reads at once: for one row of x (batch 1: a GEMV, bound by streaming its weights) as many as
+    `accumulators` registers hold, at most GEMV_STREAMS; else 1 (rows reuse the weights). Each segment
+    broadcasts its own x value per step, so the panel's width comes first (cache_block.panel_width)."""
     out = graph.shape(node.outputs[0])
     reduction = math.prod(graph.shape(node.inputs[1])) // out[-1]
-    gemv = math.prod(out[:-1]) == 1 and reduction >= GEMV_STREAMS * MIN_SEGMENT
-    return GEMV_STREAMS if gemv else 1
+    if math.prod(out[:-1]) != 1:
+        return 1
+    return max(1, min(GEMV_STREAMS, accumulators // vectors, reduction // MIN_SEGMENT))

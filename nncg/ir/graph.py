@@ -151,6 +151,7 @@ class DenseAttrs:
     alpha: float = 1.0
     beta: float = 1.0
     panel: int = 0  # set by the cache-block pass: w packed in panels of this many columns (0: not packed)
+    streams: int = 1  # set by the cache-block pass: segments of the reduction a panel reads side by side
 
 
 @dataclass(frozen=True)

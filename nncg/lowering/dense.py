@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..ir.applicability import reduction_streams
 from ..ir.graph import DenseAttrs, Node
 from ..ir.loops import Affine, Assign, Binary, Const, Expr, Let, Load, LocalRef, Loop, Stmt, Store
 from .activation import apply_activation
@@ -49,7 +48,7 @@ def lower_dense(ctx: LoweringContext, node: Node) -> None:
 def _lower_packed(ctx: LoweringContext, node: Node) -> None:
     """w packed in panels of `attrs.panel` columns, [panel][k][column], so each panel's columns are
     one contiguous stream (the cache-block pass chose it): for each panel, the rows x its columns. A
-    GEMV reads its panel's reduction as `reduction_streams` segments side by side, each into an
+    GEMV reads its panel's reduction as `attrs.streams` segments side by side, each into an
     accumulator of its own, summed before the store."""
     attrs: DenseAttrs = node.attrs
     w = ctx.graph.constants[node.inputs[1]]
@@ -60,7 +59,7 @@ def _lower_packed(ctx: LoweringContext, node: Node) -> None:
     out_shape = ctx.graph.shape(node.outputs[0])
     out = ctx.output(node.outputs[0], row_major(len(out_shape)))
     row_loops = [(f"r{i}", d) for i, d in enumerate(out_shape[:-1])]
-    streams = reduction_streams(ctx.graph, node)
+    streams = attrs.streams
     segment, tail = divmod(k_extent, streams)
     partials = ["acc", *(f"acc_seg{s}" for s in range(1, streams))]
 
