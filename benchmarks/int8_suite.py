@@ -308,7 +308,8 @@ def section_markdown(
 ) -> str:
     lines = [
         "## int8: MLPerf-Tiny-shaped models quantised by nncg.quantize"
-        + (" with reduce_range (7-bit weights)" if reduce_range else ""),
+        + (" with reduce_range (7-bit weights)" if reduce_range else "")
+        + ", and the MLPerf Tiny reference models (TFLite full-integer)",
         "",
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'}); date: {date}",
         f"- Measured peak (float; the timed core, the higher of before and after the models): {peaks_text(peaks)}",

@@ -27,6 +27,7 @@ import io
 import math
 import os
 import re
+import sys
 import tempfile
 from pathlib import Path
 
@@ -144,7 +145,6 @@ def seeded_weights(model, seed: int = SEED) -> None:
 
 def keras_model(name: str):
     """The reference architecture `name` with seeded weights (imports keras)."""
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # TensorFlow's C++ start-up log
     import keras
 
     keras.backend.clear_session()  # layer names count up per process: start them afresh for the same bytes
@@ -173,19 +173,41 @@ def tflite_bytes(model, int8_calibration: np.ndarray | None = None) -> bytes:
         return converter.convert()
 
 
+@contextlib.contextmanager
+def _native_stderr_kept_back():
+    """TensorFlow's start-up and the TFLite converter log a dozen lines per model straight to file descriptor 2
+    (absl logging, which TF_CPP_MIN_LOG_LEVEL does not all reach): hold them back, show them only on failure."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        except BaseException:
+            os.dup2(saved, 2)
+            held.seek(0)
+            sys.stderr.write(held.read().decode(errors="replace"))
+            raise
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
 def onnx_bytes(name: str, int8: bool = False) -> bytes:
     """The MLPerf Tiny model `name` as tf2onnx converts its float .tflite file (with `int8`: its full-integer
     .tflite file, which tf2onnx writes as a QDQ model)."""
-    import tf2onnx
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+    with _native_stderr_kept_back():
+        import tf2onnx
 
-    from nncg.frontend.keras_export import _quiet  # tf2onnx's logging, as the Keras route silences it
+        from nncg.frontend.keras_export import quiet_tf2onnx
 
-    data = tflite_bytes(keras_model(name), calibration_samples(name) if int8 else None)
-    with tempfile.TemporaryDirectory() as folder:
-        path = Path(folder) / f"{name}.tflite"
-        path.write_bytes(data)
-        with _quiet():
-            proto, _ = tf2onnx.convert.from_tflite(str(path), opset=OPSET)
+        data = tflite_bytes(keras_model(name), calibration_samples(name) if int8 else None)
+        with tempfile.TemporaryDirectory() as folder:
+            path = Path(folder) / f"{name}.tflite"
+            path.write_bytes(data)
+            with quiet_tf2onnx():
+                proto, _ = tf2onnx.convert.from_tflite(str(path), opset=OPSET)
     return canonical_names(proto).SerializeToString()
 
 

@@ -56,7 +56,7 @@ def keras_to_onnx(model) -> onnx.ModelProto:
     inputs with a dynamic batch dim). Raises NncgError."""
     tf = _require("tensorflow")
     tf2onnx = _require("tf2onnx")
-    with _quiet(), _keras_name_scopes_kept():
+    with quiet_tf2onnx(), _keras_name_scopes_kept():
         if is_keras_model(model):
             function, signature, name = _model_function(tf, model)
         else:
@@ -242,7 +242,7 @@ def _keras_name_scopes_kept() -> Iterator[None]:
 
 
 @contextmanager
-def _quiet() -> Iterator[None]:
+def quiet_tf2onnx() -> Iterator[None]:
     """Hide tf2onnx's and TensorFlow's progress log (INFO lines for every conversion step)."""
     loggers = [logging.getLogger(n) for n in ("tf2onnx", "tensorflow")]
     levels = [logger.level for logger in loggers]
