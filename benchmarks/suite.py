@@ -292,6 +292,8 @@ def draw_chart(bars: list[Bar], path: Path) -> None:
         _grouped(left, rows, colours, "speedup", "speed-up vs onnxruntime")
         left.axhline(1.0, color="black", linewidth=0.8)
         left.set_yscale("log")  # 0.3x and 27x in one table: a ratio reads the same above and below 1
+        speedups = [bar.speedup for bar in rows] + [1.0]
+        left.set_ylim(min(speedups) / 1.3, max(speedups) * 1.3)  # room for a labelled tick above the tallest bar
         left.yaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
         left.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}x"))
         left.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
