@@ -22,6 +22,7 @@ from nncg.ir.kinds import DType
 from nncg.ir.loops import Affine, Cast, Const, Dot, Load, stmt_exprs, walk_exprs, walk_stmts
 from nncg.passes import PassManager, default_pipeline
 from nncg.passes.dot_product import dot_products
+from nncg.passes.register_block import FLIPPED_REGISTERS, chosen_blocks, flipped_activations
 
 TARGETS = ("ssse3", "avx2", "avx512", "avx512vnni")
 DOT = {"ssse3": "_mm_madd_epi16(", "avx2": "_madd_epi16(", "avx512": "_madd_epi16(", "avx512vnni": "_dpbusd_epi32("}
@@ -69,9 +70,9 @@ def test_channel_tails_and_borders(c_in, target):
 def test_saturation_at_both_ends(activations, target):
     """Inputs 4 times beyond the calibrated range: input and output values at both ends of their type."""
     compiled = check(padded_conv_model(6), target, activations, scale=4.0)
-    # uint8 activations take vpdpbusd's u8 quads; int8 ones 512-bit pmaddwd pairs there
-    expected = "_mm512_madd_epi16(" if (target, activations) == ("avx512vnni", "int8") else DOT[target]
-    assert expected in compiled.source
+    # uint8 activations take vpdpbusd's u8 quads, and int8 ones too, read as uint8 x + 128 (bytes x ^ 0x80)
+    assert DOT[target] in compiled.source
+    assert ("_xor_si" in compiled.source) == ((target, activations) == ("avx512vnni", "int8"))
     quantize = compiled.source.split(": QuantizeLinear */")[1].split("/* ")[0]  # the input's, on vectors
     assert "_div_ps(" in quantize and "_cvtps_epi32(" in quantize
 
@@ -146,3 +147,21 @@ def test_lane_by_lane_fallback_without_a_dot_template():
 
 def _exprs(program):
     return [e for k in program.kernels for s in walk_stmts(k.body) for t in stmt_exprs(s) for e in walk_exprs(t)]
+
+
+def test_flipped_activations_get_a_smaller_register_block():
+    """int8 activations read as uint8 on avx512vnni keep each pixel's xor-ed bytes and the 0x80 mask in
+    registers: their blocks are sized for FLIPPED_REGISTERS (gcc spills accumulators beyond), uint8's
+    for all 32."""
+    target = get_backend("avx512vnni").target
+    pipeline = default_pipeline(target).split(",register-block,")[0]
+    blocks = {}
+    for activations in ("uint8", "int8"):
+        model = quantized(padded_conv_model(8, c_out=64), activations)
+        program = PassManager(pipeline, target, finish=False).run(import_onnx(model))
+        conv = next(k for k in program.kernels if k.op == "QLinearConv")
+        assert flipped_activations(conv) == (activations == "int8")
+        blocks[activations] = chosen_blocks(program, target)[conv.name]
+    pixels, channels = blocks["int8"]
+    assert channels == blocks["uint8"][1] == 4 and pixels * (channels + 1) + 1 <= FLIPPED_REGISTERS
+    assert blocks["uint8"][0] * (channels + 1) + 1 > FLIPPED_REGISTERS

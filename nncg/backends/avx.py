@@ -64,12 +64,19 @@ class Avx512(SimdPrinter):
 class Avx512Vnni(SimdPrinter):
     """avx512 plus AVX-512BW, VL and VNNI (Cascade Lake, Ice Lake and later; Zen 4): the int8
     convolutions and matrix products take 4 input channels per vpdpbusd (uint8 activations times int8
-    weights) and int8 activations 2 per 512-bit vpmaddwd; float code is avx512's."""
+    weights; int8 activations read as x + 128, the bytes x ^ 0x80); float code is avx512's."""
 
     target = Target(
         "avx512vnni",
         vector_widths=(16, 8, 4),
-        **{**X86, "registers": 32, "broadcast_operands": True, "dot_uint8": 4, "tap_dots": True},
+        **{
+            **X86,
+            "registers": 32,
+            "broadcast_operands": True,
+            "dot_uint8": 4,
+            "dot_uint8_activations": True,
+            "tap_dots": True,
+        },
     )
     widths = {16: VNNI_512, 8: VNNI_256, 4: VNNI_128}
     cflags = ("-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512vnni", "-mavx2", "-mfma")

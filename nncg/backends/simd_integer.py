@@ -127,6 +127,9 @@ class IntegerVectors:
             x == Cast(DType.INT32, Load(first.buffer, first.index + j)) for j, x in enumerate(e.x)
         )
         template = f"{'pair' if k == 2 else 'quad'}_{self.dtypes[first.buffer].value}" if first else ""
+        flipped = _flipped_quad(e, self.dtypes)
+        if flipped is not None and "quad_int8_as_uint8" in ints:  # int8 read as x + 128 (Target.dot_uint8_activations)
+            return ints["quad_int8_as_uint8"].format(address=f"&{flipped.buffer}[{c_affine(flipped.index)}]")
         half = self._quad_half(first) if adjacent and k == 2 and f"{template}_of_quad" in ints else None
         if half is not None:
             address = f"&{first.buffer}[{c_affine(first.index - 2 * half)}]"
@@ -182,6 +185,17 @@ class IntegerVectors:
             source = self.dtypes[e.value.buffer].value
             return width.ints[f"widen_{source}"].format(address=f"&{e.value.buffer}[{c_affine(e.value.index)}]")
         raise TypeError(f"cannot print {e!r} on vectors")
+
+
+def _flipped_quad(e: Dot, dtypes: dict[str, DType]) -> Load | None:
+    """The first of 4 adjacent int8 activations a dot reads as x + 128 (x - (-128)), else None."""
+    if len(e.x) != 4 or not all(isinstance(x, Binary) and x.op == "-" and x.b == Const.integer(-128) for x in e.x):
+        return None
+    first = e.x[0].a.value if isinstance(e.x[0].a, Cast) and isinstance(e.x[0].a.value, Load) else None
+    if first is None or dtypes[first.buffer] != DType.INT8:
+        return None
+    loads = [Cast(DType.INT32, Load(first.buffer, first.index + j)) for j in range(4)]
+    return first if [x.a for x in e.x] == loads else None
 
 
 def _byte_pair(e: Dot, dtypes: dict[str, DType]) -> tuple[str, str, str] | None:

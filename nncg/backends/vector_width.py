@@ -67,6 +67,7 @@ INTEGER_DOTS = {
     "pair_uint8": ("address",),
     "pair_int8": ("address",),
     "quad_uint8": ("address",),
+    "quad_int8_as_uint8": ("address",),  # 4 adjacent int8 as uint8 x + 128 (Target.dot_uint8_activations)
     # the pair at address + 2 half (half 0 or 0x55) of 4 adjacent uint8 at address, a multiple of 4
     "pair_uint8_of_quad": ("address", "half"),
     # a depthwise's per-lane taps packed into the lanes (simd_integer._lane_activations): two taps'

@@ -48,7 +48,8 @@ def halves(template: str, weights: int, per_lane: bool = False) -> str:
 def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = False) -> dict[str, str]:
     """The dot-product templates of one x86 width: `dot2` (pmaddwd; 16 lanes in halves without
     AVX-512BW, and `dot2_lanes` for per-lane activations), with `vnni` (AVX-512 VNNI, and VL below 16
-    lanes) `dot4_add` (vpdpbusd), with `maddubs` `dot4` (pmaddubsw quads, x86_quads.py; halves too), the
+    lanes) `dot4_add` (vpdpbusd) and `quad_int8_as_uint8`, with `maddubs` `dot4` (pmaddubsw quads,
+    x86_quads.py; halves too), the
     activations of adjacent channels broadcast straight from memory (vpbroadcastd), and the shifts and
     masks that pack a depthwise's per-lane taps."""
     p, _, _, si = SHAPES[lanes]
@@ -76,6 +77,8 @@ def x86_dots(lanes: int, bw: bool = False, vnni: bool = False, maddubs: bool = F
         dots["dot4_lanes"] = halves(maddubs_dot4(8), 32, per_lane=True)
     if vnni:
         dots["dot4_add"] = f"{p}_dpbusd_epi32({{acc}}, {{xs}}, {p}_loadu_{si}((const void *)({{address}})))"
+        # 4 adjacent int8 activations as uint8 x + 128: each byte's sign bit flipped (-2139062144: 0x80808080)
+        dots["quad_int8_as_uint8"] = f"{p}_xor_{si}({dots['quad_uint8']}, {p}_set1_epi32(-2139062144))"
     return dots
 
 

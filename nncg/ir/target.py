@@ -39,6 +39,10 @@ class Target:
     dot_int8_activations: the K = 4 dot multiplies int8 activations (AArch64 sdot: s8 x s8 quads), so
     uint8 activations and zero points the lowering did not fold are offset into int8 and the constant
     difference is added back per output channel (passes/dot_product.py).
+    dot_uint8_activations: the K = 4 dot multiplies uint8 activations (x86's vpdpbusd: u8 x s8 quads),
+    so int8 activations and zero points the lowering did not fold are offset into uint8 (x + 128, the
+    byte x ^ 0x80) and the constant difference is added back per output channel, as for
+    dot_int8_activations (TFLite's int8 models take the quads instead of K = 2 pairs).
     centred_weight_dots: its K = 2 dot products also take int16 weights (pmaddwd), the int8 or uint8
     weights minus their zero points that the lowering keeps where those are not all 0 (or are uint8).
     int16_dots: its integer widths also store int16 lanes and take K = 2 dot products of int16
@@ -65,6 +69,7 @@ class Target:
     centred_weight_dots: bool = False
     dot2_quad_loads: bool = False
     dot_int8_activations: bool = False
+    dot_uint8_activations: bool = False
     fma_in_double: bool = False
     int16_dots: bool = False
 

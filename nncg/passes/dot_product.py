@@ -29,7 +29,11 @@ and sums are those of the loop, in int32.
 Where the dot takes int8 activations only (Target.dot_int8_activations: AArch64 sdot), an activation
 x - zero_point is read as x - offset, offset 128 for uint8 (x ^ 0x80 as a byte) and 0 for int8, and
 acc += (offset - zero_point) * sum_ci w[lead..., ci, co] follows the dots: a constant array [lead...,
-Cs] of generation time, exact in int32, added where the dots run (inside the border checks)."""
+Cs] of generation time, exact in int32, added where the dots run (inside the border checks). Where it
+takes uint8 activations only (Target.dot_uint8_activations: vpdpbusd), signed ones are read the other way
+round, offset -128 for int8 (x + 128, the byte x ^ 0x80) and 0 for uint8 minus a zero point: TFLite's
+int8 models get the quads of nncg.quantize's uint8 ones. A depthwise's per-lane taps and the border
+columns' taps keep their activations and the pairs (the correction would count the taps outside)."""
 
 from __future__ import annotations
 
@@ -121,7 +125,14 @@ class _Packer:
             return None
         # x - x_zero_point (a zero point the lowering did not fold) is signed whatever x's type
         signed = xbuf.dtype == DType.INT8 or zero_point
-        k = target.dot_int8 if signed else target.dot_uint8 if xbuf.dtype == DType.UINT8 else 0
+        # a depthwise's per-lane taps and a border column's taps keep the activations as they are
+        per_lane = _per_lane(x, w, loop.var)
+        as_uint8 = bool(signed and target.dot_uint8_activations and inside is None and not per_lane)
+        as_uint8 = as_uint8 and xbuf.dtype in (DType.INT8, DType.UINT8)
+        if as_uint8 or not signed:
+            k = target.dot_uint8 if xbuf.dtype == DType.UINT8 or as_uint8 else 0
+        else:
+            k = target.dot_int8
         array = self.program.constants[w.buffer]
         array = _squeezed(array) if target.tap_dots else array
         # int16 pairs: integer Winograd's GEMMs (int16 activations), or 8-bit activations times the
@@ -146,7 +157,6 @@ class _Packer:
             k = target.dot_uint8_int16
         split = _split_index(w.index, loop.var, array.shape, extents)
         # a depthwise's per-lane taps take int8 weights only (the int16 templates share x in every lane)
-        per_lane = _per_lane(x, w, loop.var)
         if split is None or (per_lane and (not target.tap_dots or centred)):
             return None
         lead, co = split
@@ -155,7 +165,11 @@ class _Packer:
         wide = wide_weights or (k == 2 and target.dot2_int16_weights)
         packed = self.packed_buffer(w.buffer, array, k, np.int16 if wide else np.int8)
         channels, groups = loop.extent, loop.extent // k
-        offset = 128 * (xbuf.dtype == DType.UINT8) if target.dot_int8_activations and k == 4 else zero_point
+        offset = zero_point
+        if target.dot_int8_activations and k == 4:
+            offset = 128 * (xbuf.dtype == DType.UINT8)
+        elif as_uint8 and k == 4:
+            offset = -128 * (xbuf.dtype == DType.INT8)
         if inside is not None and offset != zero_point:
             return None  # the offset's correction sums every tap's weights, the outside ones too
 

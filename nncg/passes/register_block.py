@@ -29,6 +29,7 @@ from ..ir.kinds import BufferRole, DType, Layout
 from ..ir.loops import (
     Affine,
     Assign,
+    Binary,
     Cast,
     Const,
     Expr,
@@ -376,7 +377,7 @@ def nest_facts(kernel: Kernel, pixel: Loop, program: Program, target: Target) ->
     """The facts of the nest around `pixel` in `kernel`."""
     return NestFacts(
         (pixel.extent, sum(_vectors(s) for s in pixel.body)),
-        target.registers,
+        min(target.registers, FLIPPED_REGISTERS) if flipped_activations(kernel) else target.registers,
         fused_kernel(kernel, program, target),
         multiplies_vector_inputs(pixel, constant_buffers(program)),
         row_extent(kernel.body, pixel),
@@ -417,6 +418,13 @@ def fma_from_memory(target: Target) -> bool:
     return target.fma and target.memory_operands
 
 
+# The registers a block of dots with flipped activations is sized for: gcc 12 hoists every pixel's
+# xor-ed broadcast ahead of the dots, and past about 20 live vectors it copies and spills accumulators
+# every reduction step (mlperf_kws_dscnn int8, avx512vnni, 1x1 64 -> 64 on 25x5: 5x4 blocks 78-92 us
+# for the model, 4x4 48, 3x4 33, 5x2 28; clang 14 was fine with 5x4).
+FLIPPED_REGISTERS = 20
+
+
 def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
     """fma_from_memory for a float kernel, and for an int8 kernel whose products are all dots of 4
     shared activations (vpdpbusd: acc + dot is one instruction reading its weights from memory); other
@@ -427,6 +435,11 @@ def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
         return True
     dots = body_dots(kernel.body)
     return bool(dots) and all(len(d.x) == 4 and all(x.lanes == 1 for x in d.x) for d in dots)
+
+
+def flipped_activations(kernel: Kernel) -> bool:
+    """Whether the kernel's dots read int8 activations as uint8 x + 128 (Target.dot_uint8_activations)."""
+    return any(isinstance(x, Binary) for d in body_dots(kernel.body) for x in d.x)
 
 
 def choose_blocks(
