@@ -160,7 +160,7 @@ def test_flipped_activations_get_a_smaller_register_block():
         model = quantized(padded_conv_model(8, c_out=64), activations)
         program = PassManager(pipeline, target, finish=False).run(import_onnx(model))
         conv = next(k for k in program.kernels if k.op == "QLinearConv")
-        assert flipped_activations(conv) == (activations == "int8")
+        assert flipped_activations(conv, target) == (activations == "int8")
         blocks[activations] = chosen_blocks(program, target)[conv.name]
     pixels, channels = blocks["int8"]
     assert channels == blocks["uint8"][1] == 4 and pixels * (channels + 1) + 1 <= FLIPPED_REGISTERS

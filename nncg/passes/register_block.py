@@ -377,7 +377,7 @@ def nest_facts(kernel: Kernel, pixel: Loop, program: Program, target: Target) ->
     """The facts of the nest around `pixel` in `kernel`."""
     return NestFacts(
         (pixel.extent, sum(_vectors(s) for s in pixel.body)),
-        min(target.registers, FLIPPED_REGISTERS) if flipped_activations(kernel) else target.registers,
+        min(target.registers, FLIPPED_REGISTERS) if flipped_activations(kernel, target) else target.registers,
         fused_kernel(kernel, program, target),
         multiplies_vector_inputs(pixel, constant_buffers(program)),
         row_extent(kernel.body, pixel),
@@ -437,9 +437,11 @@ def fused_kernel(kernel: Kernel, program: Program, target: Target) -> bool:
     return bool(dots) and all(len(d.x) == 4 and all(x.lanes == 1 for x in d.x) for d in dots)
 
 
-def flipped_activations(kernel: Kernel) -> bool:
+def flipped_activations(kernel: Kernel, target: Target) -> bool:
     """Whether the kernel's dots read int8 activations as uint8 x + 128 (Target.dot_uint8_activations)."""
-    return any(isinstance(x, Binary) for d in body_dots(kernel.body) for x in d.x)
+    flipped = Const.integer(-128)
+    dots = body_dots(kernel.body)
+    return target.dot_uint8_activations and any(isinstance(x, Binary) and x.b == flipped for d in dots for x in d.x)
 
 
 def choose_blocks(
