@@ -122,14 +122,14 @@ class IntegerVectors:
         k = len(e.x)
         if any(x.lanes > 1 for x in e.x):
             return self._lane_activations(e, ints)
-        first = e.x[0].value if isinstance(e.x[0], Cast) and isinstance(e.x[0].value, Load) else None
+        flipped = _flipped(e.x)  # int8 read as uint8 x + 128 (Target.dot_uint8_activations)
+        xs = tuple(x.a for x in e.x) if flipped else e.x
+        first = xs[0].value if isinstance(xs[0], Cast) and isinstance(xs[0].value, Load) else None
         adjacent = first is not None and all(
-            x == Cast(DType.INT32, Load(first.buffer, first.index + j)) for j, x in enumerate(e.x)
+            x == Cast(DType.INT32, Load(first.buffer, first.index + j)) for j, x in enumerate(xs)
         )
         template = f"{'pair' if k == 2 else 'quad'}_{self.dtypes[first.buffer].value}" if first else ""
-        flipped = _flipped_quad(e, self.dtypes)
-        if flipped is not None and "quad_int8_as_uint8" in ints:  # int8 read as x + 128 (Target.dot_uint8_activations)
-            return ints["quad_int8_as_uint8"].format(address=f"&{flipped.buffer}[{c_affine(flipped.index)}]")
+        template += "_as_uint8" if flipped else ""
         half = self._quad_half(first) if adjacent and k == 2 and f"{template}_of_quad" in ints else None
         if half is not None:
             address = f"&{first.buffer}[{c_affine(first.index - 2 * half)}]"
@@ -187,15 +187,9 @@ class IntegerVectors:
         raise TypeError(f"cannot print {e!r} on vectors")
 
 
-def _flipped_quad(e: Dot, dtypes: dict[str, DType]) -> Load | None:
-    """The first of 4 adjacent int8 activations a dot reads as x + 128 (x - (-128)), else None."""
-    if len(e.x) != 4 or not all(isinstance(x, Binary) and x.op == "-" and x.b == Const.integer(-128) for x in e.x):
-        return None
-    first = e.x[0].a.value if isinstance(e.x[0].a, Cast) and isinstance(e.x[0].a.value, Load) else None
-    if first is None or dtypes[first.buffer] != DType.INT8:
-        return None
-    loads = [Cast(DType.INT32, Load(first.buffer, first.index + j)) for j in range(4)]
-    return first if [x.a for x in e.x] == loads else None
+def _flipped(xs: tuple[Expr, ...]) -> bool:
+    """Whether every activation of a dot is read as x - (-128): int8 as uint8 (passes/dot_product.py)."""
+    return all(isinstance(x, Binary) and x.op == "-" and x.b == Const.integer(-128) for x in xs)
 
 
 def _byte_pair(e: Dot, dtypes: dict[str, DType]) -> tuple[str, str, str] | None:

@@ -127,12 +127,12 @@ class _Packer:
         signed = xbuf.dtype == DType.INT8 or zero_point
         # a depthwise's per-lane taps and a border column's taps keep the activations as they are
         per_lane = _per_lane(x, w, loop.var)
-        as_uint8 = bool(signed and target.dot_uint8_activations and inside is None and not per_lane)
-        as_uint8 = as_uint8 and xbuf.dtype in (DType.INT8, DType.UINT8)
-        if as_uint8 or not signed:
-            k = target.dot_uint8 if xbuf.dtype == DType.UINT8 or as_uint8 else 0
-        else:
+        eight_bit = xbuf.dtype in (DType.INT8, DType.UINT8)
+        as_uint8 = bool(signed and target.dot_uint8_activations and inside is None and not per_lane and eight_bit)
+        if signed and not as_uint8:
             k = target.dot_int8
+        else:
+            k = target.dot_uint8 if xbuf.dtype == DType.UINT8 or as_uint8 else 0
         array = self.program.constants[w.buffer]
         array = _squeezed(array) if target.tap_dots else array
         # int16 pairs: integer Winograd's GEMMs (int16 activations), or 8-bit activations times the
