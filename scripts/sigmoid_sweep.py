@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from test_vector_math import BUILDS, OPT, Build, reference, target_errors  # noqa: E402
 
 from nncg.backends import BACKENDS  # noqa: E402
+from nncg.backends.c_file import PORTABILITY_MACROS  # noqa: E402
 from nncg.backends.simd_needs import Needs  # noqa: E402
 from nncg.backends.vector_math import operations_used, with_callees  # noqa: E402
 from nncg.cli import positive_number  # noqa: E402
@@ -43,6 +44,7 @@ def program(build: Build, fn: str) -> str:
             "#include <stdlib.h>",
             "#include <string.h>",
             *(f"#include {h}" for h in printer_class.includes),
+            *PORTABILITY_MACROS,
             *printer.preamble(),
             f"static float x[{CHUNK}], y[{CHUNK}];",
             "int main(int argc, char **argv)",

@@ -126,9 +126,12 @@ def test_a_new_isa_is_one_file_of_tables():
         "}",
         "",
     ]
-    preamble = source[source.index('#include "fake8.h"') : source.index("#if defined(__GNUC__)")]
+    includes = source[source.index('#include "fake8.h"') : source.index("#if defined(__GNUC__)")]
+    assert includes == '#include "fake8.h"\n\n'  # the ISA's helpers follow the portability macros they use
+    preamble = source[source.index("#define NNCG_INLINE\n#endif\n") : source.index("/* k: Test */")]
     assert preamble.splitlines() == [
-        '#include "fake8.h"',
+        "#define NNCG_INLINE",
+        "#endif",
         "",
         "#define f8_div(a, b) f8_mul(a, f8_recip(b))",
         "",

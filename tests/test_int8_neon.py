@@ -29,6 +29,7 @@ from int8_models import (
 from test_cross_targets import require, skip_unless_ci
 
 import nncg
+from nncg.backends.c_file import PORTABILITY_MACROS
 from nncg.backends.neon_integer import REQUANTIZE
 
 MODELS = {
@@ -141,6 +142,7 @@ def requantize_program(values: list[float]) -> str:
             "#include <math.h>",
             "#include <stdio.h>",
             "#include <arm_neon.h>",
+            *PORTABILITY_MACROS,
             *REQUANTIZE,
             f"static const float xs[{len(values)}] = {{{rows}}};",
             "int main(void)",

@@ -19,6 +19,7 @@ from helpers import HOST
 from scipy import special
 
 from nncg.backends import BACKENDS
+from nncg.backends.c_file import PORTABILITY_MACROS
 from nncg.backends.simd_needs import Needs
 from nncg.backends.vector_math import ULP_BOUNDS, operations_used, with_callees
 
@@ -133,6 +134,7 @@ def program(build: Build) -> str:
             "#include <stdio.h>",
             "#include <stdlib.h>",
             *(f"#include {h}" for h in printer_class.includes),
+            *PORTABILITY_MACROS,
             *printer.preamble(),
             "",
             "int main(int argc, char **argv)",

@@ -23,7 +23,7 @@ REQUANTIZE = (
     "/* x clamped to [low, high] (NaN: low), rounded half to even, plus zero_point: onnxruntime's float",
     "   requantisation. ARMv7 has no rounding conversion: x + 1.5 * 2^23 rounds x to an integer, half to",
     "   even, and for |x| < 2^22 its bits are 0x4B400000 + round(x) (|x| <= 255 here) */",
-    "static int32x4_t nncg_vrequantizeq_s32(float32x4_t x, float low, float high, int32_t zero_point)",
+    "static NNCG_INLINE int32x4_t nncg_vrequantizeq_s32(float32x4_t x, float low, float high, int32_t zero_point)",
     "{",
     "    x = vbslq_f32(vcgeq_f32(x, vdupq_n_f32(low)), x, vdupq_n_f32(low));",
     "    x = vminq_f32(x, vdupq_n_f32(high));",
@@ -40,7 +40,7 @@ REQUANTIZE = (
 # A constant vector lane by lane (no intrinsic takes four lanes): the compiler inlines it into one
 # constant load; unlike a braced initialiser or vcreate, the same lanes whatever the byte order.
 VECTOR = (
-    "static int32x4_t nncg_vsetq_s32(int32_t a, int32_t b, int32_t c, int32_t d)",
+    "static NNCG_INLINE int32x4_t nncg_vsetq_s32(int32_t a, int32_t b, int32_t c, int32_t d)",
     "{",
     "    int32_t v[4];",
     "    v[0] = a;",
@@ -59,7 +59,7 @@ def _widen(dtype: str) -> tuple[str, ...]:
     value = widen if s == "s" else f"vreinterpretq_s32_u32({widen})"
     return (
         f"/* the four {dtype} values at p, widened to int32 lanes */",
-        f"static int32x4_t nncg_vwidenq_{dtype}(const nncg_{dtype} *p)",
+        f"static NNCG_INLINE int32x4_t nncg_vwidenq_{dtype}(const nncg_{dtype} *p)",
         "{",
         f"    {vt} b = vdup_n_{s}8(0);",
         *(f"    b = vld1_lane_{s}8(p + {i}, b, {i});" for i in range(4)),
@@ -72,7 +72,7 @@ def _store(dtype: str) -> tuple[str, ...]:
     """The narrowing store of four int32 lanes already in the type's range (the saturation changes nothing)."""
     s, vt, narrow = ("s", "int8x8_t", "vqmovn_s16") if dtype == "int8" else ("u", "uint8x8_t", "vqmovun_s16")
     return (
-        f"static void nncg_vstoreq_{dtype}(nncg_{dtype} *p, int32x4_t v)",
+        f"static NNCG_INLINE void nncg_vstoreq_{dtype}(nncg_{dtype} *p, int32x4_t v)",
         "{",
         "    int16x4_t h = vqmovn_s32(v);",
         f"    {vt} b = {narrow}(vcombine_s16(h, h));",

@@ -21,7 +21,7 @@ from .x86_integer import sse2_integer
 # QLinearAdd operands the vectorize pass fuses are exact (lowering/quantized_add.py), as in scalar C
 FMA_IN_DOUBLE = (
     "/* a * b + c in double, rounded once to float: SSE has no fused multiply-add */",
-    "static __m128 nncg_fma_pd(__m128 a, __m128 b, __m128 c)",
+    "static NNCG_INLINE __m128 nncg_fma_pd(__m128 a, __m128 b, __m128 c)",
     "{",
     "    __m128d low = _mm_add_pd(_mm_mul_pd(_mm_cvtps_pd(a), _mm_cvtps_pd(b)), _mm_cvtps_pd(c));",
     "    __m128d high = _mm_add_pd(_mm_mul_pd(_mm_cvtps_pd(_mm_movehl_ps(a, a)), _mm_cvtps_pd(_mm_movehl_ps(b, b))),",

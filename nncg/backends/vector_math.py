@@ -301,7 +301,7 @@ def vector_math_helper(fn: str, width: VectorWidth) -> tuple[str, ...]:
     how = ALGORITHMS[fn][1]
     return (
         f"/* {fn} of each lane: {how}; max error {ULP_BOUNDS[fn]:g} ULP (nncg/backends/vector_math.py) */",
-        f"static {width.type} {width.spell('math', fn=fn)}({width.type} x)",
+        f"static NNCG_INLINE {width.type} {width.spell('math', fn=fn)}({width.type} x)",
         "{",
         *body.lines,
         f"{INDENT}return {result};",

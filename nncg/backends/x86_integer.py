@@ -152,7 +152,7 @@ def _stores(lanes: int, name: str, vt: str) -> dict[str, tuple[str, ...]]:
     stores: dict[str, tuple[str, ...]] = {}
     stores["int16"] = _int16_store(lanes, name, vt)
     for dtype, pack in (("uint8", "_mm_packus_epi16"), ("int8", "_mm_packs_epi16")):
-        head = [f"static void {name}_{dtype}(nncg_{dtype} *p, {vt} v)", "{"]
+        head = [f"static NNCG_INLINE void {name}_{dtype}(nncg_{dtype} *p, {vt} v)", "{"]
         if lanes == 4:
             body = [f"    _mm_storeu_si32((void *)p, {pack}(_mm_packs_epi32(v, v), v));"]
         elif lanes == 8:
@@ -175,4 +175,4 @@ def _int16_store(lanes: int, name: str, vt: str) -> tuple[str, ...]:
         body = f"    _mm_storeu_si128((__m128i *)p, {halves_packed});"
     else:  # vpmovdw truncates, exact for lanes in range
         body = "    _mm256_storeu_si256((__m256i *)p, _mm512_cvtepi32_epi16(v));"
-    return (f"static void {name}_int16(nncg_int16 *p, {vt} v)", "{", body, "}")
+    return (f"static NNCG_INLINE void {name}_int16(nncg_int16 *p, {vt} v)", "{", body, "}")
