@@ -55,12 +55,9 @@ from .suite import (
     RUNS_HELP,
     cpu_model,
     first_line,
-    higher_peaks,
     markdown_table,
-    measured_peaks,
     model_path,
     over_runs,
-    peaks_text,
     ratio_range,
     repeated,
     runs_lines,
@@ -299,7 +296,6 @@ def _met(ratios: dict[str, float], target: float) -> str:
 def section_markdown(
     rows: list[Int8Row],
     m4_rows: dict,
-    peaks: dict,
     cpu: int | None,
     date: str,
     command: str,
@@ -312,7 +308,6 @@ def section_markdown(
         + ", and the MLPerf Tiny reference models (TFLite full-integer)",
         "",
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'}); date: {date}",
-        f"- Measured peak (float; the timed core, the higher of before and after the models): {peaks_text(peaks)}",
         f"- Command: `{command}`",
         *([f"- {note}"] if note else []),
         "- Models: nncg.quantize's defaults (uint8 activations, per-channel int8 weights"
@@ -361,16 +356,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)
-    before = measured_peaks(args.cpu)
     models = {name: quantized_model(name, args.reduce_range) for name in args.models}
     rows = repeated(args.runs, lambda: run_int8_suite(models, args.targets, cpu=args.cpu, batches=args.batches),
                     merged_int8_row)  # fmt: skip
-    peaks = higher_peaks(before, measured_peaks(args.cpu))
     helpers = None if args.no_cortex_m4 else cross_helpers()
     m4_rows = cortex_m4_rows(helpers, models) if helpers else {}
     command = shlex.join(["python3", "-m", "benchmarks.int8_suite", *(argv if argv is not None else sys.argv[1:])])
     today = datetime.date.today().isoformat()
-    section = section_markdown(rows, m4_rows, peaks, args.cpu, today, command, args.note, args.reduce_range)
+    section = section_markdown(rows, m4_rows, args.cpu, today, command, args.note, args.reduce_range)
     write_section(args.out_dir, SECTION, section)
     print(section)
     return 0

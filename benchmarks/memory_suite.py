@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from nncg.bench.benchmark import BenchResult, Timing, benchmark_variants, paired_ratio
-from nncg.bench.peak import measure_peaks
 from nncg.cli import positive_number
 from nncg.lowering.band_plan import MEMORY_MODES
 from nncg.safe_text import markdown_text
@@ -33,11 +32,10 @@ from .runs import merged_runs, runs_of
 from .suite import (
     MLPERF_TINY,
     PAPER,
+    PEAK_NOTE,
     ROOT,
     RUNS_HELP,
     cpu_model,
-    higher_peaks,
-    measured_peaks,
     model_path,
     over_runs,
     peaks_text,
@@ -45,6 +43,7 @@ from .suite import (
     ratio_range,
     repeated,
     runs_lines,
+    sampled_peaks,
     write_section,
 )
 
@@ -88,9 +87,9 @@ def suite_model(name: str):
 def run_memory_suite(
     models, targets, *, cpu=None, batches=15, min_batch_seconds=0.02, peaks=None, progress=print, path_of=None,
 ) -> list[MemoryRow]:  # fmt: skip
-    """A row per model, target and setting; a model that fails is one row per setting with the reason."""
+    """A row per model, target and setting; a model that fails is one row per setting with the reason.
+    Without `peaks` (fixed GFLOP/s per ISA) the peak kernel is timed in every batch (nncg.bench.benchmark)."""
     path_of = path_of or suite_model
-    peaks = peaks if peaks is not None else measure_peaks()
     variants = {row: {"memory": memory} for row, memory in SETTINGS.items()}
     timing = Timing(batches, min_batch_seconds, cpu=cpu, peaks=peaks)
     rows = []
@@ -175,7 +174,7 @@ def section_markdown(
         "## Memory settings (issue 18)",
         "",
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'}); date: {date}",
-        f"- Measured peak (the timed core, the higher of before and after the models): {peaks_text(peaks)}",
+        f"- Peak: {PEAK_NOTE}; medians: {peaks_text(peaks)}",
         f"- Command: `{command}`",
         *([f"- {note}"] if note else []),
         "- The settings and onnxruntime are timed in turn within each batch, so the ratios are steadier than",
@@ -215,11 +214,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--int8", action="store_true", help="each model quantised too (the int8 suite's QDQ model)")
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)
-    before = measured_peaks(args.cpu)
     models = [*args.models, *(name + INT8 for name in args.models if args.int8)]
-    rows = repeated(args.runs, lambda: run_memory_suite(models, args.targets, cpu=args.cpu, batches=args.batches,
-                    peaks=before), merged_memory_row)  # fmt: skip
-    peaks = higher_peaks(before, measured_peaks(args.cpu))
+    rows = repeated(args.runs, lambda: run_memory_suite(models, args.targets, cpu=args.cpu, batches=args.batches),
+                    merged_memory_row)  # fmt: skip
+    peaks = sampled_peaks([result for row in rows for result in (row.result, row.speed)])
     command = shlex.join(["python3", "-m", "benchmarks.memory_suite", *argv])
     date = datetime.date.today().isoformat()
     section = section_markdown(rows, peaks, args.cpu, date, args.batches, command, args.note)

@@ -30,21 +30,20 @@ from nncg.cli import positive_number
 from .real_models import DEFAULT_CASES, MODELS, case_name, cases_at, ensure
 from .runs import runs_of
 from .suite import (
+    PEAK_NOTE,
     ROOT,
     RUNS_HELP,
     SPEEDUP_COLUMN,
     Row,
     cpu_model,
     first_line,
-    higher_peaks,
-    measured_peaks,
     merged_row,
     peaks_text,
     repeated,
     results_table,
     run_suite,
     runs_lines,
-    with_peaks,
+    sampled_peaks,
     write_section,
 )
 
@@ -66,7 +65,7 @@ def section_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str, b
         "## Real-size models",
         "",
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'}); date: {date}",
-        f"- Measured peak (the timed core, the higher of before and after the models): {peaks_text(peaks)}",
+        f"- Peak: {PEAK_NOTE}; medians: {peaks_text(peaks)}",
         "- torchvision's mobilenet_v2, mobilenet_v3_small, resnet18, efficientnet_b0, squeezenet1_1,",
         "  shufflenet_v2_x0_5, mnasnet0_5 and regnet_x_400mf rebuilt in torch.nn (benchmarks/torch_models.py; same",
         "  layers and parameter counts), random weights (seed 0), exported by torch.onnx's TorchScript exporter",
@@ -124,15 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out-dir", type=Path, default=ROOT / "benchmarks")
     args = parser.parse_args(argv)
     cases = select_cases(args.models, args.size)
-    before = measured_peaks(args.cpu)
 
     def measure() -> list[Row]:
-        return run_suite(list(cases), args.targets, cpu=args.cpu, batches=args.batches, peaks=before,
+        return run_suite(list(cases), args.targets, cpu=args.cpu, batches=args.batches,
                          path_of=lambda name: ensure(*cases[name]))  # fmt: skip
 
     rows = repeated(args.runs, measure, merged_row)
-    peaks = higher_peaks(before, measured_peaks(args.cpu))
-    rows = with_peaks(rows, peaks)
+    peaks = sampled_peaks([row.result for row in rows])
     section = section_markdown(rows, peaks, args.cpu, datetime.date.today().isoformat(), args.batches)
     write_section(args.out_dir, SECTION, section)
     print(section)

@@ -12,7 +12,8 @@ from typing import TypeVar
 from nncg.bench.benchmark import BenchResult
 
 R = TypeVar("R")
-RESULT_MEDIANS = ("nncg_us", "ort_bound_us", "ort_run_us", "speedup")  # a BenchResult's figures over runs
+# A BenchResult's figures over runs (the peak's where it was sampled in the batches).
+RESULT_MEDIANS = ("nncg_us", "ort_bound_us", "ort_run_us", "speedup", "peak_gflops", "paired_percent")
 
 
 def merged_runs(
@@ -48,4 +49,6 @@ def runs_of(rows: Sequence[object], per_run: str) -> int:
 
 
 def _medians(rows: Sequence[object], fields: tuple[str, ...]) -> dict[str, float]:
-    return {name: statistics.median(getattr(row, name) for row in rows) for name in fields}
+    """The medians of the fields every row has a value of (not None)."""
+    values = {name: [getattr(row, name) for row in rows] for name in fields}
+    return {name: statistics.median(v) for name, v in values.items() if None not in v}

@@ -15,14 +15,15 @@ import argparse
 import datetime
 import platform
 import re
+import statistics
 from collections import Counter
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from nncg.backends import BACKENDS
-from nncg.bench.benchmark import BenchResult, benchmark, pinned
-from nncg.bench.peak import TARGET_ISA, measure_peaks
+from nncg.bench.benchmark import BenchResult, benchmark
+from nncg.bench.peak import TARGET_ISA
 from nncg.cli import positive_number
 from nncg.errors import NncgError
 from nncg.tune import tune
@@ -54,9 +55,9 @@ def run_suite(
     path_of=None,
 ) -> list[Row]:  # fmt: skip
     """With `tuned`, each model is first tuned per layer for each target (nncg.tune, cached); `path_of` maps a
-    model name to its file (default: model_path). A model that fails is a row with the reason, not an abort."""
+    model name to its file (default: model_path). A model that fails is a row with the reason, not an abort.
+    Without `peaks` (fixed GFLOP/s per ISA) the peak kernel is timed in every batch (nncg.bench.benchmark)."""
     path_of = path_of or model_path
-    peaks = peaks if peaks is not None else measure_peaks()
     rows = []
     for model in models:
         for target in targets:
@@ -129,29 +130,25 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def measured_peaks(cpu: int | None) -> dict[str, float | None]:
-    """measure_peaks on core `cpu`, where the suites time the models."""
-    with pinned(cpu):
-        return measure_peaks()
-
-
-def higher_peaks(before: dict, after: dict) -> dict[str, float | None]:
-    """Per ISA the higher of the peaks measured before and after a suite's models: other jobs on the
-    machine only ever lower a peak (on this project's VM one idle run read the SSE peak at 36 GFLOP/s,
-    the next 46), and a low one inflates every % of peak."""
-    return {isa: max((g for g in (before[isa], after[isa]) if g), default=None) for isa in before}
-
-
-def with_peaks(rows: list[Row], peaks: dict) -> list[Row]:
-    """The rows' results against `peaks` (their % of peak follows)."""
-    return [
-        replace(row, result=replace(row.result, peak_gflops=peaks.get(row.result.peak_isa))) if row.result else row
-        for row in rows
-    ]
+def sampled_peaks(results: Sequence[BenchResult | None]) -> dict[str, float]:
+    """Per ISA the median of the results' peaks (each the median of the peak kernel timed in its batches)."""
+    by_isa: dict[str, list[float]] = {}
+    for result in results:
+        if result is not None and result.peak_gflops:
+            by_isa.setdefault(result.peak_isa, []).append(result.peak_gflops)
+    return {isa: statistics.median(gflops) for isa, gflops in sorted(by_isa.items())}
 
 
 def peaks_text(peaks: dict) -> str:
     return ", ".join(f"{isa} {g:.1f} GFLOP/s" if g else f"{isa} n/a" for isa, g in peaks.items())
+
+
+# How a suite's % of peak is measured, as its RESULTS.md section states it.
+PEAK_NOTE = (
+    "the peak kernel (nncg.bench.peak) timed on the same core in every batch beside NNCG and onnxruntime; "
+    "% peak is the median of the per-batch ratios of NNCG's GFLOP/s to the peak's, so a slow spell of the "
+    "machine moves neither"
+)
 
 
 def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -> str:
@@ -160,7 +157,7 @@ def results_markdown(rows: list[Row], peaks: dict, cpu: int | None, date: str) -
         "",
         f"- CPU: {cpu_model()} ({'pinned to core ' + str(cpu) if cpu is not None else 'not pinned'})",
         f"- Date: {date}",
-        f"- Measured peak (the timed core, the higher of before and after the models): {peaks_text(peaks)}",
+        f"- Peak: {PEAK_NOTE}; medians: {peaks_text(peaks)}",
         "- NNCG: the generated C at `gcc -O3` plus the target's flags, at the unroll level shown (tuned: per-layer",
         "  algorithm, block shapes and unroll budgets from `--tune`, timed on this core); onnxruntime:",
         "  batch 1, one intra-op thread, all graph optimisations; `ORT µs` with IOBinding, `ORT run µs` through",
@@ -371,14 +368,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--tune", action="store_true", help="tune every model per layer first (nncg-onnx --tune)")
     parser.add_argument("--runs", type=positive_number, default=1, help=RUNS_HELP)
     args = parser.parse_args(argv)
-    before = measured_peaks(args.cpu)
 
     def measure() -> list[Row]:
-        return run_suite(args.models, args.targets, cpu=args.cpu, peaks=before, tuned=args.tune)
+        return run_suite(args.models, args.targets, cpu=args.cpu, tuned=args.tune)
 
     rows = repeated(args.runs, measure, merged_row)
-    peaks = higher_peaks(before, measured_peaks(args.cpu))
-    rows = with_peaks(rows, peaks)
+    peaks = sampled_peaks([row.result for row in rows])
     today = datetime.date.today().isoformat()
     previous = args.out_dir / "RESULTS.md"
     kept = marked_sections(previous.read_text()) if previous.exists() else ""  # e.g. benchmarks/real_suite.py's

@@ -17,6 +17,7 @@ from nncg.bench.benchmark import (
     format_results,
     interleaved_samples,
     paired_ratio,
+    percent_of_sampled_peak,
     profile,
 )
 from nncg.bench.harness import ObjectSizes
@@ -46,6 +47,17 @@ def test_benchmark_result_is_well_formed(target):
     assert r.arena_bytes < r.activation_bytes  # ball is a chain: the plan reuses memory
     table = format_results([r]).splitlines()
     assert table[0].split()[:3] == ["model", "target", "NNCG"] and table[1].split()[:2] == ["ball", target]
+
+
+def test_percent_of_peak_pairs_each_batch_with_the_peak_sampled_beside_it():
+    # 5e8 MACs: 1 GFLOP per inference. Batches 2 and 3 ran in a slow spell that halved the peak kernel too.
+    assert percent_of_sampled_peak(500_000_000, [1.0, 2.0, 2.0], [2.0, 1.0, 1.0]) == pytest.approx(50.0)
+
+
+def test_benchmark_without_given_peaks_times_the_peak_in_its_batches():
+    r = benchmark(BALL, target="ssse3", batches=3, min_batch_seconds=0.001)
+    assert r.paired_percent is not None and r.percent_of_peak == r.paired_percent
+    assert r.paired_percent > 0 and r.peak_gflops > 0 and r.peak_isa == "sse"
 
 
 def test_profile_reports_every_layer_with_its_macs():

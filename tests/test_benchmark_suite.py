@@ -9,7 +9,6 @@ from benchmarks.real_suite import select_cases
 from benchmarks.runs import median_result, merged_runs, runs_of
 from benchmarks.suite import (
     Row,
-    higher_peaks,
     merge_section,
     merged_row,
     model_path,
@@ -17,8 +16,8 @@ from benchmarks.suite import (
     results_markdown,
     results_table,
     run_suite,
+    sampled_peaks,
     table_bars,
-    with_peaks,
     write_chart,
 )
 from nncg.bench.benchmark import BenchResult
@@ -179,14 +178,17 @@ def test_memory_table_escapes_the_plan():
     assert "'a\\|b\\<i\\>'" in lines[-1] and "| 2.00x |" in lines[-1]
 
 
-def test_suites_report_the_higher_peak_of_before_and_after_and_their_percent_follows():
-    before = {"sse": 36.2, "avx2-fma": 120.0, "avx512-fma": None}
-    after = {"sse": 45.7, "avx2-fma": 110.0, "avx512-fma": None}
-    peaks = higher_peaks(before, after)
-    assert peaks == {"sse": 45.7, "avx2-fma": 120.0, "avx512-fma": None}
-    measured = replace(PLAIN, macs=300_000, peak_gflops=before["avx2-fma"])  # 60 GFLOP/s
-    rows = with_peaks([Row("m", "avx2", measured), Row("x", "avx2", None, "broken")], {**peaks, "avx2-fma": 150.0})
-    assert round(rows[0].result.percent_of_peak, 9) == 40.0 and rows[1].result is None
+def test_suites_report_the_median_of_the_peaks_sampled_in_their_batches():
+    results = [replace(PLAIN, peak_gflops=g) for g in (110.0, 120.0, 150.0)] + [replace(PLAIN, peak_gflops=None), None]
+    results.append(replace(PLAIN, peak_isa="sse", peak_gflops=45.7))
+    assert sampled_peaks(results) == {"avx2-fma": 120.0, "sse": 45.7}
+
+
+def test_runs_merge_the_paired_percent_of_peak_where_every_run_has_one():
+    runs = [replace(PLAIN, paired_percent=p, peak_gflops=g) for p, g in ((40.0, 100.0), (50.0, 90.0), (45.0, 95.0))]
+    merged = median_result(runs)
+    assert (merged.percent_of_peak, merged.peak_gflops) == (45.0, 95.0)
+    assert median_result([PLAIN, replace(PLAIN, nncg_us=12.0)]).paired_percent is None  # fixed peaks: none
 
 
 def test_several_runs_make_one_row_of_medians_and_the_range_of_their_speed_ups():

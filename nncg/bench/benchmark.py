@@ -21,6 +21,7 @@ from ..frontend import load_model
 from ..verify import compare, find_c_compiler, random_inputs
 from .harness import CompiledHarness, ObjectSizes
 from .onnxruntime_timer import THREADS, OnnxruntimeTimer
+from .peak import TARGET_ISA, PeakTimer, supported_isas
 from .progress import progress_bar
 
 
@@ -37,7 +38,7 @@ class BenchResult:
     sizes: ObjectSizes
     macs: int
     peak_isa: str
-    peak_gflops: float | None
+    peak_gflops: float | None  # the ISA's peak: given, or the median of the peak sampled in each batch
     generate_seconds: float
     compile_seconds: float
     arena_bytes: int = 0  # the planned activation memory (NAME_ARENA_BYTES)
@@ -48,6 +49,7 @@ class BenchResult:
     ort_version: str = ""  # onnxruntime's, as the report names the opponent
     ort_threads: int = THREADS
     batch_us: tuple[float, ...] = ()  # NNCG's µs per inference in each batch, to pair with variants of its run
+    paired_percent: float | None = None  # % of the peak sampled in the same batches (paired), when it was
 
     @property
     def gflops(self) -> float:
@@ -55,6 +57,8 @@ class BenchResult:
 
     @property
     def percent_of_peak(self) -> float | None:
+        if self.paired_percent is not None:
+            return self.paired_percent
         return None if not self.peak_gflops else 100 * self.gflops / self.peak_gflops
 
     @property
@@ -100,6 +104,13 @@ def paired_ratio(numerator: Sequence[float], denominator: Sequence[float]) -> fl
     return statistics.median(n / d for n, d in zip(numerator, denominator, strict=True))
 
 
+def percent_of_sampled_peak(macs: int, seconds: Sequence[float], peak_gflops: Sequence[float]) -> float:
+    """% of peak paired like a ratio: the median over batches of the code's GFLOP/s in a batch (`seconds`
+    per inference) over the peak kernel's in the same batch, so a slow spell of the machine, which slows
+    both, cancels instead of reading as inefficient code."""
+    return 100 * paired_ratio([2 * macs / s * 1e-9 for s in seconds], peak_gflops)
+
+
 def benchmark(
     model,
     target: str = "ssse3",
@@ -114,7 +125,8 @@ def benchmark(
     **compile_options,
 ) -> BenchResult:
     """Compiles `model` (compile_options go to nncg.compile), then times it and onnxruntime side by
-    side. `peaks` (GFLOP/s per ISA, from nncg.bench.peak.measure_peaks) is measured here when not given."""
+    side. `peaks` (GFLOP/s per ISA, from nncg.bench.peak.measure_peaks) fixes the peak; without it the
+    peak kernel runs in every batch beside them and the % of peak is paired like the speed-up."""
     timing = Timing(batches, min_batch_seconds, cc, cpu, peaks)
     variants = {"": compile_options}
     return benchmark_variants(model, target, variants, unroll, timing, input_shapes=input_shapes)[""]
@@ -138,8 +150,6 @@ def benchmark_variants(
     """Compiles `model` once per variant (its nncg.compile options, e.g. {"min": {"memory": "min"}}),
     then times every variant and onnxruntime in one interleaved run, so the variants' ratios to each
     other are measured side by side, on the same inputs."""
-    from .peak import TARGET_ISA, measure_peak
-
     if target not in TARGET_ISA:  # neon: ARM code, which the x86 host neither builds nor has a peak for
         raise NncgError(f"--benchmark times x86 targets ({', '.join(TARGET_ISA)}) on this host, not {target}")
     cc, peaks = find_c_compiler(timing.cc), timing.peaks
@@ -151,13 +161,15 @@ def benchmark_variants(
     first = next(iter(builds.values()))[0]
     inputs = random_inputs(first.inputs, seed=0)
     isa = TARGET_ISA[target]
-    peak = peaks[isa] if peaks is not None else measure_peak(isa, cc)
     with pinned(timing.cpu), tempfile.TemporaryDirectory(prefix="nncg-bench-") as tmp, ExitStack() as running:
         harnesses = {name: _start(compiled, Path(tmp) / str(i), cc, inputs, running)
                      for i, (name, (compiled, _)) in enumerate(builds.items())}  # fmt: skip
         ort = OnnxruntimeTimer(proto, [p.name for p in first.inputs], inputs)
         timers = {("nncg", name): harness.run for name, harness in harnesses.items()}
         timers |= {"ort_bound": ort.run_bound, "ort_run": ort.run_plain}
+        peak = peaks[isa] if peaks is not None else _peak_timer(isa, cc, running)
+        if isinstance(peak, PeakTimer):
+            timers["peak"] = peak
         samples = interleaved_samples(timers, timing.batches, timing.min_batch_seconds)
         names = [p.name for p in first.outputs]
         stats = {name: compare(harness.outputs(), ort.outputs(), names) for name, harness in harnesses.items()}
@@ -165,6 +177,15 @@ def benchmark_variants(
         name: _result(build, samples["nncg", name], samples, stats[name], harnesses[name], peak, ort.version)
         for name, build in builds.items()
     }
+
+
+def _peak_timer(isa: str, cc: str, running: ExitStack) -> PeakTimer | None:
+    """The ISA's peak kernel as one more timer of the batches; None where the CPU lacks the ISA."""
+    if isa not in supported_isas():
+        return None
+    timer = PeakTimer(isa, cc)
+    running.callback(timer.close)
+    return timer
 
 
 def _start(compiled, workdir: Path, cc: str, inputs, running: ExitStack) -> CompiledHarness:
@@ -183,9 +204,13 @@ def _generate(model, target: str, unroll, **options):
 
 
 def _result(build, nncg_samples, samples, stats, harness, peak, ort_version) -> BenchResult:
-    from .peak import TARGET_ISA
-
+    """`peak`: the ISA's GFLOP/s as given, or the PeakTimer whose samples are in `samples["peak"]`."""
     compiled, generate_seconds = build
+    paired_percent = None
+    if isinstance(peak, PeakTimer):
+        peak_gflops = [peak.gflops(seconds) for seconds in samples["peak"]]
+        paired_percent = percent_of_sampled_peak(compiled.macs, nncg_samples, peak_gflops)
+        peak = statistics.median(peak_gflops)
     figures = memory_figures(compiled)
     return BenchResult(
         model=compiled.name,
@@ -209,6 +234,7 @@ def _result(build, nncg_samples, samples, stats, harness, peak, ort_version) -> 
         plan=figures.plan,
         ort_version=ort_version,
         batch_us=tuple(seconds * 1e6 for seconds in nncg_samples),
+        paired_percent=paired_percent,
     )
 
 

@@ -102,8 +102,13 @@ int main(int argc, char **argv)
     double min_seconds, seconds, best = 1e300;
     long long iters = 1000;
     int repeats, r;
+    if (argc == 2) { /* one timed run of ITERS iterations, as a timer beside other code */
+        iters = atoll(argv[1]);
+        printf("seconds=%.9g checksum=%.9g\n", timed(iters), sink);
+        return 0;
+    }
     if (argc != 3) {
-        fprintf(stderr, "usage: %s MIN_SECONDS REPEATS\n", argv[0]);
+        fprintf(stderr, "usage: %s MIN_SECONDS REPEATS | %s ITERS\n", argv[0], argv[0]);
         return 2;
     }
     min_seconds = atof(argv[1]);
@@ -231,6 +236,36 @@ def measure_peaks(cc: str | None = None) -> dict[str, float | None]:
     """measure_peak for every ISA in ISAS; None for those the host CPU does not support."""
     supported = supported_isas()
     return {isa: measure_peak(isa, cc) if isa in supported else None for isa in ISAS}
+
+
+class PeakTimer:
+    """The peak kernel of `isa` as a timer beside the code it is the peak of: timer(calls) runs the
+    built program for `calls` x ITERS_PER_CALL iterations and returns the seconds it took, so the
+    peak can be sampled in every batch of an interleaved benchmark and a % of peak paired like a
+    ratio (a slow spell of the machine slows both). Close it to delete the program."""
+
+    ITERS_PER_CALL = 1000  # ~4-15 us of work per call: calibrate() sizes the calls of a batch
+
+    def __init__(self, isa: str, cc: str | None = None) -> None:
+        spec = _spec(isa)
+        self.flops_per_call = spec.flops_per_body * UNROLL * self.ITERS_PER_CALL
+        self._tmp = tempfile.TemporaryDirectory(prefix="nncg_peak_")
+        src, self._exe = Path(self._tmp.name) / "peak.c", Path(self._tmp.name) / "peak"
+        src.write_text(kernel_source(isa))
+        run_tool([find_c_compiler(cc), *spec.cflags, "-o", self._exe, src], f"compiling the {isa} peak benchmark",
+                 timeout=COMPILE_TIMEOUT_S)  # fmt: skip
+
+    def __call__(self, calls: int) -> float:
+        out = run_tool([self._exe, str(calls * self.ITERS_PER_CALL)], "running the peak benchmark",
+                       timeout=RUN_TIMEOUT_S).stdout  # fmt: skip
+        match = re.search(r"seconds=(\S+)", out)
+        return float(match.group(1)) if match else math.nan
+
+    def gflops(self, seconds_per_call: float) -> float:
+        return self.flops_per_call / seconds_per_call * 1e-9
+
+    def close(self) -> None:
+        self._tmp.cleanup()
 
 
 def measure_clock_ghz(cc: str | None = None, min_seconds: float = 0.02, repeats: int = 7) -> float:
