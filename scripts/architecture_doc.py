@@ -146,7 +146,7 @@ def kernel(program: str, name: str) -> list[str]:
 
 def c_function(source: str, name: str) -> list[str]:
     lines = source.splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith(f"static void {name}("))
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"static NNCG_NOINLINE void {name}("))
     return lines[start : lines.index("}", start) + 1]
 
 
@@ -222,7 +222,7 @@ def listings(runs: dict[str, Run]) -> dict[str, str]:
         "inline_constants": excerpt(kernel(tiny.after["inline-constants"], "conv"), ("kernel conv (Conv)", 7)),
         "tiny_plan": header(tiny.after["plan-memory"]),
         "ball_plan": header(ball.after["plan-memory"]),
-        "c": excerpt(c_function(tiny.source, "tiny_conv"), ("static void tiny_conv(", 9)),
+        "c": excerpt(c_function(tiny.source, "tiny_conv"), ("static NNCG_NOINLINE void tiny_conv(", 9)),
     }
 
 

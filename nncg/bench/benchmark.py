@@ -49,7 +49,7 @@ class BenchResult:
     ort_version: str = ""  # onnxruntime's, as the report names the opponent
     ort_threads: int = THREADS
     batch_us: tuple[float, ...] = ()  # NNCG's µs per inference in each batch, to pair with variants of its run
-    paired_percent: float | None = None  # % of the peak sampled in the same batches (paired), when it was
+    paired_percent: float | None = None  # % of the peak kernel timed in the same batches; None: fixed peaks
 
     @property
     def gflops(self) -> float:
