@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+ROOT = Path(__file__).resolve().parent.parent
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]  # this tree's nncg, not an installed one
 from test_vector_math import BUILDS, OPT, Build, reference, target_errors  # noqa: E402
 
 from nncg.backends import BACKENDS  # noqa: E402

@@ -77,7 +77,7 @@ def sweep() -> np.ndarray:
     edges = [
         88.72283, 88.7228394, 88.72284, 89.0, 100.0, -87.33654, -87.3366, -103.27893, -103.97208, -103.9721, -104.0,
         -150.0, 0.625, 1.0, 4.0, 3.9, 3.83, 9.0, 0.5, 2.0, 0.70710677, 1.4142135, 1e-3, 1e-8, 1e-30, FLT_MIN,
-        1e-40, 1e-45, 3.4028235e38, 3.4e38, 0.34657359, 44.36, 8.66,
+        1e-40, 1e-45, 3.4028235e38, 3.4e38, 0.34657359, 44.36, 8.66, 17.33, 32.0,
     ]  # fmt: skip
     with np.errstate(over="ignore"):  # the next float after FLT_MAX is +Inf, as meant
         near = [np.nextafter(np.float32(e), np.float32(np.inf * d)) for e in edges for d in (1, -1)]

@@ -13,11 +13,10 @@ tests/test_vector_math.py over every 4096th float32 bit pattern plus the edges a
 numpy/scipy; the largest errors measured, there and over every 64th bit pattern (avx2, ssse3):
 
     function  bound  measured    function  bound  measured
-    exp       1.5    1.01        sigmoid   4      3.57 (SSE), 3.40 (AVX2): every bit pattern
-                                                  3.40 (NEON AArch64, every bit pattern; ARMv7
-                                                  VFPv4 every 16th + |x| in [2, 32]; x = -9.8613),
-                                                  3.57 (ARMv7 without FMA, x = -15.5497; both by
-                                                  scripts/sigmoid_sweep.py)
+    exp       1.5    1.01        sigmoid   4      3.25 (x = -16.289): SSE, AVX2, AVX-512 and
+                                                  NEON AArch64 over every bit pattern, ARMv7 with
+                                                  and without VFPv4 over every 16th + |x| in
+                                                  [2, 32] (scripts/sigmoid_sweep.py)
     log       1      0.81        erf       1.5    1.11 (SSE, NEON), 1.03 (AVX)
     tanh      1.5    1.32        softplus  2      1.89
     abs       0      0           sqrt      0.5    0.5 (correctly rounded)
@@ -55,8 +54,11 @@ EXP_P = (1.3820411e-3, 8.368677e-3, 4.166827e-2, 1.6666521e-1, 4.9999994e-1)
 # sigmoid's exp(r): 1 + r + r^2 Q(r), Q one degree below EXP_P (1.05e-7 relative error before rounding,
 # a least-squares fit in relative error iterated to minimax): cheaper, and within sigmoid's bound.
 SIGMOID_EXP_P = (8.312506e-3, 4.1890096e-2, 1.6667114e-1, 4.999923e-1)
-# sigmoid's exp(-|x|) scales by 2^(n + 64): ROUNDER's bits less the exponent bias 127 + 64.
-SIGMOID_SCALE_BITS = str(0x4B400000 - 127 - 64)
+# sigmoid(x) = 1 for x above 17.33 (exp(-x) < 2^-25): the clamp keeps 2^(n - 64) normal.
+SIGMOID_HIGH = 32.0
+# Adding it rounds to an integer n and leaves 256 + 127 - 64 + n in the low 9 bits, which a shift left
+# by 23 makes the sign and exponent of -2^(n - 64) (ROUNDER's own bits there are 0).
+SIGMOID_ROUNDER = ROUNDER + 256 + 127 - 64
 
 # log: x = m 2^e, sqrt(1/2) <= m < sqrt(2), f = m - 1, log(x) = e ln2 + f - f^2/2 + f^3 P(f) (Cephes logf).
 SQRT_HALF = 0.707106781186547524
@@ -208,26 +210,26 @@ def _tanh(b: _Body) -> str:
 
 
 def _sigmoid(b: _Body) -> str:
-    # e / (1 + e) below 0, 1 / (1 + e) above, e = exp(-|x|): exp never overflows, and the tiny
-    # results of very negative x (down to the denormals) are as accurate as e. e is exp's algorithm
-    # cut to what a non-positive argument needs (a sigmoid is in every SiLU epilogue, so each
-    # operation counts): no upper clamp, exp(r) by one Horner chain one degree shorter (SIGMOID_EXP_P:
-    # 2.5 ULP became 4 for ~8 % less time), and 2^n, n in [-150, 0], as the
-    # normal 2^(n + 64): numerator and denominator are both 2^64 times theirs (exact), so the
-    # division alone rounds, to a denormal where the sigmoid is one.
-    a = b.let("a", b.op("max", b.c(EXP_LOW), b.masked("x", SIGN, "|")))  # -|x|; a NaN stays
-    t = b.let("t", b.fma(a, b.c(LOG2E), b.c(ROUNDER)))
-    n = b.let("n", b.op("-", t, b.c(ROUNDER)))
-    r = b.let("r", b.fma(n, b.c(-LN2_LO), b.fma(n, b.c(-LN2_HI), a)))
-    biased = b.i("-", a=b.i("from_float", a=t), b=b.ibits(SIGMOID_SCALE_BITS))  # n + 127 + 64
-    scale = b.i("to_float", a=b.i("<<", a=biased, n="23"))
-    e = b.let("e", b.op("*", b.horner(r, (*SIGMOID_EXP_P, 1.0, 1.0)), scale))  # 2^64 exp(-|x|)
-    one = b.c(2.0**64)
-    if b.w.blends:
-        numerator = b.select("<", "x", b.c(0.0), e, one)
-    else:  # e <= 2^64: a max with a 0-or-2^64 step is one operation less than and, andnot and or
-        numerator = b.op("max", e, b.select(">=", "x", b.c(0.0), one, b.c(0.0)))
-    return b.op("/", numerator, b.op("+", one, e))
+    # 1 / (1 + exp(-x)) as 2^-64 / (2^-64 + 2^-64 exp(-x)): one expression for both signs, with a
+    # constant numerator (a sigmoid is in every SiLU epilogue: each operation counts). exp's
+    # reduction with the signs in the constants: x clamped to [-104, 32], n = round(-x log2(e)),
+    # v = x + n ln2 (Cody-Waite), exp(-x) = 2^n exp(-v). 2^(n - 64) is normal for every such n, so
+    # nothing overflows or underflows before the division, which alone rounds the tiny results of
+    # very negative x (denormals included). exp(-v) = 1 - w, w = v + v^2 q(v), q = -Q(-v) of
+    # SIGMOID_EXP_P (one degree below exp's, within the bound), by Estrin: two short chains, not
+    # one of five, as latency more than the count of operations bounds an epilogue on SSE. The
+    # denominator is then 2^-64 + 2^(n - 64) - w 2^(n - 64), its first sum off the polynomial's path.
+    x = b.let("xc", b.op("max", b.c(EXP_LOW), b.op("min", b.c(SIGMOID_HIGH), "x")))  # a NaN stays
+    t = b.let("t", b.fma(x, b.c(-LOG2E), b.c(SIGMOID_ROUNDER)))
+    n = b.let("n", b.op("-", t, b.c(SIGMOID_ROUNDER)))
+    v = b.let("v", b.fma(n, b.c(LN2_LO), b.fma(n, b.c(LN2_HI), x)))
+    v2 = b.let("v2", b.op("*", v, v))
+    q3, q2, q1, q0 = SIGMOID_EXP_P
+    q = b.fma(v2, b.fma(b.c(q3), v, b.c(-q2)), b.fma(b.c(q1), v, b.c(-q0)))
+    w = b.let("w", b.fma(v2, q, v))
+    minus_scale = b.let("s", b.i("to_float", a=b.i("<<", a=b.i("from_float", a=t), n="23")))
+    tiny = b.c(2.0**-64)
+    return b.op("/", tiny, b.fma(w, minus_scale, b.op("-", tiny, minus_scale)))
 
 
 def _erf(b: _Body) -> str:
@@ -269,7 +271,7 @@ ALGORITHMS: dict[str, tuple[Callable[[_Body], str], str]] = {
     "exp": (_exp, "x = n ln2 + r, exp(r) by a degree-6 polynomial, times 2^n"),
     "log": (_log, "x = m 2^e, log(m) by a degree-11 polynomial in m - 1, plus e ln2"),
     "tanh": (_tanh, "an odd polynomial below |x| = 0.625, 1 - 2 / (exp(2|x|) + 1) above"),
-    "sigmoid": (_sigmoid, "1 / (1 + exp(-x)), as exp(x) / (1 + exp(x)) below 0"),
+    "sigmoid": (_sigmoid, "2^-64 / (2^-64 + 2^-64 exp(-x)), exp(-x) = 2^n exp(-v) by a degree-5 polynomial"),
     "erf": (_erf, "x + x P(x^2) below |x| = 1, 1 - exp(-x^2) R(1/|x|) above"),
     "softplus": (_softplus, "max(x, 0) + log1p(exp(-|x|)), log1p as log(1 + e) corrected"),
     "abs": (_abs, "the sign bit cleared"),
