@@ -108,7 +108,6 @@ class VectorWidth:
     bits: Mapping[str, str] = field(default_factory=dict)
     ints: Mapping[str, str] = field(default_factory=dict)
     int_helpers: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
-    blends: bool = True  # a comparison's select is one instruction (SSE before 4.1: and, andnot, or)
 
     def spell(self, op: str, **fields: str) -> str:
         return self.ops[op].format(**fields)

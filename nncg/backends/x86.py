@@ -48,7 +48,7 @@ def x86_width(prefix: str, vector_type: str, select: str, fma: bool) -> VectorWi
         "<<": f"{p}_slli_epi32({{a}}, {{n}})",
         ">>": f"{p}_srai_epi32({{a}}, {{n}})",
     }
-    return VectorWidth(vector_type, ops, bits=bits, blends=select != "bitwise")
+    return VectorWidth(vector_type, ops, bits=bits)
 
 
 def _select(p: str, style: str, cmp: str) -> str:
