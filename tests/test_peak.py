@@ -67,3 +67,16 @@ def test_bad_arguments_raise():
     _require("sse")
     with pytest.raises(NncgError, match="min_seconds"):
         peak.measure_peak("sse", min_seconds=0, repeats=3)
+
+
+def test_peak_timer_times_calls_and_refuses_output_it_cannot_read(monkeypatch):
+    _require("sse")
+    timer = peak.PeakTimer("sse")
+    try:
+        seconds = timer(2)
+        assert math.isfinite(seconds) and seconds > 0 and timer.gflops(seconds / 2) > 0
+        monkeypatch.setattr(peak, "run_tool", lambda *args, **kwargs: type("Done", (), {"stdout": "garbled"})())
+        with pytest.raises(NncgError, match="printed no positive seconds"):
+            timer(1)
+    finally:
+        timer.close()

@@ -258,8 +258,7 @@ class PeakTimer:
     def __call__(self, calls: int) -> float:
         out = run_tool([self._exe, str(calls * self.ITERS_PER_CALL)], "running the peak benchmark",
                        timeout=RUN_TIMEOUT_S).stdout  # fmt: skip
-        match = re.search(r"seconds=(\S+)", out)
-        return float(match.group(1)) if match else math.nan
+        return _printed_positive("seconds", out, "peak benchmark")
 
     def gflops(self, seconds_per_call: float) -> float:
         return self.flops_per_call / seconds_per_call * 1e-9
@@ -296,11 +295,16 @@ def _build_and_run(
         src.write_text(source)
         run_tool([compiler, *cflags, "-o", exe, src], f"compiling the {what}", timeout=COMPILE_TIMEOUT_S)
         out = run_tool([exe, repr(min_seconds), str(repeats)], f"running the {what}", timeout=RUN_TIMEOUT_S).stdout
-    match = re.search(r"rate=(\S+)", out)
-    rate = float(match.group(1)) if match else math.nan
-    if not (math.isfinite(rate) and rate > 0):
-        raise NncgError(f"the {what} printed no positive rate: {out.strip()!r}")
-    return rate
+    return _printed_positive("rate", out, what)
+
+
+def _printed_positive(key: str, out: str, what: str) -> float:
+    """The positive number the benchmark program printed as `key=...`."""
+    match = re.search(rf"{key}=(\S+)", out)
+    value = float(match.group(1)) if match else math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise NncgError(f"the {what} printed no positive {key}: {out.strip()!r}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:
