@@ -244,16 +244,13 @@ class PeakTimer:
     peak can be sampled in every batch of an interleaved benchmark and a % of peak paired like a
     ratio (a slow spell of the machine slows both). Close it to delete the program."""
 
-    ITERS_PER_CALL = 1000  # ~4-15 us of work per call: calibrate() sizes the calls of a batch
+    ITERS_PER_CALL = 1000  # a few us of work per call: calibrate() sizes the calls of a batch
 
     def __init__(self, isa: str, cc: str | None = None) -> None:
         spec = _spec(isa)
         self.flops_per_call = spec.flops_per_body * UNROLL * self.ITERS_PER_CALL
         self._tmp = tempfile.TemporaryDirectory(prefix="nncg_peak_")
-        src, self._exe = Path(self._tmp.name) / "peak.c", Path(self._tmp.name) / "peak"
-        src.write_text(kernel_source(isa))
-        run_tool([find_c_compiler(cc), *spec.cflags, "-o", self._exe, src], f"compiling the {isa} peak benchmark",
-                 timeout=COMPILE_TIMEOUT_S)  # fmt: skip
+        self._exe = _build(kernel_source(isa), spec.cflags, cc, Path(self._tmp.name), f"{isa} peak benchmark")
 
     def __call__(self, calls: int) -> float:
         out = run_tool([self._exe, str(calls * self.ITERS_PER_CALL)], "running the peak benchmark",
@@ -289,13 +286,18 @@ def _build_and_run(
     """Compile `source` in a temporary directory, run it, and return the rate it prints."""
     if not (min_seconds > 0 and repeats >= 1):
         raise NncgError(f"{what}: min_seconds must be > 0 and repeats >= 1 (got {min_seconds}, {repeats})")
-    compiler = find_c_compiler(cc)
     with tempfile.TemporaryDirectory(prefix="nncg_peak_") as tmp:
-        src, exe = Path(tmp) / "peak.c", Path(tmp) / "peak"
-        src.write_text(source)
-        run_tool([compiler, *cflags, "-o", exe, src], f"compiling the {what}", timeout=COMPILE_TIMEOUT_S)
+        exe = _build(source, cflags, cc, Path(tmp), what)
         out = run_tool([exe, repr(min_seconds), str(repeats)], f"running the {what}", timeout=RUN_TIMEOUT_S).stdout
     return _printed_positive("rate", out, what)
+
+
+def _build(source: str, cflags: tuple[str, ...], cc: str | None, folder: Path, what: str) -> Path:
+    """`source` compiled with `cflags` into a program in `folder`."""
+    src, exe = folder / "peak.c", folder / "peak"
+    src.write_text(source)
+    run_tool([find_c_compiler(cc), *cflags, "-o", exe, src], f"compiling the {what}", timeout=COMPILE_TIMEOUT_S)
+    return exe
 
 
 def _printed_positive(key: str, out: str, what: str) -> float:
