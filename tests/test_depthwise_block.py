@@ -1,5 +1,6 @@
-"""Register blocks of depthwise Convs on x86 FMA targets: at most 3 pixels of 4 channel vectors (avx512's
-32 registers would give 6), chosen from the loop nest; blocked code against onnxruntime on every x86 target."""
+"""Depthwise Convs on x86 FMA targets: a line of 16 channels at a time over all pixels, a row of pixels
+a register block; unblocked, at most 3 pixels of 4 channel vectors (avx512's 32 registers would give 6),
+chosen from the loop nest; blocked code against onnxruntime on every x86 target."""
 
 import numpy as np
 import pytest
@@ -48,8 +49,12 @@ def _blocks(model, target: str) -> dict[str, tuple[int, int]]:
 
 
 def test_depthwise_conv_is_recognised_from_its_loop_nest():
-    blocks = _blocks(pointwise_then_depthwise(144, 12, 1), "avx512")
-    assert blocks["conv"] == (3, 4)
+    m = pointwise_then_depthwise(144, 12, 1)
+    unblocked = nncg.compile(m, target="avx512").pipeline.replace("cache-block", "cache-block{layers=conv:off}")
+    compiled = nncg.compile(m, target="avx512", pipeline=unblocked)
+    assert chosen_blocks(compiled.record.before_register_block, nncg.get_target("avx512"))["conv"] == (3, 4)
+    blocks = _blocks(m, "avx512")
+    assert blocks["conv"] == (12, 1)  # a line of 16 channels: a row of 12 pixels of one vector
     assert blocks["pointwise"][0] > 3  # a 1x1 Conv broadcasts its input: the full register fit
     # a dense Conv whose epilogue loads a residual vector is not depthwise
     assert _blocks(pointwise_then_depthwise(144, 12, 1, residual=True), "avx512")["conv"] == (6, 4)
@@ -64,12 +69,21 @@ def test_depthwise_blocks_match_onnxruntime(target, channels, size, stride):
 
 
 def test_depthwise_weights_past_l1_put_channel_blocks_outermost():
-    # 360 5x5 filters are 36 KB, past the x86 targets' 32 KiB L1; 240 of them (24 KB) stay in it; ansi-c
-    # knows no L1 size
-    big, small = (nncg.compile(pointwise_then_depthwise(c, 7, 1, kernel=5), target="avx512") for c in (360, 240))
+    # without FMA from memory (SSE): 360 5x5 filters are 36 KB, past the x86 targets' 32 KiB L1; 240 of
+    # them (24 KB) stay in it; ansi-c knows no L1 size
+    big, small = (nncg.compile(pointwise_then_depthwise(c, 7, 1, kernel=5), target="ssse3") for c in (360, 240))
     assert "for (p = 0; p < 5; ++p)" in big.source  # 5 blocks of 64 channels, then the 40 left
     assert "w_conv_rest[" in big.source and "w_conv_rest" not in small.source
     assert "w_conv_rest" not in nncg.compile(pointwise_then_depthwise(360, 7, 1, kernel=5), target="ansi-c").source
+
+
+@pytest.mark.parametrize("target", ["avx2", "avx512"])
+def test_depthwise_convs_run_a_cache_line_of_channels_at_a_time_where_fma_reads_memory(target):
+    # whatever their weights: 360 = 22 lines of 16 channels and 8 left; 16 channels are one line already
+    for channels, kernel in ((360, 5), (40, 3)):
+        source = nncg.compile(pointwise_then_depthwise(channels, 7, 1, kernel=kernel), target=target).source
+        assert f"for (p = 0; p < {channels // 16}; ++p)" in source  # then the rest
+    assert "w_conv_rest" not in nncg.compile(pointwise_then_depthwise(16, 7, 1), target=target).source
 
 
 def test_cache_block_pass_marks_depthwise_channel_blocks_and_layers_override_them():
@@ -77,7 +91,7 @@ def test_cache_block_pass_marks_depthwise_channel_blocks_and_layers_override_the
     m = pointwise_then_depthwise(360, 7, 1, kernel=5)
     compiled = nncg.compile(m, target="avx2")
     (row,) = (row for row in layer_rows(compiled) if row.name == "conv")
-    assert "depthwise in channel blocks of 64" in row.choices
+    assert "depthwise in channel blocks of 16" in row.choices
     pipeline = compiled.pipeline.replace("cache-block", "cache-block{layers=conv:off}")
     assert "w_conv_rest" not in nncg.compile(m, target="avx2", pipeline=pipeline).source
     blocks_of_32 = nncg.compile(m, target="avx2", pipeline=pipeline.replace("conv:off", "conv:32"))

@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 from ..errors import NncgError
-from ..ir.graph import Graph, Node
+from ..ir.graph import ConvAttrs, Graph, Node
 from ..ir.loops import Loop
 from .bands import WINDOWED
 from .context import LoweringContext
@@ -57,6 +57,8 @@ def lower_in_place_depthwise(ctx: LoweringContext, node: Node) -> None:
     if x.lead != node.attrs.pads_begin[0] + 1 or x.order != CHANNELS_LAST or x.halo:
         raise NncgError(f"the input of in-place depthwise Conv '{node.name}' is not stored for it")
     start = len(ctx.kernels)
+    if isinstance(node.attrs, ConvAttrs):  # rows outermost: channel blocks would sweep every row per block
+        node = replace(node, attrs=replace(node.attrs, channel_block=0))
     LOWERINGS[node.op](ctx, node)
     kernel = ctx.kernels[start]
     rows = kernel.body[0] if len(kernel.body) == 1 else None

@@ -110,11 +110,11 @@ def _first_tile_row(geo: Geometry, rows: Rows) -> Affine:
 
 def _direct(node: Node) -> Node:
     """A Conv as a direct, channels-last convolution: the form whose row loop bands (other choices
-    of the graph passes, a cache-blocked layer's panels, or Winograd's tiles where the group does
-    not keep them, do not apply)."""
+    of the graph passes, a cache-blocked layer's panels or depthwise channel blocks, or Winograd's
+    tiles where the group does not keep them, do not apply)."""
     if not isinstance(node.attrs, ConvAttrs):
         return node
-    direct = {"algorithm": ConvAlgorithm.DIRECT, "gemm_channels": 0, "panel": 0, "ci_block": 0}
+    direct = {"algorithm": ConvAlgorithm.DIRECT, "gemm_channels": 0, "panel": 0, "ci_block": 0, "channel_block": 0}
     return replace(node, attrs=replace(node.attrs, vector_axis=VectorAxis.CHANNELS, **direct))
 
 

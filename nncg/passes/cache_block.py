@@ -17,8 +17,9 @@ largest divisor of the input channels that fits. A grouped (not depthwise) Conv 
 one group per panel, whatever its size: unblocked, its group loop is the innermost loop around the
 channels, so register-block jams groups, which share neither inputs nor weights (regnet_x_400mf's
 16-channel groups on avx2: 1 pixel x 5 groups, 1.5 loads per multiply-add); per panel it jams
-pixels, which share the group's weights. A depthwise Conv whose weights exceed L1 is not packed in
-panels but computed `channel_block` channels at a time outside its pixel loops (depthwise_blocks).
+pixels, which share the group's weights. A depthwise Conv is not packed in panels but computed
+`channel_block` channels at a time outside its pixel loops: a cache line of them on x86 FMA targets,
+elsewhere blocks of 64 where its weights exceed L1 (depthwise_blocks).
 `layers` overrides it per layer (what `--tune` measured); lowering/conv_blocked.py (lowering/conv.py
 for the depthwise channel blocks) does the rest."""
 
@@ -38,13 +39,16 @@ from ..ir.applicability import (
 from ..ir.graph import Graph, Node
 from ..ir.target import Target
 from .per_layer import check_layer_names, parse_layer_map
-from .register_block import MAX_CHANNEL_BLOCK, RESERVED, channel_block
+from .register_block import MAX_CHANNEL_BLOCK, RESERVED, channel_block, fma_from_memory
 
 OFF = (0, 0)
 FLOAT_BYTES = 4
 # Channels a depthwise Conv whose weights exceed L1 computes over all its pixels at a time: 4 vectors
 # of 16, their 5x5 weights 6.4 KB.
 DEPTHWISE_CHANNEL_BLOCK = 64
+# Channels a depthwise Conv computes over all its pixels at a time where a multiply-add reads memory
+# (x86 FMA): one 64-byte cache line of every pixel (depthwise_blocks).
+DEPTHWISE_LINE_CHANNELS = 16
 
 
 def parse_choice(text: str) -> tuple[int, int]:
@@ -161,13 +165,23 @@ def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
 
 
 def depthwise_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
-    """(DEPTHWISE_CHANNEL_BLOCK, 0) for a depthwise Conv whose weights exceed L1, else OFF. Run a block of
-    channels at a time, a block's weights, packed together, stay in L1 while it sweeps every pixel, where
-    channels innermost read all the layer's weights again at each pixel (from L2 once they pass L1:
-    efficientnet_b0's 1152-channel 5x5 layers on 3x3 pixels, 115 KB, ran 1.9x slower on avx512 alone,
-    loaded); packed, the block's weights stream from memory in one run. Where they fit, channels
-    innermost were as fast or faster (a 96-channel stride-2 3x3 layer on 48x48 pixels: 1.1x-1.2x slower
-    with channel blocks outermost on avx2 and avx512, loaded)."""
+    """(DEPTHWISE_LINE_CHANNELS, 0) for a depthwise Conv of more channels where a multiply-add reads
+    memory (x86 FMA); elsewhere (DEPTHWISE_CHANNEL_BLOCK, 0) for one whose weights exceed L1, else OFF.
+
+    In lines of channels, register-block takes a row of pixels of the line's vectors (avx512 15x1,
+    avx2 5x2) instead of 3 pixels x 4 vectors: an input vector serves the taps of up to 3 neighbouring
+    pixels, a weight vector the whole row, and every input cache line is read whole. mobilenet_v2_96's
+    layers alone, hot caches (gcc -O3): 144 channels 3x3 on 24x24, avx512 25.0 -> 15.4 us, avx2
+    23.7 -> 18.3; stride 2 to 12x12 6.5 -> 4.3 / 5.8 -> 5.1; 384 on 6x6 4.1 -> 1.7 / 3.7 -> 2.9. Lines
+    of one 8-lane vector (avx2) read each cache line twice, a block apart: stride 2 went 1.2x slower
+    than unblocked. SSE (no memory operands) gained on stride 1 and lost on stride 2: unchanged.
+
+    Blocks of 64 where the weights exceed L1: a block's weights, packed together, stay in L1 while it
+    sweeps every pixel, where channels innermost read all the layer's weights again at each pixel (from
+    L2 once they pass L1: efficientnet_b0's 1152-channel 5x5 layers on 3x3 pixels, 115 KB, ran 1.9x
+    slower on avx512 alone, loaded); packed, the block's weights stream from memory in one run."""
+    if fma_from_memory(target) and _shape(graph, node)[0] > DEPTHWISE_LINE_CHANNELS:
+        return DEPTHWISE_LINE_CHANNELS, 0
     if FLOAT_BYTES * math.prod(_shape(graph, node)) <= target.l1_bytes:
         return OFF
     return DEPTHWISE_CHANNEL_BLOCK, 0
@@ -203,9 +217,9 @@ def input_block(c_in: int, taps: int, panel: int, target: Target) -> int:
 
 
 def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[tuple[int, int], ...]]:
-    """For --tune: the cost model's choice, unblocked, and (Convs) the input block halved and doubled
-    (depthwise Convs: the channel blocks), for each layer whose weights exceed half of L1 (smaller ones
-    stay in L1 either way)."""
+    """For --tune: the cost model's choice, unblocked, and (Convs) the input block halved and doubled,
+    for each layer whose weights exceed half of L1 (smaller ones stay in L1 either way); for every
+    depthwise Conv its choice, unblocked and in lines of channels."""
     out = {}
     if not target.l1_bytes or not target.vector_widths:
         return out
@@ -213,13 +227,14 @@ def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[tuple[int
         if group_panels_apply(graph, node):
             out[node.name] = (chosen_blocks(graph, node, target), OFF)
             continue
-        depthwise = depthwise_blocks_apply(graph, node)
-        applies = depthwise or cache_block_applies(graph, node) or panel_packing_applies(graph, node)
+        if depthwise_blocks_apply(graph, node):
+            lines = (DEPTHWISE_LINE_CHANNELS, 0) if _shape(graph, node)[0] > DEPTHWISE_LINE_CHANNELS else OFF
+            out[node.name] = tuple(dict.fromkeys([chosen_blocks(graph, node, target), OFF, lines]))
+            continue
+        applies = cache_block_applies(graph, node) or panel_packing_applies(graph, node)
         if not applies or 2 * FLOAT_BYTES * math.prod(_shape(graph, node)) <= target.l1_bytes:
             continue
-        if depthwise:
-            options = [chosen_blocks(graph, node, target), OFF, (DEPTHWISE_CHANNEL_BLOCK, 0)]
-        elif cache_block_applies(graph, node):
+        if cache_block_applies(graph, node):
             c_out, c_in, taps = _shape(graph, node)
             panel = panel_width(graph, node, target)
             block = input_block(c_in, taps, panel, target)
