@@ -234,9 +234,10 @@ def test_whole_row_blocks_match_onnxruntime(target, channels, size, block):
 
 
 def test_float_layer_of_one_vector_blocks_its_columns():
-    # 16 channels: one vector on avx512, whose multiply-add broadcasts its input from memory (24
-    # accumulators), two on avx2; 8 channels: one vector on avx2 (an accumulator and a broadcast each)
-    for name, channels, block in (("avx512", 16, (24, 1)), ("avx2", 16, (5, 2)), ("avx2", 8, (7, 1))):
+    # 16 channels: one vector on avx512, whose multiply-add broadcasts its input from memory (6
+    # pixels: ONE_VECTOR_FLOAT_PIXELS), two on avx2; 8 channels: one vector on avx2 (an accumulator and
+    # a broadcast each)
+    for name, channels, block in (("avx512", 16, (6, 1)), ("avx2", 16, (5, 2)), ("avx2", 8, (7, 1))):
         m = narrow_conv_pair(channels, 30)
         upto = direct(name).split(",register-block")[0]
         program = PassManager(upto, nncg.get_target(name), verify=True).run(import_onnx(m))

@@ -66,10 +66,11 @@ VECTOR_INPUT_PIXELS = 3
 # resnet8's 32x32x16 layers.
 ONE_VECTOR_INT8_PIXELS = 12
 # Pixels per block of a float layer of one channel vector where the multiply-add broadcasts its input
-# from memory (avx512): accumulators only, with RESERVED registers and two more left. mobilenet_v1_025
-# on avx512 (loaded, interleaved): 78.0 us with its stem and first pointwise Conv at 24 pixels, 82.1
-# with the 6 rows x 4 columns they had, 90.7 at 15 pixels (an accumulator and a broadcast each).
-ONE_VECTOR_FLOAT_PIXELS = 24
+# from memory (avx512). Whole models, these layers (stems, 1x1 Convs to one vector) at 6 pixels
+# against 24 (idle, interleaved, gcc 12): mlperf_vww_mobilenet 1.028x faster, keras_mobilenet_nhwc_96
+# 1.032x, mobilenet_v2_96 1.029x, mobilenet_v1_025 1.032x. VWW's 3x3 stride-2 stem alone: 10.5 us at
+# 6, 9.8 at 24, but 16.1 at 8 and 21.2 at 12 (gcc keeps a tap loop there).
+ONE_VECTOR_FLOAT_PIXELS = 6
 # Channel vectors of the one-pixel block of an SSE int8 kernel of pmaddwd pairs (pair_dot_block).
 PAIR_DOT_CHANNELS = 10
 
@@ -196,12 +197,12 @@ def _adjacent_loads(xs: tuple[Expr, ...]) -> bool:
 
 
 def one_vector_pixels(kernel: Kernel, program: Program, target: Target, extent: int, pixels: int, vector_inputs: bool):
-    """The pixels of a fused layer of one channel vector: at most ONE_VECTOR_INT8_PIXELS (int8), up to
+    """The pixels of a fused layer of one channel vector: at most ONE_VECTOR_INT8_PIXELS (int8),
     ONE_VECTOR_FLOAT_PIXELS (float, its broadcast inputs read by the multiply-adds)."""
     if is_integer_kernel(kernel, program):
         return min(pixels, ONE_VECTOR_INT8_PIXELS)
     if target.broadcast_operands and not vector_inputs:
-        return min(extent, max(pixels, ONE_VECTOR_FLOAT_PIXELS))
+        return min(extent, ONE_VECTOR_FLOAT_PIXELS)
     return pixels
 
 
