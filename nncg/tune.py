@@ -6,10 +6,14 @@ winograd (direct or Winograd per 3x3 conv), vectorize-pixels (channels or pixels
 models: it changes what the consumers read), register-block (block shapes) and unroll (budgets).
 Within a round, variant i of every layer goes into build i of the whole model (a profile build, with
 a timer around each layer); the builds run interleaved, batch after batch, and each layer keeps its
-best time, so a busy machine slows all variants alike. Choices are cached by a signature built from
-the IR (nncg/ir/signature.py) and the target, so a layer tuned before costs nothing. The result is
-a pipeline whose tunable passes name each layer's choice: the C it gives is reproducible without
-the cache."""
+best time, so a busy machine slows all variants alike. The rounds time profile builds, whose timers
+keep each layer a separate piece of code; last, the tuned pipeline's release build is timed against
+the default pipeline's, interleaved, and the faster is kept (a compiler that schedules the layers
+together differently could otherwise ship a tuned model slower than the untuned one). Choices are
+cached by a signature built from the IR (nncg/ir/signature.py), the target and NNCG's own source (a
+choice measured on other generated code is measured again), so a layer tuned before costs nothing.
+The result is a pipeline whose tunable passes name each layer's choice: the C it gives is
+reproducible without the cache."""
 
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from .backends import get_target
-from .bench.benchmark import calibrate, pinned
+from .bench.benchmark import calibrate, interleaved_samples, paired_ratio, pinned
 from .bench.harness import CompiledHarness
 from .bench.progress import progress_bar
 from .compiler import compile as compile_model
@@ -69,14 +73,16 @@ def tune(
     cache = cache or default_cache()
     known = _read_cache(cache)
     measure = _Measurer(model, target, cc, tuple(runner), input_shapes, batches, cpu, progress)
-    session = _Session(model, facts, input_shapes, f"{target}|{Path(cc).name}|{' '.join(runner)}", known, measure)
+    where = f"{target}|{Path(cc).name}|{' '.join(runner)}|{_code_version()}"
+    session = _Session(model, facts, input_shapes, where, known, measure)
     choices: dict[str, dict[str, str]] = {}
     for spec in parse_pipeline(pipeline):
         tunable = REGISTRY[spec.name].tunable
         if tunable is not None:
             choices[spec.name] = session.tune_pass(spec.name, tunable, with_layer_choices(pipeline, choices), progress)
+    tuned = session.faster_as_a_whole(pipeline, with_layer_choices(pipeline, choices), progress)
     _write_cache(cache, known)
-    return with_layer_choices(pipeline, choices)
+    return tuned
 
 
 @dataclass
@@ -135,6 +141,30 @@ class _Session:
         totals = self.measure.totals(name, [with_layer_choices(pipeline, {name: build}) for build in builds])
         self.known[key] = builds[min(range(len(builds)), key=totals.__getitem__)]
         return self.known[key]
+
+    def faster_as_a_whole(self, default: str, tuned: str, progress) -> str:
+        """`tuned`, unless its release build runs slower than the default pipeline's (cached)."""
+        if tuned == default:
+            return tuned
+        graph = import_onnx(self.model, self.input_shapes)
+        key = _cache_key(self.where, "whole-model", f"{ir_signature(graph)}|{default}|{tuned}")
+        kept = self.known.get(key)
+        if kept not in (default, tuned):
+            ratio = self.measure.release_ratio(default, tuned)
+            kept = tuned if ratio <= 1 else default
+            verdict = "the tuned pipeline kept" if kept == tuned else "the default pipeline kept instead"
+            progress(f"tune: whole model: the tuned release build takes {ratio:.3f}x the default's time: {verdict}")
+            self.known[key] = kept
+        return kept
+
+
+def _code_version() -> str:
+    """A digest of NNCG's Python source: what the generated code, and so a measured choice, depends on."""
+    root = Path(__file__).parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 def _text(tunable: Tunable, value: object) -> str:
@@ -196,6 +226,27 @@ class _Measurer:
         """Seconds per inference of each build: the sum of its layers' best times."""
         self.progress(f"tune: {what}: {len(pipelines)} builds of the model")
         return [sum(times.values()) for times in self._layer_times(pipelines)]
+
+    def release_ratio(self, default: str, tuned: str) -> float:
+        """The tuned release build's time over the default's: the median of per-batch ratios, the two
+        run interleaved as --benchmark runs NNCG and onnxruntime."""
+        self.progress("tune: whole model: timing the tuned and the default release build")
+        with tempfile.TemporaryDirectory(prefix="nncg-tune-") as tmp:
+            harnesses = []
+            try:
+                for i, pipeline in enumerate((default, tuned)):
+                    compiled = compile_model(self.model, self.target, pipeline=pipeline, input_shapes=self.input_shapes)
+                    workdir = Path(tmp) / str(i)
+                    workdir.mkdir()
+                    inputs = random_inputs(compiled.inputs, seed=0)
+                    harnesses.append(CompiledHarness(compiled, workdir, self.cc, inputs, runner=self.runner))
+                timers = {"default": harnesses[0].run, "tuned": harnesses[1].run}
+                with pinned(self.cpu):
+                    samples = interleaved_samples(timers, self.batches, 0.01)
+            finally:
+                for harness in harnesses:
+                    harness.close()
+        return paired_ratio(samples["tuned"], samples["default"])
 
     def _layer_times(self, pipelines: list[str]) -> list[dict[str, float]]:
         """Best seconds per call of each layer in each build, builds run in turn."""

@@ -1,5 +1,7 @@
 """Per-layer autotuning: the choices it makes are valid, cached, reproducible, and the tuned code
-matches onnxruntime."""
+matches onnxruntime; a tuned pipeline whose release build runs slower than the default's gives way to
+it. Tests of the per-layer rounds fix that last comparison (keep_tuned): which build is faster on a
+small model is the machine's call."""
 
 import re
 
@@ -12,7 +14,8 @@ from nncg.cli import main
 from nncg.passes import REGISTRY, parse_pipeline
 from nncg.passes.register_block import block_candidates, choose_blocks
 from nncg.passes.unroll import TUNED_BUDGETS
-from nncg.tune import tune, tuning_candidates, with_layer_choices
+from nncg.tune import _Measurer, tune, tuning_candidates, with_layer_choices
+from nncg.verify import find_c_compiler
 
 
 def conv_pool_conv():
@@ -24,6 +27,12 @@ def conv_pool_conv():
     ]
     inits = {"w1": weights(8, 3, 3, 3), "b1": weights(8), "w2": weights(12, 8, 3, 3)}
     return onnx_model(nodes, inputs={"x": (1, 3, 12, 16)}, initializers=inits)
+
+
+@pytest.fixture
+def keep_tuned(monkeypatch):
+    """The tuned release build measured as fast as the default's: the tuned pipeline is kept."""
+    monkeypatch.setattr(_Measurer, "release_ratio", lambda self, default, tuned: 1.0)
 
 
 def layer_choices(pipeline: str, pass_name: str) -> dict[str, str]:
@@ -68,7 +77,7 @@ def test_every_tunable_pass_of_the_pipeline_is_a_round_in_pipeline_order(tmp_pat
 
 
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3"])
-def test_tuned_pipeline_matches_onnxruntime_and_is_cached(tmp_path, target):
+def test_tuned_pipeline_matches_onnxruntime_and_is_cached(tmp_path, target, keep_tuned):
     m = conv_pool_conv()
     lines = []
     pipeline = tune(m, target, cache=tmp_path / "tune.json", batches=2, progress=lines.append)
@@ -90,7 +99,7 @@ def test_tuned_pipeline_matches_onnxruntime_and_is_cached(tmp_path, target):
     assert not any("builds" in line for line in again)
 
 
-def test_cli_tune_writes_tuned_code_through_a_runner(tmp_path, monkeypatch, capsys):
+def test_cli_tune_writes_tuned_code_through_a_runner(tmp_path, monkeypatch, capsys, keep_tuned):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     path = tmp_path / "net.onnx"
     path.write_bytes(conv_pool_conv().SerializeToString())
@@ -122,7 +131,7 @@ def test_cli_tune_errors_are_clear(tmp_path, monkeypatch, capsys, extra, message
     assert not (tmp_path / "out").exists()
 
 
-def test_pixel_axis_round_times_whole_models_and_is_cached(tmp_path):
+def test_pixel_axis_round_times_whole_models_and_is_cached(tmp_path, keep_tuned):
     nodes = [
         helper.make_node("Conv", ["x", "w", "b"], ["c"], pads=[2, 2, 2, 2]),
         helper.make_node("MaxPool", ["c"], ["y"], kernel_shape=[2, 2], strides=[2, 2]),
@@ -139,7 +148,7 @@ def test_pixel_axis_round_times_whole_models_and_is_cached(tmp_path):
     assert not any("builds" in line for line in again)
 
 
-def test_layers_named_like_torch_and_tf2onnx_exports_are_tuned(tmp_path):
+def test_layers_named_like_torch_and_tf2onnx_exports_are_tuned(tmp_path, keep_tuned):
     """Per-layer choices key on the layer's C name, whatever characters the model's names hold:
     torch's `/layer1/conv1/Conv`, tf2onnx's `model/act/Relu;model/bn/FusedBatchNormV3`."""
     m = conv_pool_conv()
@@ -152,6 +161,36 @@ def test_layers_named_like_torch_and_tf2onnx_exports_are_tuned(tmp_path):
     assert set(layer_choices(pipeline, "winograd")) == {"layer1_layer1_0_conv1_Conv", "c_2"}
     assert set(layer_choices(pipeline, "register-block")) == {"layer1_layer1_0_conv1_Conv", "pool_1", "c_2"}
     check_against_onnxruntime(m, nncg.compile(m, "ssse3", pipeline=pipeline, verify_ir=True))
+
+
+def test_a_tuned_pipeline_slower_as_a_whole_gives_way_to_the_default(tmp_path, monkeypatch):
+    asked = []
+
+    def slower(self, default, tuned):
+        asked.append((default, tuned))
+        return 1.25
+
+    monkeypatch.setattr(_Measurer, "release_ratio", slower)
+    lines = []
+    pipeline = tune(conv_pool_conv(), "ssse3", cache=tmp_path / "tune.json", batches=1, progress=lines.append)
+    ((default, tuned),) = asked
+    assert pipeline == default and "layers=" not in default and "register-block{layers=" in tuned
+    verdict = "the tuned release build takes 1.250x the default's time: the default pipeline kept instead"
+    assert f"tune: whole model: {verdict}" in lines
+    again = []  # the verdict is cached with the choices
+    assert tune(conv_pool_conv(), "ssse3", cache=tmp_path / "tune.json", batches=1, progress=again.append) == default
+    assert len(asked) == 1 and not any("whole model" in line for line in again)
+
+
+def test_release_ratio_times_both_release_builds():
+    # the comparison itself, on real builds: a paired ratio of the two (its value is the machine's)
+    base = nncg.default_pipeline(nncg.get_target("ssse3"))
+    other = base.replace("register-block,", "register-block{layers=Conv_0:1x1;Conv_3:1x1},")
+    lines = []
+    measurer = _Measurer(conv_pool_conv(), "ssse3", find_c_compiler(None), (), None, 3, None, lines.append)
+    ratio = measurer.release_ratio(base, other)
+    assert 0 < ratio < float("inf")
+    assert lines == ["tune: whole model: timing the tuned and the default release build"]
 
 
 def test_per_layer_choices_name_layers_by_their_c_names():
