@@ -8,8 +8,10 @@ from helpers import check_against_onnxruntime, onnx_model, weights
 from onnx import helper
 
 import nncg
+from nncg.passes import REGISTRY
 from nncg.passes.register_block import choose_blocks, chosen_blocks
 from nncg.report import layer_rows
+from nncg.tune import tuning_candidates
 
 
 def pointwise_then_depthwise(channels: int, size: int, stride: int, residual: bool = False, kernel: int = 3):
@@ -97,6 +99,15 @@ def test_cache_block_pass_marks_depthwise_channel_blocks_and_layers_override_the
     blocks_of_32 = nncg.compile(m, target="avx2", pipeline=pipeline.replace("conv:off", "conv:32"))
     assert "for (p = 0; p < 11; ++p)" in blocks_of_32.source  # 11 blocks of 32 channels, then the 8 left
     check_against_onnxruntime(m, blocks_of_32, opt="-O1")
+
+
+def test_tune_times_every_depthwise_conv_in_lines_and_unblocked():
+    m = pointwise_then_depthwise(144, 12, 1)  # 5 KB of weights: within L1, blocked only in lines
+    for target, first in (("avx512", "16"), ("ssse3", "off")):
+        facts = nncg.get_target(target)
+        options = tuning_candidates(m, nncg.default_pipeline(facts), "cache-block", facts)
+        assert [REGISTRY["cache-block"].tunable.format_value(o) for o in options["conv"]][0] == first
+        assert {(16, 0), (0, 0)} <= set(options["conv"])
 
 
 @pytest.mark.parametrize("target", ["ansi-c", "ssse3", "avx2", "avx512"])
