@@ -22,8 +22,9 @@ import json
 import os
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -231,28 +232,21 @@ class _Measurer:
         """The tuned release build's time over the default's: the median of per-batch ratios, the two
         run interleaved as --benchmark runs NNCG and onnxruntime."""
         self.progress("tune: whole model: timing the tuned and the default release build")
-        with tempfile.TemporaryDirectory(prefix="nncg-tune-") as tmp:
-            harnesses = []
-            try:
-                for i, pipeline in enumerate((default, tuned)):
-                    compiled = compile_model(self.model, self.target, pipeline=pipeline, input_shapes=self.input_shapes)
-                    workdir = Path(tmp) / str(i)
-                    workdir.mkdir()
-                    inputs = random_inputs(compiled.inputs, seed=0)
-                    harnesses.append(CompiledHarness(compiled, workdir, self.cc, inputs, runner=self.runner))
-                timers = {"default": harnesses[0].run, "tuned": harnesses[1].run}
-                with pinned(self.cpu):
-                    samples = interleaved_samples(timers, self.batches, 0.01)
-            finally:
-                for harness in harnesses:
-                    harness.close()
+        with self._built([default, tuned], profile=False) as (default_build, tuned_build), pinned(self.cpu):
+            samples = interleaved_samples({"default": default_build.run, "tuned": tuned_build.run}, self.batches, 0.01)
         return paired_ratio(samples["tuned"], samples["default"])
 
     def _layer_times(self, pipelines: list[str]) -> list[dict[str, float]]:
         """Best seconds per call of each layer in each build, builds run in turn."""
+        with self._built(pipelines, profile=True) as harnesses, pinned(self.cpu):
+            return self._interleaved(harnesses)
+
+    @contextmanager
+    def _built(self, pipelines: list[str], profile: bool) -> Iterator[list[CompiledHarness]]:
+        """A harness per pipeline, built in parallel and fed the same inputs; closed on leaving."""
         with tempfile.TemporaryDirectory(prefix="nncg-tune-") as tmp:
             compiled = [
-                compile_model(self.model, self.target, pipeline=p, input_shapes=self.input_shapes, profile=True)
+                compile_model(self.model, self.target, pipeline=p, input_shapes=self.input_shapes, profile=profile)
                 for p in pipelines
             ]
             inputs = random_inputs(compiled[0].inputs, seed=0)
@@ -260,19 +254,18 @@ class _Measurer:
             def build(i):
                 workdir = Path(tmp) / str(i)
                 workdir.mkdir()
-                return CompiledHarness(compiled[i], workdir, self.cc, inputs, profile=True, runner=self.runner)
+                return CompiledHarness(compiled[i], workdir, self.cc, inputs, profile=profile, runner=self.runner)
 
-            with (
-                ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool,
-                progress_bar(len(pipelines), "tune: building") as bar,
-            ):
-                harnesses = []
-                for harness in pool.map(build, range(len(pipelines))):
-                    harnesses.append(harness)
-                    bar.update()
+            harnesses: list[CompiledHarness] = []
             try:
-                with pinned(self.cpu):
-                    return self._interleaved(harnesses)
+                with (
+                    ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool,
+                    progress_bar(len(pipelines), "tune: building") as bar,
+                ):
+                    for harness in pool.map(build, range(len(pipelines))):
+                        harnesses.append(harness)
+                        bar.update()
+                yield harnesses
             finally:
                 for harness in harnesses:
                     harness.close()

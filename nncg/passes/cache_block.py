@@ -49,6 +49,7 @@ DEPTHWISE_CHANNEL_BLOCK = 64
 # Channels a depthwise Conv computes over all its pixels at a time where a multiply-add reads memory
 # (x86 FMA): one 64-byte cache line of every pixel (depthwise_blocks).
 DEPTHWISE_LINE_CHANNELS = 16
+DEPTHWISE_LINES = (DEPTHWISE_LINE_CHANNELS, 0)
 
 
 def parse_choice(text: str) -> tuple[int, int]:
@@ -165,26 +166,32 @@ def chosen_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
 
 
 def depthwise_blocks(graph: Graph, node: Node, target: Target) -> tuple[int, int]:
-    """(DEPTHWISE_LINE_CHANNELS, 0) for a depthwise Conv of more channels where a multiply-add reads
+    """DEPTHWISE_LINES for a depthwise Conv of more channels where a multiply-add reads
     memory (x86 FMA); elsewhere (DEPTHWISE_CHANNEL_BLOCK, 0) for one whose weights exceed L1, else OFF.
 
     In lines of channels, register-block takes a row of pixels of the line's vectors (avx512 15x1,
     avx2 5x2) instead of 3 pixels x 4 vectors: an input vector serves the taps of up to 3 neighbouring
     pixels, a weight vector the whole row, and every input cache line is read whole. mobilenet_v2_96's
     layers alone, hot caches (gcc -O3): 144 channels 3x3 on 24x24, avx512 25.0 -> 15.4 us, avx2
-    23.7 -> 18.3; stride 2 to 12x12 6.5 -> 4.3 / 5.8 -> 5.1; 384 on 6x6 4.1 -> 1.7 / 3.7 -> 2.9. Lines
-    of one 8-lane vector (avx2) read each cache line twice, a block apart: stride 2 went 1.2x slower
-    than unblocked. SSE (no memory operands) gained on stride 1 and lost on stride 2: unchanged.
+    23.7 -> 18.3; stride 2 to 12x12 6.5 -> 4.3 (avx512 with a 12x1 block) / 5.8 -> 5.1; 384 on 6x6
+    4.1 -> 1.7 / 3.7 -> 2.9. Lines of one 8-lane vector (avx2) read each cache line twice, a block
+    apart: stride 2 went 1.2x slower than unblocked. SSE (no memory operands) gained on stride 1 and
+    lost on stride 2: unchanged.
 
     Blocks of 64 where the weights exceed L1: a block's weights, packed together, stay in L1 while it
     sweeps every pixel, where channels innermost read all the layer's weights again at each pixel (from
     L2 once they pass L1: efficientnet_b0's 1152-channel 5x5 layers on 3x3 pixels, 115 KB, ran 1.9x
     slower on avx512 alone, loaded); packed, the block's weights stream from memory in one run."""
-    if fma_from_memory(target) and _shape(graph, node)[0] > DEPTHWISE_LINE_CHANNELS:
-        return DEPTHWISE_LINE_CHANNELS, 0
+    if fma_from_memory(target) and _spans_lines(graph, node):
+        return DEPTHWISE_LINES
     if FLOAT_BYTES * math.prod(_shape(graph, node)) <= target.l1_bytes:
         return OFF
     return DEPTHWISE_CHANNEL_BLOCK, 0
+
+
+def _spans_lines(graph: Graph, node: Node) -> bool:
+    """More channels than one line: only then do lines of channels change a depthwise Conv's loops."""
+    return _shape(graph, node)[0] > DEPTHWISE_LINE_CHANNELS
 
 
 def panel_width(graph: Graph, node: Node, target: Target) -> int:
@@ -228,7 +235,7 @@ def tuning_candidates(graph: Graph, target: Target) -> dict[str, tuple[tuple[int
             out[node.name] = (chosen_blocks(graph, node, target), OFF)
             continue
         if depthwise_blocks_apply(graph, node):
-            lines = (DEPTHWISE_LINE_CHANNELS, 0) if _shape(graph, node)[0] > DEPTHWISE_LINE_CHANNELS else OFF
+            lines = DEPTHWISE_LINES if _spans_lines(graph, node) else OFF
             out[node.name] = tuple(dict.fromkeys([chosen_blocks(graph, node, target), OFF, lines]))
             continue
         applies = cache_block_applies(graph, node) or panel_packing_applies(graph, node)
