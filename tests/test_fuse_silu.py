@@ -7,7 +7,10 @@ import pytest
 from helpers import compile_and_check, kernel_ops, onnx_model, weights
 from onnx import helper
 
+from nncg.backends import BACKENDS
+from nncg.backends.simd_needs import interleaved_runs
 from nncg.ir.graph import Activation, ConvAttrs, Graph, Node, Value
+from nncg.ir.loops import Affine, Call, Load, Store
 from nncg.passes.fuse_activation import fuse_activation
 
 TARGETS = ("ansi-c", "ssse3", "avx2", "avx512")
@@ -155,3 +158,30 @@ def test_silu_whose_input_is_also_an_output(target):
     model = conv_model(silu_nodes())
     model.graph.output.append(helper.make_tensor_value_info("c", 1, None))
     assert kernel_ops(compile_and_check(model, target))[-1] != "Mul"
+
+
+@pytest.mark.parametrize("target", ["ssse3", "avx2"])
+def test_register_block_epilogue_calls_one_interleaved_sigmoid(target):
+    """A SiLU conv's register block stores its vectors after one call of the sigmoid over all of them
+    (backends/simd.py: math_interleave), with onnxruntime's results."""
+    model = conv_model(silu_nodes(), channels=48, size=8)
+    compiled = compile_and_check(model, target)
+    count = BACKENDS[target].math_interleave
+    assert f"sigmoid_ps_x{count}(nncg_lanes);" in compiled.source
+
+
+def test_a_run_that_reads_what_it_writes_is_not_interleaved():
+    """An interleaved run computes its calls before its stores: a call reading a buffer the run
+    writes (an in-place activation) keeps each store with its own call."""
+    widths = BACKENDS["ssse3"].widths
+
+    def store(buffer, read, at):
+        index = Affine.of(at)
+        return Store(buffer, index, Call("sigmoid", Load(read, index, 4)))
+
+    apart = tuple(store("y", "x", 4 * i) for i in range(3))
+    in_place = tuple(store("x", "x", 4 * i) for i in range(3))
+    assert [len(run) for run in interleaved_runs(apart, widths, 8)] == [3]
+    assert [len(run) for run in interleaved_runs(apart, widths, 2)] == [2, 1]
+    assert [len(run) for run in interleaved_runs(in_place, widths, 8)] == [1, 1, 1]
+    assert [len(run) for run in interleaved_runs(apart, widths, 1)] == [1, 1, 1]

@@ -21,7 +21,7 @@ from scipy import special
 from nncg.backends import BACKENDS
 from nncg.backends.c_file import PORTABILITY_MACROS
 from nncg.backends.simd_needs import Needs
-from nncg.backends.vector_math import ULP_BOUNDS, operations_used, with_callees
+from nncg.backends.vector_math import ULP_BOUNDS, interleaved_name, operations_used, with_callees
 
 FUNCTIONS = ("exp", "log", "tanh", "sigmoid", "erf", "softplus", "abs", "sqrt")
 FLT_MIN = float(np.finfo(np.float32).tiny)
@@ -116,17 +116,18 @@ def ulp_errors(y: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.where(np.isnan(err) | (np.isinf(y) & ~special_value), np.inf, err)
 
 
-def program(build: Build) -> str:
-    """C: reads n floats from argv[1], writes each function of them (in FUNCTIONS order) to argv[2]."""
+def program(build: Build, interleave: int = 1) -> str:
+    """C: reads n floats from argv[1], writes each function of them (in FUNCTIONS order) to argv[2];
+    with interleave > 1 through the helpers over that many vectors (n a multiple of them)."""
     printer_class = BACKENDS[build.target]
     width = printer_class.widths[build.lanes]
     used = [op for fn in with_callees(set(FUNCTIONS)) for op in operations_used(fn, width)]
     definitions = tuple(dict.fromkeys((build.lanes, op) for op in used if op in width.helpers))
-    printer = printer_class(Needs(definitions, frozenset((build.lanes, fn) for fn in FUNCTIONS)))
+    math = frozenset((build.lanes, fn) for fn in FUNCTIONS)
+    interleaved = frozenset((build.lanes, fn, interleave) for fn in FUNCTIONS if interleave > 1)
+    printer = printer_class(Needs(definitions, math, interleaved))
     loops = [
-        f"    for (i = 0; i < n; i += {build.lanes}) "
-        f"{width.spell('store', address='&y[i]', value=width.spell('math', fn=fn) + '(' + width.spell('load', address='&x[i]') + ')')};\n"  # noqa: E501
-        f"    fwrite(y, sizeof(float), (size_t)n, out);"
+        f"    {_each_block(width, fn, build.lanes, interleave)}\n    fwrite(y, sizeof(float), (size_t)n, out);"
         for fn in FUNCTIONS
     ]
     return "\n".join(
@@ -158,10 +159,24 @@ def program(build: Build) -> str:
     )
 
 
-def run(build: Build, x: np.ndarray, workdir: Path) -> dict[str, np.ndarray]:
-    """Each function of x (a multiple of the width long), computed by the target's helpers."""
+def _each_block(width, fn: str, lanes: int, interleave: int) -> str:
+    """The loop computing y = fn(x), one vector at a time or `interleave` vectors per helper call."""
+    if interleave == 1:
+        call = f"{width.spell('math', fn=fn)}({width.spell('load', address='&x[i]')})"
+        return f"for (i = 0; i < n; i += {lanes}) {width.spell('store', address='&y[i]', value=call)};"
+    loads = " ".join(f"v[{k}] = {width.spell('load', address=f'&x[i + {k * lanes}]')};" for k in range(interleave))
+    stores = " ".join(
+        f"{width.spell('store', address=f'&y[i + {k * lanes}]', value=f'v[{k}]')};" for k in range(interleave)
+    )
+    call = f"{interleaved_name(fn, width, interleave)}(v);"
+    return f"for (i = 0; i < n; i += {lanes * interleave}) {{ {width.type} v[{interleave}]; {loads} {call} {stores} }}"
+
+
+def run(build: Build, x: np.ndarray, workdir: Path, interleave: int = 1) -> dict[str, np.ndarray]:
+    """Each function of x (a multiple of the width long, times `interleave`), computed by the target's
+    helpers."""
     source, exe = workdir / "vmath.c", workdir / "vmath"
-    source.write_text(program(build))
+    source.write_text(program(build, interleave))
     printer_class = BACKENDS[build.target]
     flags = [*build.flags, *printer_class.cflags, *printer_class.strict_cflags]
     subprocess.run([build.cc, OPT, *flags, str(source), "-o", str(exe), "-lm"], check=True, capture_output=True)
@@ -222,6 +237,21 @@ def test_vector_math_is_within_its_ulp_bound_over_the_float_range(build, tmp_pat
             bad = np.argsort(err)[-3:]
             problems.append(f"{fn}: {worst:.3g} ULP > {ULP_BOUNDS[fn]}, at x = {x[bad].tolist()}")
     assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize("build", [b for b in BUILDS if BACKENDS[b.target].math_interleave > 1], ids=lambda b: b.id)
+def test_interleaved_helpers_give_the_single_helpers_bits(build, tmp_path):
+    """The helpers a register block's epilogue calls over several vectors at once (backends/simd.py)
+    are the same operations in another order: bit for bit the results held to the bounds above."""
+    reason = missing(build)
+    if reason:
+        pytest.skip(reason)
+    count = BACKENDS[build.target].math_interleave
+    x = sweep()
+    x = np.concatenate([x, np.zeros(-len(x) % (build.lanes * count), np.float32)])
+    single, interleaved = run(build, x, tmp_path), run(build, x, tmp_path, count)
+    for fn in FUNCTIONS:
+        assert np.array_equal(single[fn].view(np.uint32), interleaved[fn].view(np.uint32)), fn
 
 
 SPECIALS = [  # a list: 0.0 and -0.0 are one key of a dict

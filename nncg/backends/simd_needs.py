@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
+from itertools import groupby
 
 from ..ir.loops import (
     Binary,
@@ -13,10 +14,15 @@ from ..ir.loops import (
     Const,
     Expr,
     Fma,
+    If,
+    Let,
     Load,
+    Loop,
     Program,
     Select,
+    Stmt,
     Store,
+    read_buffer,
     stmt_exprs,
     walk_exprs,
     walk_stmts,
@@ -30,16 +36,18 @@ class Needs:
     """definitions: (lanes, operation) whose template calls a helper the width defines, in order of
     first use (kernels in order, statements in order, an expression before its operands).
     math: (lanes, fn) of the math functions called on vectors (not those they call).
+    interleaved: (lanes, fn, count) of the helpers computing fn on count vectors at once.
     rows: per width, the row of each constant vector in its table, in order of first use."""
 
     definitions: tuple[tuple[int, str], ...] = ()
     math: frozenset[tuple[int, str]] = frozenset()
+    interleaved: frozenset[tuple[int, str, int]] = frozenset()
     rows: Mapping[int, Mapping[tuple[float, ...], int]] = field(default_factory=dict)
 
 
-def collect_needs(program: Program, widths: Mapping[int, VectorWidth]) -> Needs:
+def collect_needs(program: Program, widths: Mapping[int, VectorWidth], interleave: int = 1) -> Needs:
     """The needs of every vector node of `program` whose width is in `widths` (others are the
-    printer's to refuse)."""
+    printer's to refuse); `interleave` as in interleaved_runs."""
     definitions: dict[tuple[int, str], None] = {}  # an ordered set
     math: set[tuple[int, str]] = set()
     rows: dict[int, dict[tuple[float, ...], int]] = {}
@@ -54,7 +62,61 @@ def collect_needs(program: Program, widths: Mapping[int, VectorWidth]) -> Needs:
         elif isinstance(node, Const) and _in_table(node, width):
             table = rows.setdefault(lanes, {})
             table.setdefault(node.values, len(table))  # == on floats: 0.0 and -0.0 share a row
-    return Needs(tuple(definitions), frozenset(math), rows)
+    interleaved = {
+        (call.lanes, call.fn, len(run))
+        for kernel in program.kernels
+        for body in _bodies(kernel.body)
+        for run in interleaved_runs(body, widths, interleave)
+        if len(run) > 1 and (call := math_call(run[0], widths))
+    }
+    return Needs(tuple(definitions), frozenset(math), frozenset(interleaved), rows)
+
+
+def interleaved_runs(
+    body: tuple[Stmt, ...], widths: Mapping[int, VectorWidth], most: int
+) -> Iterator[tuple[Stmt, ...]]:
+    """body's statements in order, in groups: up to `most` consecutive Stores each of which calls the
+    same math function once on vectors of the same width (a register block's epilogue), which the
+    printer computes with one call of an interleaved helper; every other statement alone. A group
+    computes its calls before its stores, so none may read a buffer that one of its stores writes."""
+
+    def function(stmt: Stmt) -> tuple[str, int] | None:
+        call = math_call(stmt, widths) if most > 1 else None
+        return (call.fn, call.lanes) if call else None
+
+    for key, same in groupby(body, function):
+        stmts = tuple(same)
+        runs = [stmts[i : i + most] for i in range(0, len(stmts), most)] if key else []
+        for run in runs or [(stmt,) for stmt in stmts]:
+            if len(run) > 1 and _reads_what_it_writes(run, widths):
+                yield from ((stmt,) for stmt in run)
+            else:
+                yield run
+
+
+def math_call(stmt: Stmt, widths: Mapping[int, VectorWidth]) -> Call | None:
+    """The call of a vector Store's value, when it has one call, of a function its width computes in
+    vector code (vector_math.py)."""
+    if not isinstance(stmt, Store) or stmt.value.lanes not in widths:
+        return None
+    calls = [e for e in walk_exprs(stmt.value) if isinstance(e, Call)]
+    if len(calls) != 1 or calls[0].lanes not in widths or not has_vector_math(widths[calls[0].lanes]):
+        return None
+    return calls[0]
+
+
+def _reads_what_it_writes(run: tuple[Stmt, ...], widths: Mapping[int, VectorWidth]) -> bool:
+    written = {stmt.buffer for stmt in run if isinstance(stmt, Store)}
+    calls = [math_call(stmt, widths) for stmt in run]
+    return any(read_buffer(e) in written for call in calls if call for e in walk_exprs(call.arg))
+
+
+def _bodies(body: tuple[Stmt, ...]) -> Iterator[tuple[Stmt, ...]]:
+    """body and the bodies of the statements in it, nested ones included."""
+    yield body
+    for stmt in body:
+        if isinstance(stmt, Loop | Let | If):
+            yield from _bodies(stmt.body)
 
 
 def operations(node: Expr | Store, width: VectorWidth) -> tuple[str, ...]:

@@ -62,3 +62,5 @@ class Ssse3(SimdPrinter):
     strict_cflags = ("-Wall", "-Wextra", "-Werror")
     includes = ("<math.h>", "<tmmintrin.h>")
     prefetch = X86_PREFETCH
+    # efficientnet_b0_96 whole, interleaved A/B: 8 -> 0.964-0.965x the time, 4 -> 0.975x.
+    math_interleave = 8

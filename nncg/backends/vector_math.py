@@ -115,8 +115,10 @@ QUIET_NAN = "2143289344"  # 0x7fc00000
 class _Body:
     """The statements of one helper, spelled from a width's templates; each method returns C text."""
 
-    def __init__(self, width: VectorWidth) -> None:
+    def __init__(self, width: VectorWidth, suffix: str = "") -> None:
         self.w = width
+        self.suffix = suffix  # on every name, so that several bodies can share one function
+        self.x = "x" + suffix  # the argument
         self.lines: list[str] = []
         self.used: dict[str, None] = {}  # the operations of width.ops spelled, in order
 
@@ -126,6 +128,7 @@ class _Body:
 
     def let(self, name: str, value: str, integer: bool = False) -> str:
         kind = self.w.bits["type"] if integer else self.w.type
+        name += self.suffix
         self.lines.append(f"{INDENT}const {kind} {name} = {value};")
         return name
 
@@ -166,7 +169,7 @@ class _Body:
 
 
 def _exp(b: _Body) -> str:
-    x = b.let("xc", b.op("max", b.c(EXP_LOW), b.op("min", b.c(EXP_HIGH), "x")))  # a NaN stays
+    x = b.let("xc", b.op("max", b.c(EXP_LOW), b.op("min", b.c(EXP_HIGH), b.x)))  # a NaN stays
     t = b.let("t", b.fma(x, b.c(LOG2E), b.c(ROUNDER)))
     n = b.let("n", b.op("-", t, b.c(ROUNDER)))
     r = b.let("r", b.fma(n, b.c(-LN2_LO), b.fma(n, b.c(-LN2_HI), x)))
@@ -184,24 +187,24 @@ def _exp(b: _Body) -> str:
 
 
 def _log(b: _Body) -> str:
-    scaled = b.select("<", "x", b.c(FLT_MIN), b.op("*", "x", b.c(8388608.0)), "x")  # a denormal: times 2^23
+    scaled = b.select("<", b.x, b.c(FLT_MIN), b.op("*", b.x, b.c(8388608.0)), b.x)  # a denormal: times 2^23
     i = b.let("i", b.i("from_float", a=scaled), integer=True)
     m = b.let("m", b.i("to_float", a=b.i("|", a=b.i("&", a=i, b=b.ibits(MANTISSA)), b=b.ibits(HALF_EXPONENT))))
     low = b.let("low", b.select("<", m, b.c(SQRT_HALF), b.c(1.0), b.c(0.0)))  # m in [1/2, sqrt(1/2)): 2m
     exponent = b.i("convert", a=b.i(">>", a=i, n="23"))
-    bias = b.select("<", "x", b.c(FLT_MIN), b.c(149.0), b.c(126.0))
+    bias = b.select("<", b.x, b.c(FLT_MIN), b.c(149.0), b.c(126.0))
     e = b.let("e", b.op("-", b.op("-", exponent, bias), low))
     f = b.let("f", b.fma(m, low, b.op("-", m, b.c(1.0))))  # 2m - 1 or m - 1, exact
     z = b.let("z", b.op("*", f, f))
     y = b.let("y", b.fma(z, b.c(-0.5), b.fma(e, b.c(LN2_LO), b.op("*", b.op("*", f, z), b.horner(f, LOG_P)))))
     r = b.let("r", b.fma(e, b.c(LN2_HI), b.op("+", f, y)))
     nan = b.i("to_float", a=b.ibits(QUIET_NAN))
-    finite = b.select("<=", "x", b.c(FLT_MAX), r, "x")  # +Inf and NaN are their own log
-    return b.select("<", "x", b.c(0.0), nan, b.select("<=", "x", b.c(0.0), b.c(float("-inf")), finite))
+    finite = b.select("<=", b.x, b.c(FLT_MAX), r, b.x)  # +Inf and NaN are their own log
+    return b.select("<", b.x, b.c(0.0), nan, b.select("<=", b.x, b.c(0.0), b.c(float("-inf")), finite))
 
 
 def _tanh(b: _Body) -> str:
-    a = b.let("a", b.masked("x", MAGNITUDE))
+    a = b.let("a", b.masked(b.x, MAGNITUDE))
     z = b.let("z", b.op("*", a, a))
     small = b.let("small", b.fma(b.op("*", a, z), b.horner(z, TANH_P), a))
     e = b.call("exp", b.op("+", a, a))
@@ -219,7 +222,7 @@ def _sigmoid(b: _Body) -> str:
     # SIGMOID_EXP_P (one degree below exp's, within the bound), by Estrin: two short chains, not
     # one of five, as latency more than the count of operations bounds an epilogue on SSE. The
     # denominator is then 2^-64 + 2^(n - 64) - w 2^(n - 64), its first sum off the polynomial's path.
-    x = b.let("xc", b.op("max", b.c(EXP_LOW), b.op("min", b.c(SIGMOID_HIGH), "x")))  # a NaN stays
+    x = b.let("xc", b.op("max", b.c(EXP_LOW), b.op("min", b.c(SIGMOID_HIGH), b.x)))  # a NaN stays
     t = b.let("t", b.fma(x, b.c(-LOG2E), b.c(SIGMOID_ROUNDER)))
     n = b.let("n", b.op("-", t, b.c(SIGMOID_ROUNDER)))
     v = b.let("v", b.fma(n, b.c(LN2_LO), b.fma(n, b.c(LN2_HI), x)))
@@ -233,7 +236,7 @@ def _sigmoid(b: _Body) -> str:
 
 
 def _erf(b: _Body) -> str:
-    a = b.let("a", b.op("min", b.c(ERF_HIGH), b.masked("x", MAGNITUDE)))  # a NaN stays
+    a = b.let("a", b.op("min", b.c(ERF_HIGH), b.masked(b.x, MAGNITUDE)))  # a NaN stays
     z = b.let("z", b.op("*", a, a))
     # Times 16, then 1/16 (both exact): a P(x^2) stays normal for a tiny normal x where a unit that
     # flushes denormals (ARMv7 NEON) multiplies and adds in two steps.
@@ -248,22 +251,22 @@ def _erf(b: _Body) -> str:
 def _softplus(b: _Body) -> str:
     # max(x, 0) + log(1 + exp(-|x|)): exp never overflows, and log(1 + e) is log1p's: log(u) less
     # ((u - 1) - e) / u, the error of rounding u = 1 + e, so a tiny e (x far below 0) is kept.
-    e = b.let("e", b.call("exp", b.masked("x", SIGN, "|")))
+    e = b.let("e", b.call("exp", b.masked(b.x, SIGN, "|")))
     u = b.let("u", b.op("+", b.c(1.0), e))
     log1p = b.op("-", b.call("log", u), b.op("/", b.op("-", b.op("-", u, b.c(1.0)), e), u))
-    return b.op("+", b.op("max", "x", b.c(0.0)), log1p)
+    return b.op("+", b.op("max", b.x, b.c(0.0)), log1p)
 
 
 def _abs(b: _Body) -> str:
-    return b.masked("x", MAGNITUDE)
+    return b.masked(b.x, MAGNITUDE)
 
 
 def _sqrt(b: _Body) -> str:
-    return b.spell("sqrt", a="x")
+    return b.spell("sqrt", a=b.x)
 
 
 def _with_sign_of_x(b: _Body, magnitude: str) -> str:
-    sign = b.i("&", a=b.i("from_float", a="x"), b=b.ibits(SIGN))
+    sign = b.i("&", a=b.i("from_float", a=b.x), b=b.ibits(SIGN))
     return b.i("to_float", a=b.i("|", a=b.i("from_float", a=magnitude), b=sign))
 
 
@@ -307,6 +310,28 @@ def vector_math_helper(fn: str, width: VectorWidth) -> tuple[str, ...]:
         "{",
         *body.lines,
         f"{INDENT}return {result};",
+        "}",
+    )
+
+
+def interleaved_name(fn: str, width: VectorWidth, count: int) -> str:
+    return f"{width.spell('math', fn=fn)}_x{count}"
+
+
+def interleaved_math_helper(fn: str, width: VectorWidth, count: int) -> tuple[str, ...]:
+    """The static function NAME(v) replacing each of v[0] .. v[count - 1] by fn of its lanes, the
+    count evaluations' statements interleaved. A math function is a long chain of dependent
+    operations; an out-of-order core holds few of them in its scheduler when they come one after
+    another, and runs count side by side when they come side by side (backends/simd.py)."""
+    bodies = [_Body(width, f"_{k}") for k in range(count)]
+    results = [ALGORITHMS[fn][0](body) for body in bodies]
+    return (
+        f"/* {fn} of each lane of {count} vectors, interleaved: as {width.spell('math', fn=fn)} */",
+        f"static NNCG_INLINE void {interleaved_name(fn, width, count)}({width.type} *v)",
+        "{",
+        *(f"{INDENT}const {width.type} {body.x} = v[{k}];" for k, body in enumerate(bodies)),
+        *(line for lines in zip(*(body.lines for body in bodies), strict=True) for line in lines),
+        *(f"{INDENT}v[{k}] = {result};" for k, result in enumerate(results)),
         "}",
     )
 
