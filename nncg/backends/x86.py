@@ -12,8 +12,8 @@ PREDICATES = {">": "_CMP_GT_OQ", ">=": "_CMP_GE_OQ", "<": "_CMP_LT_OQ", "<=": "_
 # L2 (Skylake client; 512 KiB Zen 2, 1 MiB Skylake-SP): the cache-block pass sizes for the smallest.
 X86_L1 = 32 * 1024
 X86_L2 = 256 * 1024
-# SSE's prefetch into every cache level, which all x86 targets print (prefetch.py says where).
-X86_PREFETCH = "_mm_prefetch((const char *){address}, _MM_HINT_T0);"
+# SSE's prefetch into L2, which all x86 targets print (prefetch.py says where and why L2).
+X86_PREFETCH = "_mm_prefetch((const char *){address}, _MM_HINT_T1);"
 
 
 def x86_width(prefix: str, vector_type: str, select: str, fma: bool) -> VectorWidth:
