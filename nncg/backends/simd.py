@@ -45,7 +45,7 @@ class SimdPrinter(IntegerVectors, ScalarPrinter):
     width of target.vector_widths); it overrides hooks only where a table cannot say it."""
 
     widths: Mapping[int, VectorWidth] = {}
-    # The statement that prefetches the cache line at `address` into L1 ("" : the target prints none).
+    # The statement that prefetches the cache line at `address` ("" : the target prints none).
     prefetch = ""
     # Up to this many consecutive stores of vectors that each call one math function (a register
     # block's SiLU epilogue) call an interleaved helper once (vector_math.py), 1: each its own. A
