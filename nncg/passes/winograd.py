@@ -32,7 +32,13 @@ from .per_layer import check_layer_names, parse_layer_map
 from .plan_memory import parse_bool
 
 MIN_INPUT_CHANNELS = 8
+# Output tiles that reuse each transformed weight enough where the weights do not fit L2; more where
+# they exceed LARGE_WEIGHTS_BYTES. resnet18 at 224x224, whole model with layer4 (7x7 outputs: 16 tiles,
+# 16.8 MB transformed) direct: avx2 0.874x the time, avx512 0.963x; with layer3 (49 tiles, 4.2 MB)
+# direct: avx2 1.060x. mlperf_ic_resnet8's last 3x3 (16 tiles, 262 KB) direct: avx512 1.15x, ssse3 1.12x.
 MIN_TILES = 16
+MIN_TILES_LARGE = 25
+LARGE_WEIGHTS_BYTES = 4 * 1024 * 1024
 MIN_INTEGER_TILES = 4  # integer Winograd's transforms and scratch on fewer tiles buy nothing (below)
 FLOAT_BYTES, INT16_BYTES = DType.FLOAT32.bytes, DType.INT16.bytes  # a transformed weight, float or integer
 
@@ -110,18 +116,22 @@ def float_chosen_by_cost_model(graph: Graph, node, target: Target) -> bool:
     """Enough input channels, and either enough 2x2 output tiles to reuse each transformed weight over
     or transformed weights that stay in L2: its 16 GEMMs stream 16/9 the direct weights, each used
     once per tile. resnet18 at 96x96, avx2: layer4 (4 tiles, 16.8 MB) 3550 us against 1400 direct,
-    cache-blocked; layer3 (9 tiles) even; pedestrian's conv3 (10 tiles, 131 KB) 24 -> 40 us direct."""
+    cache-blocked; layer3 (9 tiles) even; pedestrian's conv3 (10 tiles, 131 KB) 24 -> 40 us direct; at
+    224x224 see MIN_TILES."""
     if not winograd_applies(graph, node) or graph.shape(node.inputs[1])[1] < MIN_INPUT_CHANNELS:
         return False
     return _pays(graph, node, target, FLOAT_BYTES)
 
 
 def _pays(graph: Graph, node, target: Target, weight_bytes: int) -> bool:
-    """Enough output tiles, or transformed weights of `weight_bytes` an element that fit L2."""
+    """Transformed weights of `weight_bytes` an element that fit L2, or enough output tiles to reuse
+    each over (MIN_TILES; MIN_TILES_LARGE beyond LARGE_WEIGHTS_BYTES)."""
     rows, columns = graph.shape(node.outputs[0])[2:]
     c_out, c_in = graph.shape(node.inputs[1])[:2]
-    fits_l2 = not target.l2_bytes or 16 * c_out * c_in * weight_bytes < target.l2_bytes  # with room for the tiles
-    return fits_l2 or _tiles(rows, columns) >= MIN_TILES
+    transformed = 16 * c_out * c_in * weight_bytes
+    if not target.l2_bytes or transformed < target.l2_bytes:  # with room for the tiles
+        return True
+    return _tiles(rows, columns) >= (MIN_TILES_LARGE if transformed > LARGE_WEIGHTS_BYTES else MIN_TILES)
 
 
 def _tiles(rows: int, columns: int) -> int:
