@@ -39,9 +39,10 @@ import nncg
 from nncg.bench.benchmark import interleaved_samples, paired_ratio, pinned
 from nncg.bench.harness import CompiledHarness
 from nncg.bench.onnxruntime_timer import OnnxruntimeTimer
-from nncg.bench.peak import TARGET_ISA, host_targets
+from nncg.bench.peak import TARGET_ISA
 from nncg.cli import positive_number
 from nncg.compiler import CompiledModel
+from nncg.host_cpu import host_targets
 from nncg.ir.kinds import BufferRole
 from nncg.quant_steps import Comparison, compare_steps
 from nncg.verify import build_model, find_c_compiler, random_inputs

@@ -16,6 +16,7 @@ from . import __version__
 from .arguments import DIM_MAX, REQUANTIZE_FORMS
 from .backends import BACKENDS
 from .errors import NncgError, NncgWarning
+from .host_cpu import check_host_runs
 from .lowering.band_plan import MEMORY_MODES
 from .options import CompileOptions
 from .output_files import check_output_folder, write_files
@@ -282,6 +283,8 @@ def run(args: argparse.Namespace) -> int:
     if args.per_layer and not args.verify:
         raise NncgError("--per-layer is a kind of --verify: give both")
     check_output_folder(Path(args.output_dir))  # before compiling (or tuning for a minute)
+    if args.verify or args.benchmark or args.profile or (args.tune and not args.tune_runner):
+        check_host_runs(args.target)  # they run the code here: say so now, not as a crash after writing
     if args.report:
         from .report import require_plots
 

@@ -44,7 +44,8 @@ def run_tool(
     stdout, stderr = _text(proc.stdout), _text(proc.stderr)
     status = _failure(proc.returncode, stderr, reject_warnings)
     if status is not None:
-        raise error(f"{what} {status}: {shown}\n{output_head(stderr + stdout)}")
+        output = output_head(stderr + stdout)
+        raise error(f"{what} {status}: {shown}" + (f"\n{output}" if output else ""))
     return subprocess.CompletedProcess(argv, proc.returncode, stdout if text else proc.stdout, stderr)
 
 

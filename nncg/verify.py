@@ -18,6 +18,7 @@ import onnx
 
 from nncg.c_harness import harness_source
 from nncg.errors import NncgError
+from nncg.host_cpu import check_host_runs
 from nncg.quant_steps import ALLOWED_STEPS, Step, steps_apart, tensor_steps, within_allowed_steps
 from nncg.safe_text import capped, escaped, terminal_line
 from nncg.tools import output_head, run_tool
@@ -305,6 +306,8 @@ class BuiltModel:
     def run(self, inputs: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Run the program once on `inputs` (in the model's input order); returns the outputs."""
         _check_inputs(self.compiled, inputs)
+        if not self.runner:
+            check_host_runs(self.compiled.target)
         in_files = [f"input{i}.bin" for i in range(len(inputs))]
         out_files = [f"output{i}.bin" for i in range(len(self.compiled.outputs))]
         for name, spec, array in zip(in_files, self.compiled.inputs, inputs):
@@ -360,6 +363,32 @@ def _read_output(path: Path, spec: Any) -> np.ndarray:
     return data.astype(dtype).reshape(shape)
 
 
+def reference_session(model: onnx.ModelProto, optimize: bool = True, log_level: int = 3):
+    """An onnxruntime CPU session for reference outputs: one thread, exact integer products. On x86
+    without VNNI (SSE4.1, AVX2, AVX-512F) onnxruntime's uint8 x int8 kernels add pairs of products in
+    int16, which saturates (a 3x3 QDQ conv on a Zen 3 core: outputs 108 steps off); the session option
+    session.x64quantprecision rewrites them to its exact uint8 x uint8 kernels. Its rewrite also turns
+    int8 x int8 QLinearConv into a node no kernel runs: such a model gets a session without it (its
+    int8 x int8 kernels sign-extend to int16 first and do not saturate)."""
+    import onnxruntime as ort  # imported here: only verification needs it, not compiling
+    from onnxruntime.capi.onnxruntime_pybind11_state import NotImplemented as NoKernel
+
+    def session(exact: bool):
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 1
+        options.log_severity_level = log_level
+        if not optimize:
+            options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+        if exact:
+            options.add_session_config_entry("session.x64quantprecision", "1")
+        return ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+
+    try:
+        return session(exact=True)
+    except NoKernel:
+        return session(exact=False)
+
+
 def reference_outputs(
     model: onnx.ModelProto,
     compiled_inputs: Sequence[Any],
@@ -368,15 +397,9 @@ def reference_outputs(
 ) -> list[np.ndarray]:
     """onnxruntime (CPU, no graph optimizations) on the same inputs; the graph's outputs in graph order,
     or the named ones (graph outputs all) in that order."""
-    import onnxruntime as ort  # imported here: only verification needs it, not compiling
-
-    options = ort.SessionOptions()
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
-    options.intra_op_num_threads = 1
-    options.log_severity_level = 3
     feed = {spec.name: input_array(spec, array) for spec, array in zip(compiled_inputs, inputs)}
     try:
-        session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+        session = reference_session(model, optimize=False)
         return [np.asarray(out) for out in session.run(None if output_names is None else list(output_names), feed)]
     except Exception as exc:  # onnxruntime raises its own exception types
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__

@@ -18,7 +18,7 @@ from onnx import TensorProto, helper, numpy_helper
 import nncg
 from nncg.backends.ansi_c import AnsiC
 from nncg.backends.scalar_math import helper_definitions, helper_name
-from nncg.bench.peak import TARGET_CPU_FLAGS, cpu_flags
+from nncg.host_cpu import TARGET_CPU_FLAGS, cpu_flags
 from nncg.ir.target import Target
 from nncg.verify import VerifyReport, verify
 

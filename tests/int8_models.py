@@ -10,13 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 from helpers import onnx_model
 from onnx import TensorProto, helper, numpy_helper
 from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
 from nncg.quant_steps import Comparison, compare_steps, tensor_steps  # noqa: F401 - tensor_steps for the tests
-from nncg.verify import run_compiled
+from nncg.verify import reference_session, run_compiled
 
 ROOT = Path(__file__).resolve().parent.parent
 OPSET = 17
@@ -343,8 +342,7 @@ def assert_identical(model: onnx.ModelProto, compiled, feeds_list: list[dict[str
 
 
 def onnxruntime_outputs(model: onnx.ModelProto, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
-    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
-    return session.run(None, feeds)
+    return reference_session(model).run(None, feeds)
 
 
 def compare(model: onnx.ModelProto, compiled, feeds: list[dict[str, np.ndarray]], **run) -> Comparison:

@@ -15,8 +15,9 @@ import pytest
 from helpers import NNCG_CLI, nncg_onnx
 
 import nncg
-from nncg import cli
+from nncg import cli, host_cpu
 from nncg.errors import NncgError
+from nncg.verify import build_model, random_inputs
 
 ROOT = Path(__file__).resolve().parent.parent
 BALL = ROOT / "examples" / "ball.onnx"
@@ -257,6 +258,27 @@ def test_unexpected_errors_are_one_escaped_line(monkeypatch, capsys, error, stat
     assert cli.main([str(BALL)]) == status
     (printed,) = capsys.readouterr().err.splitlines()
     assert printed.startswith(line) and "\x1b" not in printed
+
+
+@pytest.mark.parametrize("option", ["--verify", "--benchmark", "--profile", "--tune"])
+def test_running_code_this_cpu_lacks_the_isa_for_is_refused_before_writing(monkeypatch, capsys, tmp_path, option):
+    """On a core without AVX-512, --target avx512 code would stop on an illegal instruction after the
+    files were written: the run is refused first, naming the missing flag and the targets that run."""
+    monkeypatch.setattr(host_cpu, "cpu_flags", lambda: frozenset({"sse2", "ssse3", "avx2", "fma"}))
+    out = tmp_path / "out"
+    assert cli.main([str(BALL), "--target", "avx512", option, "-o", str(out)]) == 2
+    (printed,) = capsys.readouterr().err.splitlines()
+    assert "this CPU lacks avx512f, which --target avx512 code needs" in printed
+    assert printed.endswith("or a target this one runs: ansi-c, ssse3, avx2")
+    assert not out.exists()
+
+
+def test_the_api_refuses_to_run_code_this_cpu_lacks_the_isa_for(monkeypatch, tmp_path):
+    monkeypatch.setattr(host_cpu, "cpu_flags", lambda: frozenset({"sse2", "ssse3"}))
+    compiled = nncg.compile(str(BALL), target="avx2")
+    built = build_model(compiled, tmp_path)  # building is fine: only running the code is refused
+    with pytest.raises(NncgError, match="this CPU lacks avx2 and fma, which --target avx2 code needs"):
+        built.run(random_inputs(compiled.inputs))
 
 
 # --- the Python API ------------------------------------------------------------------------------

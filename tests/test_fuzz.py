@@ -15,11 +15,12 @@ from nncg.fuzz.__main__ import main
 from nncg.fuzz.build import build, value_shapes
 from nncg.fuzz.case import WINOGRAD_NODE_BYTES, Case, evaluate, make_case, size_limit
 from nncg.fuzz.generator import generate
-from nncg.fuzz.options import Options, host_targets
+from nncg.fuzz.options import Options
 from nncg.fuzz.recipe import Recipe, Step
 from nncg.fuzz.runner import run_case, validate
 from nncg.fuzz.shrinker import shrink
 from nncg.fuzz.ties import has_nearest_resize_tie
+from nncg.host_cpu import host_targets
 
 REGRESSIONS = Path(__file__).resolve().parent / "fuzz_regressions"
 ALL_TARGETS = ("ansi-c", "ssse3", "avx2", "avx512")

@@ -24,6 +24,7 @@ from nncg import conformance
 from nncg.errors import NncgError
 from nncg.frontend.ops import SUPPORTED_OPS
 from nncg.onnx_backend import BackendError, NncgBackend, parameter_inputs
+from nncg.verify import reference_session
 
 needs_cc = pytest.mark.skipif(not any(shutil.which(c) for c in ("cc", "gcc", "clang")), reason="no C compiler on PATH")
 
@@ -348,7 +349,6 @@ def test_integer_data_inputs_are_data_and_integer_weights_are_bound() -> None:
 
 @needs_cc
 def test_backend_runs_uint8_in_and_out_like_onnxruntime(compiles: list) -> None:
-    import onnxruntime as ort
 
     model = _qlinear_conv_fed_weights()
     rng = np.random.default_rng(0)
@@ -360,7 +360,7 @@ def test_backend_runs_uint8_in_and_out_like_onnxruntime(compiles: list) -> None:
     feeds = {n: np.asarray(a) for n, a in feeds.items()}
     rep = NncgBackend.prepare(model)
     (ours,) = rep.run(feeds)
-    (expected,) = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, feeds)
+    (expected,) = reference_session(model).run(None, feeds)
     assert ours.dtype == np.uint8 and rep.compiled.inputs[0].dtype == "uint8"
     np.testing.assert_array_equal(ours, expected)
     with pytest.raises(BackendError, match="input 'x' is int8; the model takes uint8"):

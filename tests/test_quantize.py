@@ -23,7 +23,7 @@ import nncg
 from nncg import cli, quantize_cli
 from nncg.errors import NncgError
 from nncg.frontend.layout import model_layout
-from nncg.verify import build_model
+from nncg.verify import build_model, reference_session
 
 ROBOT = ROOT / "examples" / "robot.onnx"
 RNG_SEED = 7
@@ -68,7 +68,7 @@ LAYER_AXES = {"w_conv": (0, 4), "w_convt": (1, 3), "w_gemm": (0, 6), "w_matmul":
 
 
 def session(model: onnx.ModelProto) -> ort.InferenceSession:
-    return ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    return reference_session(model)
 
 
 def run_all(model: onnx.ModelProto, name: str, samples: np.ndarray) -> np.ndarray:

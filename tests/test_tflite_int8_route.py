@@ -13,7 +13,6 @@ from collections import Counter
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import pytest
 from helpers import skip_unless_host_runs
 
@@ -28,7 +27,7 @@ from test_keras_route import digits_cnn  # noqa: E402
 import nncg  # noqa: E402
 from nncg.frontend.keras_export import keras_to_onnx  # noqa: E402
 from nncg.frontend.layout import model_layout  # noqa: E402
-from nncg.verify import build_model  # noqa: E402
+from nncg.verify import build_model, reference_session  # noqa: E402
 
 # What tf2onnx 1.17 writes for the quantised digits CNN: float operators between QDQ pairs.
 QDQ_OPS = {
@@ -97,7 +96,7 @@ def test_onnxruntime_classifies_the_digits_like_tflite(digits):
     TFLite in integers (fixed-point multipliers, a softmax table), so the probabilities may differ by a
     few output steps of 1/256; the classes agree."""
     proto = digits["onnx"]
-    run = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    run = reference_session(proto)
     name = proto.graph.input[0].name
     onnx_out = np.concatenate([run.run(None, {name: image[None]})[0] for image in digits["x"]])
     tflite, y = digits["tflite"], digits["y"]
@@ -121,7 +120,7 @@ def test_the_float_model_quantised_by_nncg_classifies_like_keras(digits):
     name = proto.graph.input[0].name
     qdq = nncg.quantize(proto, {name: digits["calibration"][:, None]}, activations="int8")
     assert model_layout(qdq) == "nhwc"
-    run = ort.InferenceSession(qdq.SerializeToString(), providers=["CPUExecutionProvider"])
+    run = reference_session(qdq)
     out = np.concatenate([run.run(None, {name: image[None]})[0] for image in digits["x"]])
     keras_classes = digits["model"].predict(digits["x"], verbose=0).argmax(1)
     same = float(np.mean(out.argmax(1) == keras_classes))

@@ -18,6 +18,7 @@ from ..compiler import compile as compile_model
 from ..compiler import memory_figures
 from ..errors import NncgError
 from ..frontend import load_model
+from ..safe_text import shown
 from ..verify import compare, find_c_compiler, random_inputs
 from .harness import CompiledHarness, ObjectSizes
 from .onnxruntime_timer import THREADS, OnnxruntimeTimer
@@ -151,7 +152,7 @@ def benchmark_variants(
     then times every variant and onnxruntime in one interleaved run, so the variants' ratios to each
     other are measured side by side, on the same inputs."""
     if target not in TARGET_ISA:  # neon: ARM code, which the x86 host neither builds nor has a peak for
-        raise NncgError(f"--benchmark times x86 targets ({', '.join(TARGET_ISA)}) on this host, not {target}")
+        raise NncgError(f"--benchmark times x86 targets ({', '.join(TARGET_ISA)}) on this host, not {shown(target)}")
     cc, peaks = find_c_compiler(timing.cc), timing.peaks
     proto = load_model(model, input_shapes)
     builds = {

@@ -14,6 +14,7 @@ import numpy as np
 from ..backends.c_file import PROFILE_CPU_TIME_FLAG
 from ..c_harness import harness_source
 from ..errors import NncgError
+from ..host_cpu import check_host_runs
 from ..tools import run_tool
 from ..verify import write_input
 
@@ -45,6 +46,8 @@ class CompiledHarness:
         script that runs it on a board), for a harness built with a cross compiler. `cpu_time`: `run`
         and the profile timers read the thread's CPU time instead of the wall clock (on a shared core
         it leaves out the time other processes run; each timer read is then a system call)."""
+        if not runner:
+            check_host_runs(compiled.target)
         self.compiled = compiled
         self.workdir = workdir
         compiled.write(workdir)

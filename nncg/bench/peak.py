@@ -4,7 +4,6 @@ the hardware limit that "% of peak" of generated code is measured against."""
 from __future__ import annotations
 
 import math
-import platform
 import re
 import sys
 import tempfile
@@ -12,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import NncgError
+from ..host_cpu import cpu_flags
 from ..tools import run_tool
 from ..verify import find_c_compiler
 
@@ -69,15 +69,6 @@ TARGET_ISA = {
     "avx2": "avx2-fma",
     "avx512": "avx512-fma",
     "avx512vnni": "avx512-fma",
-}
-
-# The /proc/cpuinfo flags an x86 target's generated code needs to run (ansi-c needs none).
-TARGET_CPU_FLAGS = {
-    "ansi-c": (),
-    "ssse3": ("sse2", "ssse3"),
-    "avx2": ("avx2", "fma"),
-    "avx512": ("avx512f",),
-    "avx512vnni": ("avx512f", "avx512bw", "avx512vl", "avx512_vnni"),
 }
 
 # Calibrates the trip count until one run lasts min_seconds, then times `repeats` runs and prints the
@@ -199,28 +190,10 @@ def clock_source() -> str:
     )
 
 
-def cpu_flags() -> frozenset[str]:
-    """The host x86 CPU's /proc/cpuinfo flags; empty on other machines or where that cannot be read."""
-    if platform.machine().lower() not in ("x86_64", "amd64", "i386", "i686"):
-        return frozenset()
-    try:
-        cpuinfo = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return frozenset()  # not Linux: nothing we can determine without running code
-    match = re.search(r"^flags\s*:(.*)$", cpuinfo, re.MULTILINE)
-    return frozenset(match.group(1).split()) if match else frozenset()
-
-
 def supported_isas() -> list[str]:
     """The ISAs of ISAS the host CPU supports; [] where that cannot be determined."""
     flags = cpu_flags()
     return [name for name, spec in ISAS.items() if flags.issuperset(spec.cpu_flags)]
-
-
-def host_targets() -> list[str]:
-    """The targets whose code runs on this CPU: ansi-c always, the x86 ones whose flags it has."""
-    flags = cpu_flags()
-    return [target for target, needs in TARGET_CPU_FLAGS.items() if flags.issuperset(needs)]
 
 
 def measure_peak(isa: str, cc: str | None = None, min_seconds: float = 0.02, repeats: int = 7) -> float:

@@ -6,9 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..host_cpu import host_targets
 from .campaign import Settings, default_jobs, promote, replay, run
 from .ops import OPS
-from .options import CROSS, cross_available, host_targets
+from .options import CROSS, cross_available
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

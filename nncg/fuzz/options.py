@@ -13,7 +13,6 @@ import numpy as np
 import onnx
 
 from ..backends import get_target
-from ..bench import peak
 from ..errors import NncgError
 from ..ir.applicability import (
     cache_block_applies,
@@ -99,11 +98,6 @@ class Options:
                 }
                 out.append(replace(self, layers={p: c for p, c in fewer.items() if c}))
         return out
-
-
-def host_targets() -> list[str]:
-    """ansi-c and the x86 targets whose code runs on this CPU."""
-    return peak.host_targets()
 
 
 def cross_available(target: str) -> bool:

@@ -18,7 +18,15 @@ import onnx
 
 from .. import compile as compile_model
 from ..errors import NncgError
-from ..verify import VerificationError, compare, random_inputs, reference_outputs, run_compiled, verify
+from ..verify import (
+    VerificationError,
+    compare,
+    random_inputs,
+    reference_outputs,
+    reference_session,
+    run_compiled,
+    verify,
+)
 from .options import CROSS, Options
 from .ties import has_nearest_resize_tie
 
@@ -124,17 +132,11 @@ def validate(model: onnx.ModelProto, declared: dict[str, tuple[int, ...]] | None
 
 def _onnxruntime_outputs(model: onnx.ModelProto) -> list[np.ndarray]:
     """The model run by onnxruntime on verify's inputs, with its log off (rejections are counted, not printed)."""
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.log_severity_level = 4
-    options.intra_op_num_threads = 1
     initializers = {t.name for t in model.graph.initializer}
     inputs = [v for v in model.graph.input if v.name not in initializers]
     shapes = [tuple(d.dim_value for d in v.type.tensor_type.shape.dim) for v in inputs]
     arrays = random_inputs([np.empty(s, np.float32) for s in shapes], 0)
-    session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
-    return session.run(None, {v.name: a for v, a in zip(inputs, arrays)})
+    return reference_session(model, log_level=4).run(None, {v.name: a for v, a in zip(inputs, arrays)})
 
 
 def run_case(model: onnx.ModelProto, options: Options, size_limit: int | None = None) -> Outcome:
