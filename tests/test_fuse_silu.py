@@ -181,7 +181,7 @@ def test_a_run_that_reads_what_it_writes_is_not_interleaved():
 
     apart = tuple(store("y", "x", 4 * i) for i in range(3))
     in_place = tuple(store("x", "x", 4 * i) for i in range(3))
-    assert [len(run) for run in interleaved_runs(apart, widths, 8)] == [3]
-    assert [len(run) for run in interleaved_runs(apart, widths, 2)] == [2, 1]
-    assert [len(run) for run in interleaved_runs(in_place, widths, 8)] == [1, 1, 1]
-    assert [len(run) for run in interleaved_runs(apart, widths, 1)] == [1, 1, 1]
+    assert [len(run) for run, _ in interleaved_runs(apart, widths, 8)] == [3]
+    assert [len(run) for run, _ in interleaved_runs(apart, widths, 2)] == [2, 1]
+    assert [len(run) for run, _ in interleaved_runs(in_place, widths, 8)] == [1, 1, 1]
+    assert [len(run) for run, _ in interleaved_runs(apart, widths, 1)] == [1, 1, 1]

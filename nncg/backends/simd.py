@@ -29,7 +29,7 @@ from .prefetch import prefetch_addresses, streamed_constants
 from .scalar import ScalarPrinter
 from .scalar_math import scalar_calls
 from .simd_integer import IntegerVectors
-from .simd_needs import Needs, collect_needs, interleaved_runs, math_call
+from .simd_needs import Needs, collect_needs, interleaved_runs
 from .vector_math import (
     has_vector_math,
     interleaved_math_helper,
@@ -88,13 +88,12 @@ class SimdPrinter(IntegerVectors, ScalarPrinter):
 
     def stmts(self, body: tuple[Stmt, ...], depth: int) -> list[str]:
         out: list[str] = []
-        for run in interleaved_runs(body, self.widths, self.math_interleave):
-            out += super().stmts(run, depth) if len(run) == 1 else self._interleaved_stores(run, depth)
+        for run, calls in interleaved_runs(body, self.widths, self.math_interleave):
+            out += self._interleaved_stores(run, calls, depth) if calls else super().stmts(run, depth)
         return out
 
-    def _interleaved_stores(self, stores: tuple[Stmt, ...], depth: int) -> list[str]:
+    def _interleaved_stores(self, stores: tuple[Stmt, ...], calls: tuple[Call, ...], depth: int) -> list[str]:
         """The stores' calls as one call of the interleaved helper, on an array of their arguments."""
-        calls = [math_call(store, self.widths) for store in stores]
         width, lanes = self.width(calls[0].lanes), self.interleaved_lanes
         pad, inner = INDENT * depth, INDENT * (depth + 1)
         lines = [pad + "{", f"{inner}{width.type} {lanes}[{len(stores)}];"]

@@ -14,16 +14,14 @@ from ..ir.loops import (
     Const,
     Expr,
     Fma,
-    If,
-    Let,
     Load,
-    Loop,
     Program,
     Select,
     Stmt,
     Store,
     read_buffer,
     stmt_exprs,
+    walk_bodies,
     walk_exprs,
     walk_stmts,
 )
@@ -63,35 +61,37 @@ def collect_needs(program: Program, widths: Mapping[int, VectorWidth], interleav
             table = rows.setdefault(lanes, {})
             table.setdefault(node.values, len(table))  # == on floats: 0.0 and -0.0 share a row
     interleaved = {
-        (call.lanes, call.fn, len(run))
+        (calls[0].lanes, calls[0].fn, len(calls))
         for kernel in program.kernels
-        for body in _bodies(kernel.body)
-        for run in interleaved_runs(body, widths, interleave)
-        if len(run) > 1 and (call := math_call(run[0], widths))
+        for body in walk_bodies(kernel.body)
+        for _, calls in interleaved_runs(body, widths, interleave)
+        if calls
     }
     return Needs(tuple(definitions), frozenset(math), frozenset(interleaved), rows)
 
 
 def interleaved_runs(
     body: tuple[Stmt, ...], widths: Mapping[int, VectorWidth], most: int
-) -> Iterator[tuple[Stmt, ...]]:
-    """body's statements in order, in groups: up to `most` consecutive Stores each of which calls the
-    same math function once on vectors of the same width (a register block's epilogue), which the
-    printer computes with one call of an interleaved helper; every other statement alone. A group
-    computes its calls before its stores, so none may read a buffer that one of its stores writes."""
+) -> Iterator[tuple[tuple[Stmt, ...], tuple[Call, ...]]]:
+    """body's statements in order, in groups, each with its calls: up to `most` consecutive Stores each
+    of which calls the same math function once on vectors of the same width (a register block's
+    epilogue), which the printer computes with one call of an interleaved helper; every other
+    statement alone, with no calls. A group computes its calls before its stores, so none may read a
+    buffer that one of its stores writes."""
+    calls = [math_call(stmt, widths) if most > 1 else None for stmt in body]
 
-    def function(stmt: Stmt) -> tuple[str, int] | None:
-        call = math_call(stmt, widths) if most > 1 else None
-        return (call.fn, call.lanes) if call else None
+    def function(k: int) -> tuple[str, int] | None:
+        return (calls[k].fn, calls[k].lanes) if calls[k] else None
 
-    for key, same in groupby(body, function):
-        stmts = tuple(same)
-        runs = [stmts[i : i + most] for i in range(0, len(stmts), most)] if key else []
-        for run in runs or [(stmt,) for stmt in stmts]:
-            if len(run) > 1 and _reads_what_it_writes(run, widths):
-                yield from ((stmt,) for stmt in run)
+    for key, same in groupby(range(len(body)), function):
+        at = tuple(same)
+        runs = [at[i : i + most] for i in range(0, len(at), most)] if key else [(k,) for k in at]
+        for run in runs:
+            stores, run_calls = tuple(body[k] for k in run), tuple(calls[k] for k in run)
+            if len(run) == 1 or _reads_what_it_writes(stores, run_calls):
+                yield from (((store,), ()) for store in stores)
             else:
-                yield run
+                yield stores, run_calls
 
 
 def math_call(stmt: Stmt, widths: Mapping[int, VectorWidth]) -> Call | None:
@@ -105,18 +105,9 @@ def math_call(stmt: Stmt, widths: Mapping[int, VectorWidth]) -> Call | None:
     return calls[0]
 
 
-def _reads_what_it_writes(run: tuple[Stmt, ...], widths: Mapping[int, VectorWidth]) -> bool:
-    written = {stmt.buffer for stmt in run if isinstance(stmt, Store)}
-    calls = [math_call(stmt, widths) for stmt in run]
-    return any(read_buffer(e) in written for call in calls if call for e in walk_exprs(call.arg))
-
-
-def _bodies(body: tuple[Stmt, ...]) -> Iterator[tuple[Stmt, ...]]:
-    """body and the bodies of the statements in it, nested ones included."""
-    yield body
-    for stmt in body:
-        if isinstance(stmt, Loop | Let | If):
-            yield from _bodies(stmt.body)
+def _reads_what_it_writes(stores: tuple[Stmt, ...], calls: tuple[Call, ...]) -> bool:
+    written = {store.buffer for store in stores}
+    return any(read_buffer(e) in written for call in calls for e in walk_exprs(call.arg))
 
 
 def operations(node: Expr | Store, width: VectorWidth) -> tuple[str, ...]:

@@ -544,6 +544,14 @@ def walk_stmts(body: tuple[Stmt, ...]):
             yield from walk_stmts(stmt.body)
 
 
+def walk_bodies(body: tuple[Stmt, ...]):
+    """Yields body and the body of every statement in it, nested ones included."""
+    yield body
+    for stmt in body:
+        if isinstance(stmt, Loop | Let | If):
+            yield from walk_bodies(stmt.body)
+
+
 def expr_dots(expr: Expr) -> list[Dot]:
     """The dot products in expr, itself included."""
     return [e for e in walk_exprs(expr) if isinstance(e, Dot)]
