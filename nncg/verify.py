@@ -367,16 +367,20 @@ def reference_session(model: onnx.ModelProto, optimize: bool = True, log_level: 
     """An onnxruntime CPU session for reference outputs: one thread, exact integer products. On x86
     without VNNI (SSE4.1, AVX2, AVX-512F) onnxruntime's uint8 x int8 kernels add pairs of products in
     int16, which saturates (a 3x3 QDQ conv on a Zen 3 core: outputs 108 steps off); the session option
-    session.x64quantprecision rewrites them to its exact uint8 x uint8 kernels. Its rewrite also turns
-    int8 x int8 QLinearConv into a node no kernel runs: such a model gets a session without it (its
-    int8 x int8 kernels sign-extend to int16 first and do not saturate)."""
+    session.x64quantprecision rewrites them to its exact uint8 x uint8 kernels; ConvInteger, which that
+    rewrite leaves (and whose int8 x uint8 saturates too), gets weights of x's signedness here
+    (_same_signed_conv_integer_weights). Where the option's
+    rewrite breaks the model (int8 x int8 QLinearConv becomes a node no kernel runs; shared TFLite
+    weights make it fail) the session goes without it: its int8 x int8 kernels sign-extend to int16
+    first and do not saturate."""
     import onnxruntime as ort  # imported here: only verification needs it, not compiling
-    from onnxruntime.capi.onnxruntime_pybind11_state import NotImplemented as NoKernel
+
+    model = _same_signed_conv_integer_weights(model)
 
     def session(exact: bool):
         options = ort.SessionOptions()
         options.intra_op_num_threads = 1
-        options.log_severity_level = log_level
+        options.log_severity_level = 4 if exact else log_level  # a failed first try is no error
         if not optimize:
             options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
         if exact:
@@ -385,8 +389,53 @@ def reference_session(model: onnx.ModelProto, optimize: bool = True, log_level: 
 
     try:
         return session(exact=True)
-    except NoKernel:
+    except Exception:  # onnxruntime raises its own exception types; without the option it may still run
         return session(exact=False)
+
+
+def _same_signed_conv_integer_weights(model: onnx.ModelProto) -> onnx.ModelProto:
+    """The model with each ConvInteger whose constant weights' type differs from x's (uint8 x int8 or
+    int8 x uint8) taking them as x's type, w and its zero point both moved by 128: the same products
+    (w - w_zero_point is unchanged), which onnxruntime's kernels of one signedness sum without
+    saturating."""
+    eight_bit = (onnx.TensorProto.INT8, onnx.TensorProto.UINT8)
+    inits = {t.name: t for t in model.graph.initializer}
+    convs = [
+        k for k, n in enumerate(model.graph.node)
+        if n.op_type == "ConvInteger" and n.domain in ("", "ai.onnx") and len(n.input) > 1
+        and n.input[1] in inits and inits[n.input[1]].data_type in eight_bit
+        and (len(n.input) < 4 or not n.input[3] or n.input[3] in inits)
+    ]  # fmt: skip
+    if not convs:
+        return model
+    try:
+        typed = onnx.shape_inference.infer_shapes(model)
+    except Exception:  # onnx raises several types; a model it cannot type is run as it is
+        return model
+    elem = {v.name: v.type.tensor_type.elem_type for v in (*typed.graph.input, *typed.graph.value_info)}
+    out = onnx.ModelProto.FromString(model.SerializeToString())
+    taken = set(inits) | {x for n in out.graph.node for x in (*n.input, *n.output)}
+    for k in convs:
+        node = out.graph.node[k]
+        x_type, w_type = elem.get(node.input[0]), inits[node.input[1]].data_type
+        if x_type not in eight_bit or x_type == w_type:
+            continue
+        zero = inits.get(node.input[3]) if len(node.input) > 3 and node.input[3] else None
+        weights = onnx.numpy_helper.to_array(inits[node.input[1]])
+        arrays = {1: weights, 3: onnx.numpy_helper.to_array(zero) if zero else np.zeros((), weights.dtype)}
+        shift, dtype = (128, np.uint8) if x_type == onnx.TensorProto.UINT8 else (-128, np.int8)
+        inputs = [*node.input] + [""] * (4 - len(node.input))
+        for slot, array in arrays.items():
+            name = f"{node.input[1]}_as_{np.dtype(dtype).name}_{k}_{slot}"
+            while name in taken:
+                name += "_"
+            taken.add(name)
+            shifted = (array.astype(np.int16) + shift).astype(dtype)
+            out.graph.initializer.append(onnx.numpy_helper.from_array(shifted, name))
+            inputs[slot] = name
+        del node.input[:]
+        node.input.extend(inputs)
+    return out
 
 
 def reference_outputs(

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import onnx
 import pytest
+from helpers import skip_unless_host_runs
 from onnx import TensorProto, helper
 
 from nncg.frontend.ops import CONVERTERS
@@ -15,7 +16,7 @@ from nncg.fuzz.__main__ import main
 from nncg.fuzz.build import build, value_shapes
 from nncg.fuzz.case import WINOGRAD_NODE_BYTES, Case, evaluate, make_case, size_limit
 from nncg.fuzz.generator import generate
-from nncg.fuzz.options import Options
+from nncg.fuzz.options import CROSS, Options
 from nncg.fuzz.recipe import Recipe, Step
 from nncg.fuzz.runner import run_case, validate
 from nncg.fuzz.shrinker import shrink
@@ -240,6 +241,8 @@ def test_fuzz_regression(folder):
     model = onnx.load(folder / "model.onnx")
     assert validate(model) is None, "the saved model must be valid for onnxruntime"
     options = Options.from_json(record["options"])
+    if options.target not in CROSS:
+        skip_unless_host_runs(options.target)  # the saved case's target: x86 code runs on this CPU
     outcome = run_case(model, options, size_limit(model, options))
     assert outcome.kind == "pass", f"{record['description']}: {outcome.kind}: {outcome.message}"
 

@@ -139,4 +139,7 @@ def test_nncg_c_gives_tflites_class_for_every_image(digits, tmp_path):
     c_out = np.concatenate([built.run([image[None]])[0] for image in digits["x"]])
     accuracy = np.mean(c_out.argmax(1) == digits["y"])
     print(f"digits int8: NNCG C accuracy {accuracy:.4f}")
-    assert (c_out.argmax(1) == digits["tflite"].argmax(1)).all()
+    # TFLite's class is one of NNCG's best: where onnxruntime's float softmax (which NNCG computes)
+    # rounds two classes to the same step, TFLite's integer softmax may order them either way.
+    best = c_out == c_out.max(axis=1, keepdims=True)
+    assert best[np.arange(len(best)), digits["tflite"].argmax(1)].all()
