@@ -15,6 +15,7 @@ from ..backends.c_file import PROFILE_CPU_TIME_FLAG
 from ..c_harness import harness_source
 from ..errors import NncgError
 from ..host_cpu import check_host_runs
+from ..safe_text import shown
 from ..tools import run_tool
 from ..verify import write_input
 
@@ -111,7 +112,12 @@ class CompiledHarness:
     def _line(self) -> str:
         line = self.process.stdout.readline()
         if not line:
-            raise NncgError(f"the benchmark harness of {self.compiled.name} stopped (exit {self.process.poll()})")
+            try:
+                code = self.process.wait(timeout=10)  # its output closed: it is ending, so reap it for the status
+            except subprocess.TimeoutExpired:
+                code = None
+            how = "" if code is None else f" (signal {-code})" if code < 0 else f" (exit status {code})"
+            raise NncgError(f"the benchmark harness of {shown(self.compiled.name)} stopped{how}")
         return line.strip()
 
     def _ask(self, command: str) -> str:
