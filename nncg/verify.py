@@ -367,12 +367,11 @@ def reference_session(model: onnx.ModelProto, optimize: bool = True, log_level: 
     """An onnxruntime CPU session for reference outputs: one thread, exact integer products. On x86
     without VNNI (SSE4.1, AVX2, AVX-512F) onnxruntime's uint8 x int8 kernels add pairs of products in
     int16, which saturates (a 3x3 QDQ conv on a Zen 3 core: outputs 108 steps off); the session option
-    session.x64quantprecision rewrites them to its exact uint8 x uint8 kernels; ConvInteger, which that
-    rewrite leaves (and whose int8 x uint8 saturates too), gets weights of x's signedness here
-    (_same_signed_conv_integer_weights). Where the option's
-    rewrite breaks the model (int8 x int8 QLinearConv becomes a node no kernel runs; shared TFLite
-    weights make it fail) the session goes without it: its int8 x int8 kernels sign-extend to int16
-    first and do not saturate."""
+    session.x64quantprecision rewrites them to its exact uint8 x uint8 kernels. ConvInteger of int8 x
+    and uint8 weights saturates with or without it (Zen 3): it gets weights of x's signedness here
+    (_same_signed_conv_integer_weights). Where the option's rewrite breaks the model (int8 x int8
+    QLinearConv becomes a node no kernel runs; shared TFLite weights make it fail) the session goes
+    without it: its int8 x int8 kernels sign-extend to int16 first and do not saturate."""
     import onnxruntime as ort  # imported here: only verification needs it, not compiling
 
     model = _same_signed_conv_integer_weights(model)
